@@ -1,0 +1,144 @@
+"""The NumPy reference: docs/semantics.md, vectorised over the grid, float32 or float64.
+
+Every operation below is an element-wise, correctly rounded NumPy operation performed in
+the order the semantics fix, so a kernel that does the same operations in the same order
+(without FMA contraction) reproduces the float32 result bit for bit.
+The float64 run is the reference every accuracy figure is measured against.
+"""
+
+from __future__ import annotations
+
+import platform
+
+import numpy as np
+
+from ..scene import OFFSETS, Scene
+from .base import Availability, Backend, BackendOptions
+
+
+def probe() -> Availability:
+    return Availability(True, device=_cpu_name())
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "CPU"
+
+
+def _regions(n: int, dr: int, dc: int):
+    """Slices (rows, cols) of the particles i that have neighbour i + (dr, dc), and of those
+    neighbours, so that a neighbour outside the grid is skipped rather than added as zero."""
+    i_rows = slice(max(0, -dr), n - max(0, dr))
+    i_cols = slice(max(0, -dc), n - max(0, dc))
+    j_rows = slice(max(0, dr), n + min(0, dr))
+    j_cols = slice(max(0, dc), n + min(0, dc))
+    return (slice(None), i_rows, i_cols), (slice(None), j_rows, j_cols)
+
+
+class NumpyBackend(Backend):
+    name = "numpy"
+
+    def __init__(self, scene: Scene, options: BackendOptions):
+        super().__init__(scene, options)
+        if options.precision not in ("f32", "f64"):
+            raise ValueError(f"precision must be f32 or f64, got {options.precision!r}")
+        t = self.dtype = options.dtype
+        n = scene.grid
+        # constants rounded once from float64 to the working precision
+        self.dt = t(scene.dt)
+        self.dt2 = t(scene.dt * scene.dt)
+        self.k = t(scene.stiffness)
+        self.b = t(scene.damping)
+        self.gravity = np.array(scene.gravity, dtype=t).reshape(3, 1, 1)
+        self.springs = [
+            (*_regions(n, dr, dc), t(rest)) for (dr, dc), rest in zip(OFFSETS, scene.rest_lengths())
+        ]
+        self.spheres = [
+            (np.array(s.center, dtype=t).reshape(3, 1, 1), t(s.radius)) for s in scene.spheres
+        ]
+        # state as (3, n, n) component planes: same arithmetic, faster slicing than (n*n, 4)
+        self.pos = np.zeros((3, n, n), dtype=t)
+        self.prev = np.zeros((3, n, n), dtype=t)
+        self.w = np.zeros((n, n), dtype=t)
+        self.free = np.zeros((n, n), dtype=bool)
+        self.normals = None
+
+    @property
+    def device(self) -> str:
+        return _cpu_name()
+
+    @property
+    def mode(self) -> str:
+        return self.options.precision
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        n = self.scene.grid
+        self.pos = np.ascontiguousarray(pos[:, :3].T.reshape(3, n, n), dtype=self.dtype)
+        self.prev = np.ascontiguousarray(prev[:, :3].T.reshape(3, n, n), dtype=self.dtype)
+        self.w = np.ascontiguousarray(pos[:, 3].reshape(n, n), dtype=self.dtype)
+        self.free = self.w != 0
+
+    def advance(self, steps: int) -> None:
+        for _ in range(steps):
+            self.pos, self.prev = self._step(self.pos, self.prev), self.pos
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        n2 = self.scene.particles
+        out = []
+        for plane in (self.pos, self.prev):
+            a = np.empty((n2, 4), dtype=self.dtype)
+            a[:, :3] = plane.reshape(3, n2).T
+            a[:, 3] = self.w.reshape(n2)
+            out.append(a)
+        return out[0], out[1]
+
+    def _step(self, pos: np.ndarray, prev: np.ndarray) -> np.ndarray:
+        # Listing 22.1 step 3: velocity from the two positions; damping uses it per spring
+        vel = (pos - prev) / self.dt
+        bv = self.b * vel
+        force = np.zeros_like(pos)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for i, j, rest in self.springs:  # step 5: the 12 neighbours, in OFFSETS order
+                d = pos[j] - pos[i]
+                length2 = d[0] * d[0]
+                length2 += d[1] * d[1]
+                length2 += d[2] * d[2]
+                length = np.sqrt(length2)
+                s = (self.k * (length - rest)) / length
+                s[length2 == 0] = 0  # coincident particles: no direction, no spring force
+                force[i] += s * d - bv[i]
+        # step 6: Verlet, acceleration = gravity + force * inverse mass
+        force *= self.w
+        force += self.gravity
+        force *= self.dt2
+        new = 2 * pos
+        new -= prev
+        new += force
+        np.copyto(new, pos, where=~self.free)  # pinned particles do not move
+        for center, radius in self.spheres:
+            self._collide_sphere(new, center, radius)
+        return new
+
+    def _collide_sphere(self, x: np.ndarray, center: np.ndarray, radius) -> None:
+        d = x - center
+        length2 = d[0] * d[0]
+        length2 += d[1] * d[1]
+        length2 += d[2] * d[2]
+        length = np.sqrt(length2)
+        inside = (length < radius) & self.free
+        if not inside.any():
+            return
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = radius / length
+        pushed = center + d * s
+        # a particle exactly at the centre has no direction: push it straight up
+        at_center = inside & (length2 == 0)
+        if at_center.any():
+            pushed[:, at_center] = center[:, :, 0] + np.array([0, radius, 0], dtype=self.dtype)[:, None]
+        np.copyto(x, pushed, where=inside)

@@ -1,0 +1,134 @@
+"""Timed runs, the same for every backend.
+
+What is inside the timed region: only `advance(chunk)` between two `synchronize()` calls,
+so the clock sees the steps and nothing else. The upload of the initial state and the
+readback after each chunk (used for the blow-up check) are outside it. A backend whose
+transfer mode uploads every step (the chapter's OpenCL variant) does that inside
+`advance`, so its cost is timed, as it should be.
+
+Warm-up: the backend is built (kernel compiled) and advanced a few steps on a throwaway
+run before the timed run restarts from the initial state.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..errors import BlowUp
+from ..scene import Scene
+from .health import max_penetration, state_problem
+
+WARMUP_STEPS = 3
+
+
+@dataclass
+class RunResult:
+    backend: str
+    device: str
+    mode: str
+    scene: Scene
+    steps: int
+    chunk_ms_per_step: list[float] = field(default_factory=list)  # one per timed chunk
+    device_ms_per_step: list[float] = field(default_factory=list)  # profiling events, if any
+    warmup_s: float = 0.0  # build/compile plus the warm-up steps
+    pos: np.ndarray | None = None
+    prev: np.ndarray | None = None
+    blowup: BlowUp | None = None
+
+    @property
+    def ms_per_step(self) -> float:
+        return statistics.median(self.chunk_ms_per_step) if self.chunk_ms_per_step else float("nan")
+
+    @property
+    def finite(self) -> bool:
+        return self.pos is not None and bool(np.isfinite(self.pos[:, :3]).all())
+
+    @property
+    def max_penetration(self) -> float:
+        return max_penetration(self.pos, self.scene) if self.pos is not None else float("nan")
+
+    def spread(self) -> dict[str, float]:
+        """min, max and inter-quartile range of the per-chunk ms/step."""
+        xs = sorted(self.chunk_ms_per_step)
+        if not xs:
+            return {"min": float("nan"), "max": float("nan"), "iqr": float("nan")}
+        q = np.percentile(xs, [25, 75])
+        return {"min": xs[0], "max": xs[-1], "iqr": float(q[1] - q[0])}
+
+
+def default_chunk(steps: int) -> int:
+    """About ten timed chunks, each at least one step."""
+    return max(1, steps // 10)
+
+
+def warm_up(backend, scene: Scene) -> float:
+    """Compile and run a few steps; seconds taken."""
+    t0 = time.perf_counter()
+    pos, prev = scene.initial_state(backend.options.dtype)
+    backend.upload(pos, prev)
+    backend.advance(WARMUP_STEPS)
+    backend.synchronize()
+    backend.read()
+    return time.perf_counter() - t0
+
+
+def run_timed(
+    backend,
+    scene: Scene,
+    steps: int,
+    chunk: int | None = None,
+    on_progress: Callable[[int], None] | None = None,
+    raise_on_blowup: bool = True,
+    build_s: float = 0.0,
+) -> RunResult:
+    """Run `steps` steps from the initial state in timed chunks, checking health after each."""
+    chunk = chunk or default_chunk(steps)
+    result = RunResult(backend.name, backend.device, backend.mode, scene, steps)
+    result.warmup_s = build_s + warm_up(backend, scene)
+
+    pos, prev = scene.initial_state(backend.options.dtype)
+    backend.upload(pos, prev)
+    done = 0
+    while done < steps:
+        c = min(chunk, steps - done)
+        backend.synchronize()
+        t0 = time.perf_counter()
+        backend.advance(c)
+        backend.synchronize()
+        elapsed = time.perf_counter() - t0
+        result.chunk_ms_per_step.append(1e3 * elapsed / c)
+        dev = backend.device_elapsed_ms()
+        if dev is not None:
+            result.device_ms_per_step.append(dev / c)
+        new_pos, new_prev = backend.read()
+        problem = state_problem(new_pos, new_prev, scene, done + c)
+        if problem is not None:
+            step, what = _pinpoint(backend, scene, pos, prev, done, c)
+            result.pos, result.prev = new_pos, new_prev
+            result.blowup = BlowUp(step, what or problem)
+            if raise_on_blowup:
+                raise result.blowup
+            return result
+        pos, prev = new_pos, new_prev
+        done += c
+        if on_progress:
+            on_progress(done)
+    result.pos, result.prev = pos, prev
+    return result
+
+
+def _pinpoint(backend, scene, pos, prev, done, chunk) -> tuple[int, str | None]:
+    """Replay a failed chunk one step at a time from its start to name the first bad step."""
+    backend.upload(pos, prev)
+    for s in range(1, chunk + 1):
+        backend.advance(1)
+        p, q = backend.read()
+        problem = state_problem(p, q, scene, done + s)
+        if problem is not None:
+            return done + s, problem
+    return done + chunk, None  # not reproduced step by step: report the chunk's end

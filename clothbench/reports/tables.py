@@ -1,0 +1,42 @@
+"""Terminal tables (rich) for `run` and `backends`."""
+
+from __future__ import annotations
+
+from rich.console import Console
+from rich.table import Table
+
+
+def print_run(s: dict) -> None:
+    table = Table(title=f"clothbench run: {s['scene']} on {s['backend']}", show_header=False)
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    spread = f"{s['ms_per_step']:.3f} (min {s['ms_per_step_min']:.3f}, max {s['ms_per_step_max']:.3f})"
+    rows = [
+        ("backend", f"{s['backend']} ({s['mode']})"),
+        ("device", s["device"]),
+        ("grid", f"{s['grid']} x {s['grid']}"),
+        ("particles", f"{s['particles']:,}"),
+        ("springs", f"{s['springs']:,}"),
+        ("steps", f"{s['steps']:,} x dt {s['dt']:g} s = {s['simulated_s']:.4g} s simulated"),
+        ("ms/step", spread + " median of timed chunks"),
+    ]
+    if "device_ms_per_step" in s:
+        rows.append(("device ms/step", f"{s['device_ms_per_step']:.3f} (profiling events)"))
+    rows += [
+        ("warm-up", f"{s['warmup_s']:.2f} s (build + first steps, not timed)"),
+        ("finite", "yes" if s["finite"] else "NO"),
+        ("max penetration", f"{s['max_penetration']:.3g} m"),
+    ]
+    for what, value in rows:
+        table.add_row(what, str(value))
+    Console().print(table)
+
+
+def print_backends(rows: list[dict]) -> None:
+    table = Table(title="clothbench backends")
+    for col in ("backend", "kind", "usable", "device / reason"):
+        table.add_column(col)
+    for r in rows:
+        usable = "[green]yes[/green]" if r["usable"] else "[red]no[/red]"
+        table.add_row(r["backend"], r["kind"], usable, r["device"] if r["usable"] else r["reason"])
+    Console().print(table)

@@ -1,0 +1,291 @@
+"""The scene: what is simulated (static, validated, immutable) and its initial state.
+
+A scene never changes during a run; the changing part is the state, two (n*n, 4) arrays
+`pos` and `prev` whose w component is the particle's inverse mass (0 = pinned).
+The step semantics are in docs/semantics.md; this module only holds the data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SceneError
+
+# The 12-spring stencil as (d_row, d_col), in the order every backend sums it.
+STRUCTURAL = ((0, -1), (0, 1), (-1, 0), (1, 0))
+SHEAR = ((-1, -1), (-1, 1), (1, -1), (1, 1))
+BEND = ((-2, -2), (-2, 2), (2, -2), (2, 2))
+OFFSETS = STRUCTURAL + SHEAR + BEND
+# rest length of each offset in units of the grid spacing h
+OFFSET_LENGTH = tuple(math.hypot(dr, dc) for dr, dc in OFFSETS)
+
+CORNERS = ("top-left", "top-right", "bottom-left", "bottom-right")
+EDGES = ("top", "bottom", "left", "right")
+STARTS = ("rest", "second-order")
+
+# Keys the scene file may use, per table: anything else is a typo and is refused.
+_CLOTH_KEYS = {"grid", "size", "height", "mass", "stiffness", "damping"}
+_SIM_KEYS = {"dt", "steps", "gravity", "start"}
+_SPHERE_KEYS = {"center", "radius"}
+_PIN_KEYS = {"indices", "corners", "edge"}
+_TABLES = {"name", "description", "cloth", "sim", "sphere", "pins"}
+
+
+@dataclass(frozen=True)
+class Sphere:
+    center: tuple[float, float, float]
+    radius: float
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Everything that defines a run except the backend. Validated on construction."""
+
+    name: str = "custom"
+    description: str = ""
+    # [cloth]
+    grid: int = 64  # n: particles per side
+    size: float = 1.0  # side length of the sheet (m)
+    height: float = 1.0  # y of the flat initial sheet (m)
+    mass: float = 0.01  # mass of one particle (kg)
+    stiffness: float = 1000.0  # k of every spring (N/m)
+    damping: float = 0.002  # b of every spring (N s/m), applied to the particle's own velocity
+    # [sim]
+    dt: float = 5e-4
+    steps: int = 300
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    start: str = "rest"
+    # colliders and pins
+    spheres: tuple[Sphere, ...] = ()
+    pin_indices: tuple[int, ...] = ()
+    pin_corners: tuple[str, ...] = ()
+    pin_edge: str | None = None
+
+    def __post_init__(self):
+        _validate(self)
+
+    # --- derived, never stored -------------------------------------------------
+    @property
+    def particles(self) -> int:
+        return self.grid * self.grid
+
+    @property
+    def spacing(self) -> float:
+        return self.size / (self.grid - 1)
+
+    @property
+    def springs(self) -> int:
+        return count_springs(self.grid)
+
+    def rest_lengths(self) -> tuple[float, ...]:
+        """Rest length of each stencil offset, |(dr, dc)| * h, in float64."""
+        h = self.spacing
+        return tuple(length * h for length in OFFSET_LENGTH)
+
+    def pinned(self) -> np.ndarray:
+        """Sorted indices of the pinned particles."""
+        n = self.grid
+        idx = set(self.pin_indices)
+        corner_index = {
+            "top-left": 0,
+            "top-right": n - 1,
+            "bottom-left": (n - 1) * n,
+            "bottom-right": n * n - 1,
+        }
+        idx.update(corner_index[c] for c in self.pin_corners)
+        if self.pin_edge == "top":
+            idx.update(range(0, n))
+        elif self.pin_edge == "bottom":
+            idx.update(range((n - 1) * n, n * n))
+        elif self.pin_edge == "left":
+            idx.update(range(0, n * n, n))
+        elif self.pin_edge == "right":
+            idx.update(range(n - 1, n * n, n))
+        return np.array(sorted(idx), dtype=np.int64)
+
+    def replace(self, **changes) -> "Scene":
+        """A copy with some values changed, validated again."""
+        return dataclasses.replace(self, **changes)
+
+    def initial_state(self, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+        """(pos, prev) as (n*n, 4) arrays of `dtype`: a flat sheet at rest.
+
+        Computed in float64 and rounded once, so every backend starts from the same bits.
+        """
+        n, h = self.grid, self.spacing
+        row, col = np.divmod(np.arange(n * n), n)
+        pos = np.empty((n * n, 4), dtype=np.float64)
+        pos[:, 0] = col * h
+        pos[:, 1] = self.height
+        pos[:, 2] = row * h
+        pos[:, 3] = 1.0 / self.mass
+        pos[self.pinned(), 3] = 0.0
+        prev = pos.copy()
+        if self.start == "second-order":
+            # x_prev = x - v0*dt + a0*dt^2/2 with v0 = 0 and a0 = g (the flat sheet is at rest
+            # length, so springs add nothing): makes the start second-order accurate.
+            free = pos[:, 3] != 0.0
+            for axis in range(3):
+                prev[free, axis] = pos[free, axis] + 0.5 * self.gravity[axis] * self.dt * self.dt
+        return pos.astype(dtype), prev.astype(dtype)
+
+
+def count_springs(n: int) -> int:
+    """Springs counted per particle (each spring seen from both ends), as the chapter counts."""
+    return sum(max(0, n - abs(dr)) * max(0, n - abs(dc)) for dr, dc in OFFSETS)
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _vec3(value, what: str) -> tuple[float, float, float]:
+    if (
+        not isinstance(value, (list, tuple))
+        or len(value) != 3
+        or not all(_finite(v) for v in value)
+    ):
+        raise SceneError(f"{what} must be three finite numbers, got {value!r}")
+    return tuple(float(v) for v in value)
+
+
+def _validate(s: Scene) -> None:
+    if not isinstance(s.grid, int) or isinstance(s.grid, bool) or s.grid < 3:
+        raise SceneError(f"grid must be an integer >= 3, got {s.grid!r}")
+    if not isinstance(s.steps, int) or isinstance(s.steps, bool) or s.steps < 1:
+        raise SceneError(f"steps must be an integer >= 1, got {s.steps!r}")
+    for name, positive in (
+        ("dt", True),
+        ("size", True),
+        ("mass", True),
+        ("stiffness", False),
+        ("damping", False),
+        ("height", None),
+    ):
+        value = getattr(s, name)
+        if not _finite(value):
+            raise SceneError(f"{name} must be a finite number, got {value!r}")
+        if positive and value <= 0:
+            raise SceneError(f"{name} must be > 0, got {value!r}")
+        if positive is False and value < 0:
+            raise SceneError(f"{name} must be >= 0, got {value!r}")
+    object.__setattr__(s, "gravity", _vec3(s.gravity, "gravity"))
+    if s.start not in STARTS:
+        raise SceneError(f"start must be one of {', '.join(STARTS)}, got {s.start!r}")
+    for sphere in s.spheres:
+        _vec3(sphere.center, "sphere center")
+        if not _finite(sphere.radius) or sphere.radius <= 0:
+            raise SceneError(f"sphere radius must be > 0, got {sphere.radius!r}")
+    n2 = s.grid * s.grid
+    for i in s.pin_indices:
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < n2:
+            raise SceneError(f"pin index {i!r} is outside the grid (0 .. {n2 - 1})")
+    for c in s.pin_corners:
+        if c not in CORNERS:
+            raise SceneError(f"unknown pin corner {c!r} (known: {', '.join(CORNERS)})")
+    if s.pin_edge is not None and s.pin_edge not in EDGES:
+        raise SceneError(f"unknown pin edge {s.pin_edge!r} (known: {', '.join(EDGES)})")
+
+
+# --- TOML -------------------------------------------------------------------------
+
+
+def _table(data: dict, key: str, allowed: set, where: str) -> dict:
+    table = data.get(key, {})
+    if not isinstance(table, dict):
+        raise SceneError(f"{where}: [{key}] must be a table")
+    unknown = set(table) - allowed
+    if unknown:
+        raise SceneError(
+            f"{where}: unknown key {sorted(unknown)[0]!r} in [{key}] "
+            f"(allowed: {', '.join(sorted(allowed))})"
+        )
+    return table
+
+
+def scene_from_dict(data: dict, where: str = "scene") -> Scene:
+    unknown = set(data) - _TABLES
+    if unknown:
+        raise SceneError(
+            f"{where}: unknown table or key {sorted(unknown)[0]!r} "
+            f"(allowed: {', '.join(sorted(_TABLES))})"
+        )
+    cloth = _table(data, "cloth", _CLOTH_KEYS, where)
+    sim = _table(data, "sim", _SIM_KEYS, where)
+    pins = _table(data, "pins", _PIN_KEYS, where)
+    spheres_raw = data.get("sphere", [])
+    if not isinstance(spheres_raw, list):
+        raise SceneError(f"{where}: spheres are written [[sphere]] (an array of tables)")
+    spheres = []
+    for sph in spheres_raw:
+        if not isinstance(sph, dict):
+            raise SceneError(f"{where}: each [[sphere]] must be a table")
+        unknown = set(sph) - _SPHERE_KEYS
+        missing = _SPHERE_KEYS - set(sph)
+        if unknown or missing:
+            raise SceneError(
+                f"{where}: [[sphere]] needs exactly center and radius"
+                + (f" (unknown: {sorted(unknown)[0]!r})" if unknown else "")
+                + (f" (missing: {sorted(missing)[0]!r})" if missing else "")
+            )
+        spheres.append(Sphere(center=_vec3(sph["center"], "sphere center"), radius=sph["radius"]))
+    kwargs = dict(cloth)
+    kwargs.update({k: v for k, v in sim.items()})
+    if "gravity" in kwargs:
+        kwargs["gravity"] = _vec3(kwargs["gravity"], "gravity")
+    indices = pins.get("indices", [])
+    corners = pins.get("corners", [])
+    if not isinstance(indices, list) or not isinstance(corners, list):
+        raise SceneError(f"{where}: [pins] indices and corners must be lists")
+    try:
+        return Scene(
+            name=str(data.get("name", "custom")),
+            description=str(data.get("description", "")),
+            spheres=tuple(spheres),
+            pin_indices=tuple(indices),
+            pin_corners=tuple(corners),
+            pin_edge=pins.get("edge"),
+            **kwargs,
+        )
+    except SceneError as e:
+        raise SceneError(f"{where}: {e}") from None
+
+
+def builtin_scenes() -> list[str]:
+    folder = resources.files("clothbench") / "scenes"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def load_scene(name_or_path: str) -> Scene:
+    """A built-in scene by name (`sphere`, `drape`, ...) or a TOML file by path."""
+    path = Path(name_or_path)
+    if name_or_path.endswith(".toml") or path.exists():
+        where = str(path)
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise SceneError(f"cannot read scene file {where}: {e.strerror}") from None
+    else:
+        if name_or_path not in builtin_scenes():
+            raise SceneError(
+                f"unknown scene {name_or_path!r} "
+                f"(built in: {', '.join(builtin_scenes())}; or give a .toml file)"
+            )
+        where = f"built-in scene {name_or_path}"
+        text = (resources.files("clothbench") / "scenes" / f"{name_or_path}.toml").read_text()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{where}: not valid TOML: {e}") from None
+    data.setdefault("name", path.stem if where == str(path) else name_or_path)
+    return scene_from_dict(data, where)
+
+
+__all__ = ["Scene", "Sphere", "OFFSETS", "count_springs", "load_scene", "builtin_scenes"]
