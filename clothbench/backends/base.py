@@ -46,6 +46,11 @@ class Backend(ABC):
     """One simulation on one device. Subclasses supply the device-specific parts only."""
 
     name: str = "?"
+    # Option overrides a sweep measures for this backend by default, one CSV row each,
+    # e.g. ({"strict": True}, {"strict": False}) or transfer modes.
+    sweep_variants: tuple[dict, ...] = ({},)
+    # Whether options.local_size means something here (work-group / block size).
+    has_local_size: bool = False
 
     def __init__(self, scene: Scene, options: BackendOptions):
         self.scene = scene

@@ -43,6 +43,7 @@ def _regions(n: int, dr: int, dc: int):
 
 class NumpyBackend(Backend):
     name = "numpy"
+    sweep_variants = ({"precision": "f32"}, {"precision": "f64"})
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)
