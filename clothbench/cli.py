@@ -18,7 +18,8 @@ from .scene import Scene, load_scene
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one line, not usage + error
-        raise ClothbenchError(f"{self.prog}: {message}")
+        where = self.prog.removeprefix("clothbench").strip()
+        raise ClothbenchError(f"{where}: {message}" if where else message)
 
 
 def _add_scene_args(p: argparse.ArgumentParser) -> None:

@@ -1,0 +1,103 @@
+"""The command line: the must-show run, backends listing, and one-line errors for bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from clothbench.cli import main
+
+RUN_KEYS = {
+    "backend", "device", "grid", "particles", "springs", "steps", "dt", "precision",
+    "ms_per_step", "finite", "max_penetration",
+}
+
+
+def test_run_prints_json_from_a_real_process():
+    # the issue's must-show, as a user types it (through the installed package)
+    out = subprocess.run(
+        [sys.executable, "-m", "clothbench", "run", "--backend", "numpy", "--scene", "sphere",
+         "--grid", "64", "--steps", "300", "--json"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    assert RUN_KEYS <= set(result)
+    assert result["grid"] == 64 and result["particles"] == 4096 and result["springs"] == 47_380
+    assert result["finite"] is True and result["ms_per_step"] > 0
+    assert result["max_penetration"] < 1e-6
+
+
+def test_run_saves_pos_and_prev(tmp_path, capsys):
+    path = tmp_path / "state.npz"
+    assert main(["run", "--grid", "8", "--steps", "5", "--save", str(path), "--json"]) == 0
+    saved = np.load(path)
+    assert saved["pos"].shape == (64, 4) and saved["prev"].shape == (64, 4)
+    assert saved["pos"].dtype == np.float32
+
+
+def test_run_table_names_what_was_run(capsys):
+    assert main(["run", "--grid", "8", "--steps", "3", "--precision", "f64"]) == 0
+    out = capsys.readouterr().out
+    assert "numpy (f64)" in out and "8 x 8" in out and "ms/step" in out
+
+
+def test_backends_lists_every_platform_with_a_reason(capsys):
+    assert main(["backends", "--json"]) == 0
+    rows = {r["backend"]: r for r in json.loads(capsys.readouterr().out)}
+    assert {"numpy", "opencl", "glsl", "glsl-compute", "cuda"} <= set(rows)
+    assert rows["numpy"]["usable"]
+    for r in rows.values():
+        assert r["usable"] or r["reason"], f"{r['backend']} is unusable without a reason"
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["run", "--backend", "vulkan"], "unknown backend 'vulkan'"),
+        (["run", "--grid", "2"], "grid must be an integer >= 3"),
+        (["run", "--grid", "ten"], "invalid int value"),
+        (["run", "--steps", "0"], "steps must be an integer >= 1"),
+        (["run", "--dt", "0"], "dt must be > 0"),
+        (["run", "--dt=-1e-3"], "dt must be > 0"),
+        (["run", "--dt", "nan"], "dt must be a finite number"),
+        (["run", "--scene", "nowhere.toml"], "cannot read scene file"),
+        (["run", "--scene", "spheer"], "unknown scene 'spheer'"),
+        (["run", "--backend", "numpy", "--local-size", "0"], "--local-size must be >= 1"),
+        (["run", "--frobnicate"], "unrecognized arguments"),
+        (["fly"], "invalid choice"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert message in err
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("[cloth]\nmass = -1.0\n", "mass must be > 0"),
+        ("[cloth]\nstiffness = nan\n", "stiffness must be a finite number"),
+        ("[pins]\nindices = [5000]\n", "outside the grid"),
+        ("[cloth]\ngrid = 16\nstiff = 3\n", "unknown key 'stiff'"),
+        ("this is not toml", "not valid TOML"),
+    ],
+)
+def test_bad_scene_file_is_one_line_and_exit_2(tmp_path, text, message, capsys):
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    assert main(["run", "--scene", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err
+
+
+def test_blow_up_exits_3_naming_the_step(tmp_path, capsys):
+    path = tmp_path / "stiff.toml"
+    path.write_text("[cloth]\ngrid = 8\nstiffness = 100000.0\n[sim]\ndt = 0.002\nsteps = 100\n")
+    assert main(["run", "--scene", str(path)]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "blew up at step" in err
