@@ -35,13 +35,69 @@ _CLOTH_KEYS = {"grid", "size", "height", "mass", "stiffness", "damping"}
 _SIM_KEYS = {"dt", "steps", "gravity", "start"}
 _SPHERE_KEYS = {"center", "radius"}
 _PIN_KEYS = {"indices", "corners", "edge"}
-_TABLES = {"name", "description", "cloth", "sim", "sphere", "pins"}
+_COLLIDER_KEYS = {
+    "sphere": ("center", "radius"),
+    "cylinder": ("start", "end", "radius"),
+    "plane": ("point", "normal"),
+}
+_TABLES = {"name", "description", "cloth", "sim", "pins", *_COLLIDER_KEYS}
 
 
 @dataclass(frozen=True)
 class Sphere:
     center: tuple[float, float, float]
     radius: float
+
+    kind = "sphere"
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """A capped cylinder around the segment start-end."""
+
+    start: tuple[float, float, float]
+    end: tuple[float, float, float]
+    radius: float
+
+    kind = "cylinder"
+
+    @property
+    def length(self) -> float:
+        return math.dist(self.start, self.end)
+
+    @property
+    def axis(self) -> tuple[float, float, float]:
+        """Unit vector from start to end (float64)."""
+        length = self.length
+        return tuple((e - s) / length for s, e in zip(self.start, self.end))
+
+    @property
+    def radial(self) -> tuple[float, float, float]:
+        """A fixed unit vector perpendicular to the axis, for a particle exactly on it."""
+        u = self.axis
+        # cross the axis with the world axis it is least aligned with
+        helper = min(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), key=lambda e: abs(sum(a * b for a, b in zip(u, e))))
+        c = (u[1] * helper[2] - u[2] * helper[1], u[2] * helper[0] - u[0] * helper[2], u[0] * helper[1] - u[1] * helper[0])
+        norm = math.sqrt(sum(x * x for x in c))
+        return tuple(x / norm for x in c)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A one-sided half-space: the solid is where (x - point) . normal < 0."""
+
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+
+    kind = "plane"
+
+    @property
+    def unit_normal(self) -> tuple[float, float, float]:
+        norm = math.sqrt(sum(x * x for x in self.normal))
+        return tuple(x / norm for x in self.normal)
+
+
+COLLIDER_KINDS = {"sphere": Sphere, "cylinder": Cylinder, "plane": Plane}
 
 
 @dataclass(frozen=True)
@@ -64,6 +120,8 @@ class Scene:
     start: str = "rest"
     # colliders and pins
     spheres: tuple[Sphere, ...] = ()
+    cylinders: tuple[Cylinder, ...] = ()
+    planes: tuple[Plane, ...] = ()
     pin_indices: tuple[int, ...] = ()
     pin_corners: tuple[str, ...] = ()
     pin_edge: str | None = None
@@ -83,6 +141,11 @@ class Scene:
     @property
     def springs(self) -> int:
         return count_springs(self.grid)
+
+    @property
+    def colliders(self) -> tuple:
+        """Every collider in the order the step applies them: spheres, cylinders, planes."""
+        return self.spheres + self.cylinders + self.planes
 
     def rest_lengths(self) -> tuple[float, ...]:
         """Rest length of each stencil offset, |(dr, dc)| * h, in float64."""
@@ -183,6 +246,18 @@ def _validate(s: Scene) -> None:
         _vec3(sphere.center, "sphere center")
         if not _finite(sphere.radius) or sphere.radius <= 0:
             raise SceneError(f"sphere radius must be > 0, got {sphere.radius!r}")
+    for cyl in s.cylinders:
+        _vec3(cyl.start, "cylinder start")
+        _vec3(cyl.end, "cylinder end")
+        if not _finite(cyl.radius) or cyl.radius <= 0:
+            raise SceneError(f"cylinder radius must be > 0, got {cyl.radius!r}")
+        if cyl.length == 0:
+            raise SceneError(f"cylinder start and end must differ (zero-length cylinder at {cyl.start})")
+    for plane in s.planes:
+        _vec3(plane.point, "plane point")
+        _vec3(plane.normal, "plane normal")
+        if not any(plane.normal):
+            raise SceneError("plane normal must not be zero")
     n2 = s.grid * s.grid
     for i in s.pin_indices:
         if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < n2:
@@ -210,6 +285,31 @@ def _table(data: dict, key: str, allowed: set, where: str) -> dict:
     return table
 
 
+def _colliders(data: dict, kind: str, where: str) -> tuple:
+    """The [[kind]] array of tables as collider objects, every key checked."""
+    raw = data.get(kind, [])
+    if not isinstance(raw, list):
+        raise SceneError(f"{where}: colliders are written [[{kind}]] (an array of tables)")
+    keys = _COLLIDER_KEYS[kind]
+    out = []
+    for table in raw:
+        if not isinstance(table, dict):
+            raise SceneError(f"{where}: each [[{kind}]] must be a table")
+        unknown = set(table) - set(keys)
+        missing = set(keys) - set(table)
+        if unknown or missing:
+            raise SceneError(
+                f"{where}: [[{kind}]] needs exactly {', '.join(keys)}"
+                + (f" (unknown: {sorted(unknown)[0]!r})" if unknown else "")
+                + (f" (missing: {sorted(missing)[0]!r})" if missing else "")
+            )
+        values = {
+            k: table[k] if k == "radius" else _vec3(table[k], f"{kind} {k}") for k in keys
+        }
+        out.append(COLLIDER_KINDS[kind](**values))
+    return tuple(out)
+
+
 def scene_from_dict(data: dict, where: str = "scene") -> Scene:
     unknown = set(data) - _TABLES
     if unknown:
@@ -220,22 +320,7 @@ def scene_from_dict(data: dict, where: str = "scene") -> Scene:
     cloth = _table(data, "cloth", _CLOTH_KEYS, where)
     sim = _table(data, "sim", _SIM_KEYS, where)
     pins = _table(data, "pins", _PIN_KEYS, where)
-    spheres_raw = data.get("sphere", [])
-    if not isinstance(spheres_raw, list):
-        raise SceneError(f"{where}: spheres are written [[sphere]] (an array of tables)")
-    spheres = []
-    for sph in spheres_raw:
-        if not isinstance(sph, dict):
-            raise SceneError(f"{where}: each [[sphere]] must be a table")
-        unknown = set(sph) - _SPHERE_KEYS
-        missing = _SPHERE_KEYS - set(sph)
-        if unknown or missing:
-            raise SceneError(
-                f"{where}: [[sphere]] needs exactly center and radius"
-                + (f" (unknown: {sorted(unknown)[0]!r})" if unknown else "")
-                + (f" (missing: {sorted(missing)[0]!r})" if missing else "")
-            )
-        spheres.append(Sphere(center=_vec3(sph["center"], "sphere center"), radius=sph["radius"]))
+    colliders = {kind: _colliders(data, kind, where) for kind in COLLIDER_KINDS}
     kwargs = dict(cloth)
     kwargs.update({k: v for k, v in sim.items()})
     if "gravity" in kwargs:
@@ -248,7 +333,9 @@ def scene_from_dict(data: dict, where: str = "scene") -> Scene:
         return Scene(
             name=str(data.get("name", "custom")),
             description=str(data.get("description", "")),
-            spheres=tuple(spheres),
+            spheres=colliders["sphere"],
+            cylinders=colliders["cylinder"],
+            planes=colliders["plane"],
             pin_indices=tuple(indices),
             pin_corners=tuple(corners),
             pin_edge=pins.get("edge"),
@@ -288,4 +375,4 @@ def load_scene(name_or_path: str) -> Scene:
     return scene_from_dict(data, where)
 
 
-__all__ = ["Scene", "Sphere", "OFFSETS", "count_springs", "load_scene", "builtin_scenes"]
+__all__ = ["Scene", "Sphere", "Cylinder", "Plane", "OFFSETS", "count_springs", "load_scene", "builtin_scenes"]

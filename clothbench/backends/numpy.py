@@ -60,9 +60,7 @@ class NumpyBackend(Backend):
         self.springs = [
             (*_regions(n, dr, dc), t(rest)) for (dr, dc), rest in zip(OFFSETS, scene.rest_lengths())
         ]
-        self.spheres = [
-            (np.array(s.center, dtype=t).reshape(3, 1, 1), t(s.radius)) for s in scene.spheres
-        ]
+        self.colliders = [_collider_constants(c, t) for c in scene.colliders]
         # state as (3, n, n) component planes: same arithmetic, faster slicing than (n*n, 4)
         self.pos = np.zeros((3, n, n), dtype=t)
         self.prev = np.zeros((3, n, n), dtype=t)
@@ -109,9 +107,7 @@ class NumpyBackend(Backend):
         force = np.zeros_like(pos)
         for i, j, rest in self.springs:  # step 5: the 12 neighbours, in OFFSETS order
             d = pos[j] - pos[i]
-            length2 = d[0] * d[0]
-            length2 += d[1] * d[1]
-            length2 += d[2] * d[2]
+            length2 = _dot(d, d)
             length = np.sqrt(length2)
             s = (self.k * (length - rest)) / length
             s[length2 == 0] = 0  # coincident particles: no direction, no spring force
@@ -124,23 +120,82 @@ class NumpyBackend(Backend):
         new -= prev
         new += force
         np.copyto(new, pos, where=~self.free)  # pinned particles do not move
-        for center, radius in self.spheres:
-            self._collide_sphere(new, center, radius)
+        for kind, constants in self.colliders:  # spheres, then cylinders, then planes
+            COLLIDE[kind](new, self.free, **constants)
         return new
 
-    def _collide_sphere(self, x: np.ndarray, center: np.ndarray, radius) -> None:
-        d = x - center
-        length2 = d[0] * d[0]
-        length2 += d[1] * d[1]
-        length2 += d[2] * d[2]
-        length = np.sqrt(length2)
-        inside = (length < radius) & self.free
-        if not inside.any():
-            return
-        s = radius / length
-        pushed = center + d * s
-        # a particle exactly at the centre has no direction: push it straight up
-        at_center = inside & (length2 == 0)
-        if at_center.any():
-            pushed[:, at_center] = center[:, :, 0] + np.array([0, radius, 0], dtype=self.dtype)[:, None]
-        np.copyto(x, pushed, where=inside)
+
+def _collider_constants(collider, t) -> tuple[str, dict]:
+    """A collider's constants, rounded once to the working precision (docs/semantics.md)."""
+
+    def vec(v):
+        return np.array(v, dtype=t).reshape(3, 1, 1)
+
+    if collider.kind == "sphere":
+        return "sphere", {"c": vec(collider.center), "r": t(collider.radius)}
+    if collider.kind == "cylinder":
+        u = collider.axis
+        return "cylinder", {
+            "a": vec(collider.start),
+            "u": vec(u),
+            "length": t(collider.length),
+            "r": t(collider.radius),
+            "radial_r": vec([e * collider.radius for e in collider.radial]),
+        }
+    return "plane", {"p0": vec(collider.point), "nrm": vec(collider.unit_normal)}
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(a.x*b.x + a.y*b.y) + a.z*b.z, the association every kernel uses."""
+    out = a[0] * b[0]
+    out += a[1] * b[1]
+    out += a[2] * b[2]
+    return out
+
+
+def _collide_sphere(x, free, c, r) -> None:
+    d = x - c
+    length2 = _dot(d, d)
+    length = np.sqrt(length2)
+    inside = (length < r) & free
+    if not inside.any():
+        return
+    pushed = c + d * (r / length)
+    # a particle exactly at the centre has no direction: push it straight up
+    at_center = inside & (length2 == 0)
+    pushed[1][at_center] = c[1, 0, 0] + r
+    pushed[0][at_center] = c[0, 0, 0]
+    pushed[2][at_center] = c[2, 0, 0]
+    np.copyto(x, pushed, where=inside)
+
+
+def _collide_cylinder(x, free, a, u, length, r, radial_r) -> None:
+    d = x - a
+    t = _dot(d, u)  # axial coordinate (m) from the start cap
+    q = u * t
+    p = d - q  # radial vector
+    rho2 = _dot(p, p)
+    rho = np.sqrt(rho2)
+    inside = (t > 0) & (t < length) & (rho < r) & free
+    if not inside.any():
+        return
+    # push out the shortest way: through the side, or through the nearer cap
+    side = r - rho
+    to_end = length - t
+    through_side = (side <= t) & (side <= to_end)
+    through_start = ~through_side & (t <= to_end)
+    pushed_side = (a + q) + p * (r / rho)
+    on_axis = rho2 == 0
+    pushed_side[:, on_axis] = ((a + q) + radial_r)[:, on_axis]
+    pushed = np.where(through_side, pushed_side, np.where(through_start, x - q, x + u * to_end))
+    np.copyto(x, pushed, where=inside)
+
+
+def _collide_plane(x, free, p0, nrm) -> None:
+    dist = _dot(x - p0, nrm)
+    inside = (dist < 0) & free
+    if inside.any():
+        np.copyto(x, x - nrm * dist, where=inside)
+
+
+COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "plane": _collide_plane}

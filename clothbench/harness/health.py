@@ -39,11 +39,22 @@ def state_problem(pos: np.ndarray, prev: np.ndarray, scene: Scene, step: int) ->
 
 def max_penetration(pos: np.ndarray, scene: Scene) -> float:
     """Deepest penetration of a free particle into any collider (m); 0 when none."""
-    xyz = pos[:, :3].astype(np.float64)
-    free = pos[:, 3] != 0
+    xyz = pos[pos[:, 3] != 0, :3].astype(np.float64)
     worst = 0.0
+    if not len(xyz):
+        return worst
     for s in scene.spheres:
-        dist = np.sqrt(((xyz[free] - np.array(s.center)) ** 2).sum(axis=1))
-        if dist.size:
-            worst = max(worst, float((s.radius - dist).max()))
+        depth = s.radius - np.linalg.norm(xyz - np.array(s.center), axis=1)
+        worst = max(worst, float(depth.max()))
+    for c in scene.cylinders:
+        u = np.array(c.axis)
+        d = xyz - np.array(c.start)
+        t = d @ u
+        rho = np.linalg.norm(d - np.outer(t, u), axis=1)
+        # inside: the shortest way out is the smallest of side, start cap and end cap
+        depth = np.minimum(np.minimum(c.radius - rho, t), c.length - t)
+        worst = max(worst, float(depth.max()))
+    for p in scene.planes:
+        depth = -((xyz - np.array(p.point)) @ np.array(p.unit_normal))
+        worst = max(worst, float(depth.max()))
     return worst
