@@ -195,6 +195,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("clothbench: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `clothbench backends | head`: the reader left, nothing to say
+        sys.stderr.close()
+        return 141
 
 
 if __name__ == "__main__":
