@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -196,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
         print("clothbench: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # `clothbench backends | head`: the reader left, nothing to say
-        sys.stderr.close()
+        # point stdout at /dev/null so the interpreter's final flush does not complain
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
 
 
