@@ -74,15 +74,20 @@ def availability(name: str) -> Availability:
         return Availability(False, f"probe failed: {type(e).__name__}: {e}")
 
 
+def backend_class(name: str) -> type[Backend] | None:
+    """The Backend subclass for `name`, or None where its file does not exist yet."""
+    module = _module(name)
+    return getattr(module, check_name(name).cls) if module is not None else None
+
+
 def create_backend(name: str, scene: Scene, options: BackendOptions | None = None) -> Backend:
     """A ready backend for `scene`, or BackendUnavailable saying why not."""
     options = options or BackendOptions()
-    entry = check_name(name)
+    check_name(name)
     avail = availability(name)
     if not avail.usable:
         raise BackendUnavailable(name, avail.reason)
-    cls = getattr(_module(name), entry.cls)
-    return cls(scene, options)
+    return backend_class(name)(scene, options)
 
 
 def resolve_names(spec: str, include_peers: bool = True) -> list[str]:
@@ -104,6 +109,7 @@ __all__ = [
     "BACKENDS",
     "OWN_BACKENDS",
     "availability",
+    "backend_class",
     "create_backend",
     "resolve_names",
 ]

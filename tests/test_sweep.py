@@ -1,0 +1,258 @@
+"""The sweep: one complete CSV row per backend variant and grid, written as measured, and
+nothing lost or duplicated when a sweep is killed and resumed."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+import types
+
+import numpy as np
+import pytest
+
+from clothbench.backends import BACKENDS, Availability, BackendEntry, availability
+from clothbench.backends.numpy import NumpyBackend
+from clothbench.cli import main
+from clothbench.harness import sweep as sweep_module
+from clothbench.harness.sweep import COLUMNS, MEASUREMENT_COLUMNS, row_key
+from clothbench.scene import count_springs, load_scene
+
+# Columns the issue asks every row to have (the file has more).
+ISSUE_COLUMNS = (
+    "backend", "peer", "mode", "strict", "transfer", "local_size", "precision", "device", "scene", "grid",
+    "particles", "springs", "steps", "repeats", "dt", "ms_median", "ms_min", "ms_max", "ms_iqr",
+    "particles_per_s", "warmup_s", "finite", "status", "note", "err_rms_m", "err_max_m", "simulated_s",
+    "cpu", "cores", "python", "packages", "git_commit", "timestamp", "timed_region", "solver", "generic",
+)  # fmt: skip
+TINY = ["--steps", "3", "--repeat", "2"]
+
+
+def read_csv(path) -> list[dict[str, str]]:
+    """The rows, after checking the file is whole lines of exactly the header's width."""
+    text = path.read_text()
+    assert text.endswith("\n"), "the file ends in a partial line"
+    records = list(csv.reader(text.splitlines()))
+    assert tuple(records[0]) == COLUMNS
+    assert all(len(r) == len(COLUMNS) for r in records[1:]), "a line has the wrong number of fields"
+    return [dict(zip(COLUMNS, r)) for r in records[1:]]
+
+
+# --- fake backends, registered for one test: the sweep must not care which backend it runs
+
+
+class LocalSizeBackend(NumpyBackend):
+    """The numpy step, claiming a work-group size and strict/fast variants."""
+
+    name = "fake-local"
+    has_local_size = True
+    sweep_variants = ({"strict": True}, {"strict": False})
+
+    @property
+    def mode(self) -> str:
+        return "strict" if self.options.strict else "fast"
+
+
+class ExplodingBackend(NumpyBackend):
+    """Raises as a driver would when a launch fails."""
+
+    name = "fake-explode"
+    sweep_variants = ({},)
+
+    def advance(self, steps: int) -> None:
+        raise RuntimeError("kernel launch failed: CL_OUT_OF_RESOURCES")
+
+
+class NaNBackend(NumpyBackend):
+    """Turns a particle into NaN on every step: a blow-up."""
+
+    name = "fake-nan"
+    sweep_variants = ({},)
+
+    def advance(self, steps: int) -> None:
+        super().advance(steps)
+        self.pos[0, 0, 0] = np.nan
+
+
+class PeerBackend(NumpyBackend):
+    name = "fake-peer"
+    sweep_variants = ({},)
+
+
+@pytest.fixture
+def fake_backends(monkeypatch):
+    usable = types.ModuleType("clothbench.backends._fake_usable")
+    usable.probe = lambda: Availability(True, device="fake device")
+    absent = types.ModuleType("clothbench.backends._fake_absent")
+    absent.probe = lambda: Availability(False, "no fake device on this machine")
+    for cls in (LocalSizeBackend, ExplodingBackend, NaNBackend, PeerBackend):
+        setattr(usable, cls.__name__, cls)
+    monkeypatch.setitem(sys.modules, usable.__name__, usable)
+    monkeypatch.setitem(sys.modules, absent.__name__, absent)
+    for name, module, cls, peer in (
+        ("fake-local", "_fake_usable", "LocalSizeBackend", False),
+        ("fake-explode", "_fake_usable", "ExplodingBackend", False),
+        ("fake-nan", "_fake_usable", "NaNBackend", False),
+        ("fake-peer", "_fake_usable", "PeerBackend", True),
+        ("fake-absent", "_fake_absent", "Nothing", False),
+    ):
+        monkeypatch.setitem(BACKENDS, name, BackendEntry(name, module, cls, peer=peer))
+    availability.cache_clear()
+    yield
+    availability.cache_clear()
+
+
+# --- tests ---------------------------------------------------------------------------
+
+
+def test_sweep_of_two_tiny_grids_writes_every_column_and_one_row_per_variant_and_grid(tmp_path):
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "--backends", "numpy", "--grids", "8,12", *TINY, "--out", str(out)]) == 0
+    rows = read_csv(out)
+    assert set(ISSUE_COLUMNS) <= set(COLUMNS)
+    # numpy sweeps f32 and f64: 2 variants x 2 grids
+    assert sorted((r["grid"], r["precision"]) for r in rows) == [("12", "f32"), ("12", "f64"), ("8", "f32"), ("8", "f64")]
+    assert len({row_key(r) for r in rows}) == len(rows)
+    scene = load_scene("sphere")
+    for r in rows:
+        n = int(r["grid"])
+        assert r["status"] == "ok" and r["note"] == "" and r["finite"] == "true"
+        assert (int(r["particles"]), int(r["springs"])) == (n * n, count_springs(n))
+        assert (r["steps"], r["repeats"], r["solver"], r["timed_region"]) == ("3", "2", "verlet", "steps")
+        assert float(r["simulated_s"]) == pytest.approx(6 * scene.dt)
+        assert 0 < float(r["ms_min"]) <= float(r["ms_median"]) <= float(r["ms_max"])
+        assert float(r["particles_per_s"]) == pytest.approx(n * n * 1e3 / float(r["ms_median"]), rel=1e-5)
+        assert r["cpu"] and r["python"] and "numpy=" in r["packages"] and r["timestamp"]
+        # f64 is the reference itself; f32 differs from it by rounding only (6 steps, < 1 µm)
+        if r["precision"] == "f64":
+            assert float(r["err_rms_m"]) == 0.0
+        else:
+            assert 0 < float(r["err_rms_m"]) <= float(r["err_max_m"]) < 1e-6
+
+
+def test_every_row_is_one_complete_line_in_one_write_and_synced(tmp_path, monkeypatch):
+    writes, syncs = [], []
+    real_write, real_fsync = os.write, os.fsync
+
+    def spy_write(fd, data):
+        writes.append(bytes(data))
+        return real_write(fd, data)
+
+    def spy_fsync(fd):
+        syncs.append(fd)
+        return real_fsync(fd)
+
+    monkeypatch.setattr(sweep_module.os, "write", spy_write)
+    monkeypatch.setattr(sweep_module.os, "fsync", spy_fsync)
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out)]) == 0
+    assert len(writes) == 1 + 2  # the header, then one per row
+    assert all(w.endswith(b"\n") and w.count(b"\n") == 1 for w in writes)
+    assert len(syncs) >= len(writes)
+
+
+def test_failures_are_rows_with_the_reason_and_the_sweep_goes_on(tmp_path, capsys, fake_backends):
+    out = tmp_path / "s.csv"
+    backends = "fake-explode,fake-nan,fake-absent,fake-peer,numpy"
+    assert main(["sweep", "--backends", backends, "--grids", "8", *TINY, "--out", str(out)]) == 0
+    rows = {r["backend"]: r for r in read_csv(out)}
+    err = capsys.readouterr().err
+    # unusable: listed once with the reason, no row
+    assert err.count("skipped fake-absent: no fake device on this machine") == 1
+    assert "fake-absent" not in rows
+    # raised: failed, the reason in the note, nothing presented as a measurement
+    assert rows["fake-explode"]["status"] == "failed"
+    assert "CL_OUT_OF_RESOURCES" in rows["fake-explode"]["note"]
+    # blew up: unstable, with the step and what went wrong
+    assert rows["fake-nan"]["status"] == "unstable"
+    assert "blew up at step 1" in rows["fake-nan"]["note"] and "not finite" in rows["fake-nan"]["note"]
+    for bad in ("fake-explode", "fake-nan"):
+        assert all(rows[bad][c] in ("", "false") for c in MEASUREMENT_COLUMNS), rows[bad]
+    # the rows after them were measured
+    assert rows["fake-peer"]["status"] == "ok" and rows["fake-peer"]["peer"] == "true"
+    assert rows["numpy"]["status"] == "ok" and rows["numpy"]["peer"] == "false"
+
+
+def test_local_sizes_add_rows_only_for_backends_that_have_one(tmp_path, fake_backends):
+    out = tmp_path / "s.csv"
+    args = ["--backends", "fake-local,numpy", "--grids", "8", "--local-sizes", "16,32", *TINY, "--out", str(out)]
+    assert main(["sweep", *args]) == 0
+    rows = read_csv(out)
+    local = sorted((r["mode"], r["local_size"]) for r in rows if r["backend"] == "fake-local")
+    assert local == [("fast", ""), ("fast", "16"), ("fast", "32"), ("strict", ""), ("strict", "16"), ("strict", "32")]
+    assert {r["local_size"] for r in rows if r["backend"] == "numpy"} == {""}
+    assert len({row_key(r) for r in rows}) == len(rows) == 8
+
+
+def test_a_file_that_is_not_this_sweep_is_never_changed(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    out.write_text("precious\nno newline at the end")
+    args = ["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--resume" in err
+    assert main([*args, "--resume"]) == 2  # not a sweep CSV: its last line is not "torn"
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a clothbench sweep CSV" in err
+    assert out.read_text() == "precious\nno newline at the end"
+
+
+def test_resume_refuses_rows_timed_with_other_settings(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out)]) == 0
+    before = out.read_text()
+    args = ["--backends", "numpy", "--grids", "8,12", "--steps", "4", "--repeat", "2", "--out", str(out)]
+    assert main(["sweep", *args, "--resume"]) == 2
+    assert "--steps 3 --repeat 2" in capsys.readouterr().err
+    assert out.read_text() == before
+
+
+def test_resume_of_a_complete_sweep_measures_nothing(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    args = ["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out)]
+    assert main(args) == 0
+    before = out.read_text()
+    assert main([*args, "--resume"]) == 0
+    assert "0 rows measured, 2 in" in capsys.readouterr().err
+    assert out.read_text() == before
+
+
+def test_bad_grid_list_is_one_line_exit_2(capsys):
+    assert main(["sweep", "--grids", "8,twelve"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'twelve'" in err
+
+
+def test_resume_after_a_kill_measures_only_the_missing_rows_and_leaves_no_partial_line(tmp_path):
+    out = tmp_path / "s.csv"
+    # 8 rows; after the first (8x8, instant) the rest take about a second
+    cmd = [sys.executable, "-m", "clothbench", "sweep", "--backends", "numpy", "--grids", "8,96,128,160",
+           "--steps", "10", "--repeat", "10", "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    try:
+        while not (out.exists() and out.read_text().count("\n") >= 2):  # header + one row
+            assert proc.poll() is None, f"the sweep ended before a row appeared: {proc.stderr.read()}"
+            assert time.monotonic() < deadline, "no row appeared within 60 s"
+            time.sleep(0.005)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        proc.stderr.close()
+    assert proc.returncode == -signal.SIGKILL
+    finished = out.read_text().splitlines()[1:]
+    assert 1 <= len(finished) < 8, "the kill came after the sweep had finished"
+    with open(out, "a") as f:  # a write torn by the crash
+        f.write("numpy,false,verlet,f32,f32,fal")
+
+    resumed = subprocess.run([*cmd, "--resume"], capture_output=True, text=True, timeout=120)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "dropped a partial last line" in resumed.stderr
+    assert f"{8 - len(finished)} rows measured, 8 in" in resumed.stderr
+    rows = read_csv(out)  # whole lines only
+    assert out.read_text().splitlines()[1 : 1 + len(finished)] == finished  # kept, not re-measured
+    assert len(rows) == 8 and len({row_key(r) for r in rows}) == 8
+    assert all(r["status"] == "ok" for r in rows)
