@@ -1,0 +1,315 @@
+"""What the two GL backends share: one OpenGL context per provider, its program cache, and
+the scene constants as shader source or uniforms.
+
+Providers: EGL (headless, glcontext's `egl` backend: Mesa llvmpipe here, a GPU driver
+elsewhere) and OSMesa (Debian's libosmesa6; glcontext has no OSMesa backend, so the context
+is made with ctypes and handed to moderngl through `init_context(loader=...)`).
+`--gl egl` (the default) falls back to OSMesa when EGL fails; `--gl osmesa` uses only OSMesa.
+
+A context lives as long as the process, like a device: backends share it and release
+only their own textures and buffers. Every GL call runs inside `with device:`, which makes
+the context current, so EGL and OSMesa contexts can coexist in one process.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+import numpy as np
+
+from ..errors import ClothbenchError
+from ..kernel_source import glsl_float, read_kernel
+from ..scene import Scene
+
+INSTALL_HINT = "install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for OSMesa"
+MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs
+
+
+class GLUnavailable(ClothbenchError):
+    """No context could be made with the provider asked for; the message says why."""
+
+
+class GLDevice:
+    """An OpenGL context (the process's one for its provider) and its compiled programs."""
+
+    def __init__(self, ctx, provider: str, get_proc_address, keepalive=None):
+        self.ctx = ctx
+        self.provider = provider  # "egl" or "osmesa"
+        self.renderer = ctx.info["GL_RENDERER"]
+        self.version_code = ctx.version_code  # e.g. 450 for OpenGL 4.5
+        self.max_texture_buffer_size = ctx.info.get("GL_MAX_TEXTURE_BUFFER_SIZE", 0)
+        self._programs: dict = {}
+        self._get_proc_address = get_proc_address  # GL entry point by name, for what moderngl lacks
+        self._gl: dict = {}
+        self._keepalive = keepalive  # the OSMesa handle and its buffer must outlive ctx
+
+    def __enter__(self):
+        self.ctx.__enter__()  # make this context current (EGL, or the OSMesa loader's)
+        return self
+
+    def __exit__(self, *exc):
+        self.ctx.__exit__(*exc)
+
+    def program(self, key, build):
+        """The program for `key`, compiled by `build()` the first time it is asked for."""
+        if key not in self._programs:
+            self._programs[key] = build()
+        return self._programs[key]
+
+    @property
+    def programs_compiled(self) -> int:
+        return len(self._programs)
+
+    # --- buffer textures: moderngl has none, so these few calls go to GL directly ---------
+
+    def _fn(self, name: str, *argtypes):
+        if name not in self._gl:
+            address = self._get_proc_address(name)
+            if not address:
+                raise ClothbenchError(f"{self.renderer} has no {name}")
+            self._gl[name] = ctypes.CFUNCTYPE(None, *argtypes)(address)
+        return self._gl[name]
+
+    def buffer_texture(self, buffer) -> int:
+        """A GL_RGBA32F buffer texture viewing `buffer` (a moderngl Buffer): no copy."""
+        name = ctypes.c_uint(0)
+        self._fn("glGenTextures", ctypes.c_int, ctypes.POINTER(ctypes.c_uint))(1, ctypes.byref(name))
+        bind = self._fn("glBindTexture", ctypes.c_uint, ctypes.c_uint)
+        bind(_GL_TEXTURE_BUFFER, name.value)
+        self._fn("glTexBuffer", ctypes.c_uint, ctypes.c_uint, ctypes.c_uint)(
+            _GL_TEXTURE_BUFFER, _GL_RGBA32F, buffer.glo
+        )
+        bind(_GL_TEXTURE_BUFFER, 0)
+        return name.value
+
+    def bind_image_read(self, unit: int, texture: int) -> None:
+        """Bind a buffer texture to image unit `unit` for imageLoad (imageBuffer, rgba32f)."""
+        self._fn(
+            "glBindImageTexture", ctypes.c_uint, ctypes.c_uint, ctypes.c_int, ctypes.c_ubyte,
+            ctypes.c_int, ctypes.c_uint, ctypes.c_uint,
+        )(unit, texture, 0, 0, 0, _GL_READ_ONLY, _GL_RGBA32F)
+
+    def delete_textures(self, names: list[int]) -> None:
+        if names:
+            array = (ctypes.c_uint * len(names))(*names)
+            self._fn("glDeleteTextures", ctypes.c_int, ctypes.POINTER(ctypes.c_uint))(len(names), array)
+
+
+_GL_TEXTURE_BUFFER, _GL_RGBA32F, _GL_READ_ONLY = 0x8C2A, 0x8814, 0x88B8
+
+
+_devices: dict[str, GLDevice] = {}
+_failures: dict[str, str] = {}  # provider -> why it failed (not retried in this process)
+
+
+def get_device(gl: str = "egl") -> GLDevice:
+    """The context for `--gl egl` (EGL, else OSMesa) or `--gl osmesa`; GLUnavailable if none."""
+    if gl not in ("egl", "osmesa"):
+        raise ClothbenchError(f"--gl must be egl or osmesa, got {gl!r}")
+    order = ("egl", "osmesa") if gl == "egl" else ("osmesa",)
+    for provider in order:
+        device = _provider(provider)
+        if device is not None:
+            return device
+    if gl == "osmesa":
+        raise GLUnavailable(f"no OSMesa context: {_failures['osmesa']} ({INSTALL_HINT})")
+    raise GLUnavailable(
+        f"no EGL display ({_failures['egl']}) and no OSMesa ({_failures['osmesa']}) ({INSTALL_HINT})"
+    )
+
+
+def _provider(provider: str) -> GLDevice | None:
+    if provider in _devices:
+        return _devices[provider]
+    if provider in _failures:
+        return None
+    try:
+        device = _create_egl() if provider == "egl" else _create_osmesa()
+    except Exception as e:  # any failure to get a context means "not here", with the reason
+        _failures[provider] = f"{type(e).__name__}: {e}".strip().rstrip(":")
+        return None
+    _devices[provider] = device
+    return device
+
+
+def _create_egl() -> GLDevice:
+    import moderngl
+
+    ctx = moderngl.create_standalone_context(backend="egl", require=330)
+    egl = ctypes.CDLL("libEGL.so.1")  # loaded already by glcontext; its entry-point lookup
+    egl.eglGetProcAddress.restype = ctypes.c_void_p
+    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+    return GLDevice(ctx, "egl", lambda name: egl.eglGetProcAddress(name.encode()))
+
+
+# OSMesa constants (GL/osmesa.h)
+_OSMESA_FORMAT, _OSMESA_RGBA = 0x22, 0x1908
+_OSMESA_DEPTH_BITS, _OSMESA_PROFILE, _OSMESA_CORE_PROFILE = 0x30, 0x33, 0x34
+_OSMESA_MAJOR, _OSMESA_MINOR = 0x36, 0x37
+_GL_UNSIGNED_BYTE = 0x1401
+
+
+def _load_osmesa():
+    names = ["libOSMesa.so.8", "libOSMesa.so.6", ctypes.util.find_library("OSMesa")]
+    errors = []
+    for name in filter(None, names):
+        try:
+            return ctypes.CDLL(name)
+        except OSError as e:
+            errors.append(str(e))
+    raise OSError("libOSMesa not found" + (f" ({errors[-1]})" if errors else ""))
+
+
+class _OSMesaLoader:
+    """What moderngl's init_context needs from a context: GL entry points and make-current."""
+
+    def __init__(self, lib, handle, buffer):
+        self.lib, self.handle, self.buffer = lib, handle, buffer
+
+    def load_opengl_function(self, name: str) -> int:
+        return self.lib.OSMesaGetProcAddress(name.encode()) or 0
+
+    def make_current(self) -> None:
+        # OSMesa needs a colour buffer to be current; we never draw to it (1x1)
+        if not self.lib.OSMesaMakeCurrent(self.handle, self.buffer, _GL_UNSIGNED_BYTE, 1, 1):
+            raise RuntimeError("OSMesaMakeCurrent failed")
+
+    def __enter__(self):
+        self.make_current()
+
+    def __exit__(self, *exc):
+        pass
+
+    def release(self):
+        pass
+
+
+def _create_osmesa() -> GLDevice:
+    import moderngl
+
+    lib = _load_osmesa()
+    lib.OSMesaCreateContextAttribs.restype = ctypes.c_void_p
+    lib.OSMesaCreateContextAttribs.argtypes = [ctypes.POINTER(ctypes.c_int), ctypes.c_void_p]
+    lib.OSMesaMakeCurrent.restype = ctypes.c_ubyte
+    lib.OSMesaMakeCurrent.argtypes = [
+        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_int
+    ]
+    lib.OSMesaGetProcAddress.restype = ctypes.c_void_p
+    lib.OSMesaGetProcAddress.argtypes = [ctypes.c_char_p]
+    # a core-profile 4.5 context: compute shaders need 4.3, and the default OSMesa context is 2.1
+    attribs = [_OSMESA_FORMAT, _OSMESA_RGBA, _OSMESA_DEPTH_BITS, 0, _OSMESA_PROFILE,
+               _OSMESA_CORE_PROFILE, _OSMESA_MAJOR, 4, _OSMESA_MINOR, 5, 0]
+    handle = lib.OSMesaCreateContextAttribs((ctypes.c_int * len(attribs))(*attribs), None)
+    if not handle:
+        raise RuntimeError("OSMesaCreateContextAttribs refused a core 4.5 context")
+    loader = _OSMesaLoader(lib, handle, (ctypes.c_ubyte * 4)())
+    loader.make_current()
+    moderngl.init_context(loader=loader)
+    ctx = moderngl.get_context()
+    if ctx.version_code < 330:
+        raise RuntimeError(f"OSMesa gave OpenGL {ctx.version_code}, need 3.3+")
+    return GLDevice(ctx, "osmesa", loader.load_opengl_function, keepalive=loader)
+
+
+# --- the scene constants ------------------------------------------------------------------
+
+
+def shader_source(filename: str, version: int, defines: dict[str, object]) -> str:
+    """The kernel file with `#version` and the build switches in front of it."""
+    lines = [f"#version {version} core"]
+    lines += [f"#define {k} {v}".rstrip() for k, v in defines.items()]
+    return "\n".join(lines) + "\n#line 1\n" + read_kernel(filename)
+
+
+def collider_rows(scene: Scene) -> dict[str, np.ndarray]:
+    """The colliders as the kernels take them, float64 values rounded once to float32 rows of
+    vec4: spheres (centre, radius); cylinders (start, length), (unit axis, radius),
+    (radial_r, 0); planes (point, 0), (unit normal, 0)."""
+
+    def rows(values) -> np.ndarray:
+        return np.array(values, dtype=np.float64).reshape(-1, 4).astype(np.float32)
+
+    return {
+        "spheres": rows([(*s.center, s.radius) for s in scene.spheres]),
+        "cylinders": rows(
+            [
+                v
+                for c in scene.cylinders
+                for v in (
+                    (*c.start, c.length),
+                    (*c.axis, c.radius),
+                    (*(e * c.radius for e in c.radial), 0.0),  # radial_r, rounded once
+                )
+            ]
+        ),
+        "planes": rows([v for p in scene.planes for v in ((*p.point, 0.0), (*p.unit_normal, 0.0))]),
+    }
+
+
+def constant_defines(scene: Scene, generic: bool) -> dict[str, object]:
+    """Defines that make the kernel specialised (exact literals) or generic (uniforms).
+
+    Specialised (the default): every constant is an exact float32 literal (glsl_float, the
+    bit pattern), rounded once from the scene's float64 value as docs/semantics.md fixes,
+    and the compiler folds them. Generic: the kernel declares uniforms, which
+    set_constant_uniforms fills with the same float32 values; one program serves every scene.
+    """
+    counts = {"SPHERE_COUNT": len(scene.spheres), "CYLINDER_COUNT": len(scene.cylinders),
+              "PLANE_COUNT": len(scene.planes)}
+    if generic:
+        worst = max(counts.values())
+        if worst > MAX_GENERIC_COLLIDERS:
+            raise ClothbenchError(
+                f"--generic takes up to {MAX_GENERIC_COLLIDERS} colliders of each kind, the scene "
+                f"has {worst}; run without --generic"
+            )
+        return {"GENERIC": "", "MAX_COLLIDERS": MAX_GENERIC_COLLIDERS}
+
+    def vec4s(rows: np.ndarray) -> str:
+        items = ", ".join("vec4({})".format(", ".join(map(glsl_float, row))) for row in rows)
+        return f"vec4[{len(rows)}]({items})"
+
+    rest = scene.rest_lengths()
+    defines: dict[str, object] = {
+        "N_VALUE": scene.grid,
+        "DT_VALUE": glsl_float(scene.dt),
+        "DT2_VALUE": glsl_float(scene.dt * scene.dt),  # dt*dt in float64, rounded once
+        "K_VALUE": glsl_float(scene.stiffness),
+        "B_VALUE": glsl_float(scene.damping),
+        "G_VALUE": "vec3({})".format(", ".join(glsl_float(c) for c in scene.gravity)),
+        # the three distinct rest lengths: structural h, shear sqrt(2) h, bend 2 sqrt(2) h
+        "REST_VALUE": "float[3]({}, {}, {})".format(*(glsl_float(rest[o]) for o in (0, 4, 8))),
+        **counts,
+    }
+    for name, rows in collider_rows(scene).items():
+        if len(rows):
+            defines[f"{name.upper()}_VALUE"] = vec4s(rows)
+    return defines
+
+
+def set_constant_uniforms(program, scene: Scene) -> None:
+    """Fill a generic program's uniforms with the scene's constants, rounded once to float32."""
+    f32 = np.float32
+    rest = scene.rest_lengths()
+    values = {
+        "n": scene.grid,
+        "dt": f32(scene.dt),
+        "dt2": f32(scene.dt * scene.dt),
+        "k": f32(scene.stiffness),
+        "b": f32(scene.damping),
+        "g": tuple(f32(c) for c in scene.gravity),
+        "rest": [f32(rest[0]), f32(rest[4]), f32(rest[8])],
+        "num_spheres": len(scene.spheres),
+        "num_cylinders": len(scene.cylinders),
+        "num_planes": len(scene.planes),
+    }
+    for name, value in values.items():
+        if name in program:  # the compiler drops uniforms a program does not use
+            program[name].value = value
+    for name, rows in collider_rows(scene).items():
+        if len(rows) and name in program:
+            uniform = program[name]  # the whole declared array is written, zero-padded
+            padded = np.zeros((uniform.array_length, 4), dtype=np.float32)
+            padded[: len(rows)] = rows
+            uniform.write(padded.tobytes())

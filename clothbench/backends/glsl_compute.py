@@ -1,0 +1,162 @@
+"""GLSL compute-shader backend: the same step as `glsl`, as a GL 4.3 compute shader on SSBOs.
+
+Kernel: kernels/verlet_cloth.comp. The state is two (pos, prev) pairs of std430 vec4
+storage buffers; a step reads one pair and writes the other (bindings 2-3), then the pairs
+swap roles: no copy. The input pair is read through imageBuffer views of the same buffers
+(no copy either): llvmpipe loads SSBOs one lane at a time, images with vector gathers.
+Each step is two dispatches, the interior (every neighbour present, no bounds tests) and
+the border, then a memory barrier before the next step reads what this one wrote.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ClothbenchError
+from ..scene import Scene
+from . import gl_context
+from .base import Availability, Backend, BackendOptions
+from .glsl import base_mode, kernel_defines, open_device
+
+DEFAULT_LOCAL_SIZE = 64  # 64 to 1024 measured the same at n = 256 on llvmpipe; 32 and less slower
+MAX_GROUPS_X = 65535  # GL guarantees this many work groups per dimension, no more
+PASS_ALL, PASS_INTERIOR, PASS_BORDER = 0, 1, 2  # as in the kernel
+# Read the input pair through imageBuffer views where the driver allows a view that large:
+# half the step time of SSBO loads on llvmpipe. Tests turn it off to check the SSBO path.
+PREFER_IMAGE_READS = True
+
+
+def probe() -> Availability:
+    try:
+        device = gl_context.get_device("egl")
+    except gl_context.GLUnavailable as e:
+        return Availability(False, str(e))
+    if device.version_code < 430:
+        offers = f"{device.version_code / 100:.1f}"
+        return Availability(False, f"compute shaders need OpenGL 4.3; {device.renderer} offers {offers}")
+    return Availability(True, device=device.renderer)
+
+
+def _groups(count: int) -> tuple[int, int]:
+    """`count` work groups as (x, y), within the per-dimension limit."""
+    x = min(count, MAX_GROUPS_X)
+    return x, -(-count // x)
+
+
+class GLSLComputeBackend(Backend):
+    name = "glsl-compute"
+    sweep_variants = ({"strict": True}, {"strict": False})
+    has_local_size = True
+
+    def __init__(self, scene: Scene, options: BackendOptions):
+        super().__init__(scene, options)
+        self.gl = open_device(self.name, options, 430)
+        self.local_size = options.local_size or DEFAULT_LOCAL_SIZE
+        limit = self.gl.ctx.info["GL_MAX_COMPUTE_WORK_GROUP_INVOCATIONS"]
+        if self.local_size > limit:
+            raise ClothbenchError(
+                f"--local-size {self.local_size} is more than {self.gl.renderer} allows ({limit})"
+            )
+        n = scene.grid
+        self.image_reads = PREFER_IMAGE_READS and self.gl.max_texture_buffer_size >= scene.particles
+        # interior and border when there is an interior (n >= 5); else one pass with tests
+        if n >= 5:
+            counts = {PASS_INTERIOR: (n - 4) ** 2, PASS_BORDER: 8 * n - 16}
+        else:
+            counts = {PASS_ALL: n * n}
+        size = scene.particles * 16  # one vec4 per particle
+        with self.gl:
+            ctx = self.gl.ctx
+            # (program, work groups) for each dispatch of a step
+            self.passes = [
+                (self._program(p), _groups(-(-count // self.local_size))) for p, count in counts.items()
+            ]
+            self.pairs = [(ctx.buffer(reserve=size), ctx.buffer(reserve=size)) for _ in range(2)]
+            self.normals = ctx.buffer(reserve=size) if options.normals else None
+            # imageBuffer views of each pair, for the reads (IMAGE_READS), sharing its storage
+            self.views = []
+            if self.image_reads:
+                self.views = [tuple(map(self.gl.buffer_texture, pair)) for pair in self.pairs]
+        self.current = 0  # index of the pair holding the latest state
+        self.has_normals = False
+
+    def _program(self, pass_id: int):
+        defines = kernel_defines(self.scene, self.options)
+        defines.update(LOCAL_SIZE=self.local_size, PASS=pass_id)
+        if self.image_reads:
+            defines["IMAGE_READS"] = ""
+        source = gl_context.shader_source("verlet_cloth.comp", 430, defines)
+        program = self.gl.program(("comp", tuple(defines.items())), lambda: self.gl.ctx.compute_shader(source))
+        if self.options.generic:
+            gl_context.set_constant_uniforms(program, self.scene)
+        return program
+
+    @property
+    def device(self) -> str:
+        return self.gl.renderer
+
+    @property
+    def mode(self) -> str:
+        reads = "" if self.image_reads else "/ssbo-reads"
+        return f"{base_mode(self.options, self.gl)}{reads}/wg={self.local_size}"
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        with self.gl:
+            pos_buf, prev_buf = self.pairs[self.current]
+            pos_buf.write(np.ascontiguousarray(pos, dtype=np.float32))
+            prev_buf.write(np.ascontiguousarray(prev, dtype=np.float32))
+        self.has_normals = False
+
+    def advance(self, steps: int) -> None:
+        if steps <= 0:
+            return
+        with self.gl:
+            if self.options.generic:
+                for program, _ in self.passes:  # programs are shared between backends
+                    gl_context.set_constant_uniforms(program, self.scene)
+            if self.normals is not None:
+                self.normals.bind_to_storage_buffer(4)
+            for _ in range(steps):
+                source, target = self.current, 1 - self.current
+                if self.image_reads:
+                    for unit, view in enumerate(self.views[source]):
+                        self.gl.bind_image_read(unit, view)
+                else:
+                    for binding, buf in enumerate(self.pairs[source]):
+                        buf.bind_to_storage_buffer(binding)
+                for binding, buf in enumerate(self.pairs[target], start=2):
+                    buf.bind_to_storage_buffer(binding)
+                for program, groups in self.passes:
+                    program.run(*groups)
+                self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
+                self.current = target  # ping-pong: swap the pairs' roles
+        self.has_normals = self.options.normals
+
+    # Timing is perf_counter around finish() (the harness); device_elapsed_ms stays None:
+    # llvmpipe's timer queries report 1 ns for 17 ms of work (/work/shared/DRIVERS.md).
+    def synchronize(self) -> None:
+        with self.gl:
+            self.gl.ctx.finish()
+
+    def _read_buffer(self, buf) -> np.ndarray:
+        return np.frombuffer(buf.read(), dtype=np.float32).reshape(self.scene.particles, 4).copy()
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        with self.gl:
+            pos_buf, prev_buf = self.pairs[self.current]
+            return self._read_buffer(pos_buf), self._read_buffer(prev_buf)
+
+    def read_normals(self) -> np.ndarray | None:
+        """Normals of the positions the last step read (read()[1]), see docs/normals.md."""
+        if not self.has_normals:
+            return None
+        with self.gl:
+            return self._read_buffer(self.normals)
+
+    def close(self) -> None:
+        with self.gl:  # the context is shared (gl_context), so only our objects go
+            self.gl.delete_textures([view for pair in self.views for view in pair])
+            for buf in [b for pair in self.pairs for b in pair] + [self.normals]:
+                if buf is not None:
+                    buf.release()
+        self.views, self.pairs, self.normals = [], [], None

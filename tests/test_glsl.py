@@ -1,0 +1,443 @@
+"""The two OpenGL backends, `glsl` (fragment shader, FBO ping-pong) and `glsl-compute`
+(compute shader, SSBO ping-pong), each test run on both.
+
+Strict mode equals the NumPy float32 reference bit for bit; fast mode is as accurate as
+float32; normals follow docs/normals.md; grids of any size work; OSMesa works where
+libosmesa6 is installed; without any GL the backends say why and the tests skip.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from clothbench import cli
+from clothbench.backends import BackendOptions, availability, create_backend, gl_context, glsl, glsl_compute
+from clothbench.errors import BackendUnavailable, ClothbenchError
+from clothbench.harness import position_error, reference, simulate
+from clothbench.kernel_source import read_kernel
+from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
+
+from conftest import assert_bit_exact, require
+
+GL_BACKENDS = ["glsl", "glsl-compute"]
+
+# Fast mode is float32 in another order (dot(), inversesqrt, no `precise`), so it is held to
+# float32's own accuracy: its distance to the float64 reference may be at most this many
+# times the float32 reference's. Measured at 300 steps of `sphere`, n = 64 (contact
+# included): fast 4.9e-5 m, float32 4.7e-5 m. A wrong spring or sign is off by millimetres.
+FAST_ERROR_FACTOR = 4
+
+# Normals in fast mode vs the formula in float64 on the same float32 positions: each of the
+# ~20 float32 operations on unit-length values rounds by at most 6e-8; measured 1.2e-7.
+NORMAL_TOLERANCE = 1e-6
+
+
+@pytest.fixture(params=GL_BACKENDS)
+def backend(request) -> str:
+    require(request.param)
+    return request.param
+
+
+def sphere(n: int) -> Scene:
+    return load_scene("sphere").replace(grid=n)
+
+
+def device_name(backend: str) -> str:
+    return availability(backend).device
+
+
+def run(backend: str, scene: Scene, steps: int, **options) -> tuple[np.ndarray, np.ndarray]:
+    return simulate(backend, scene, steps, BackendOptions(**options))
+
+
+def assert_matches_numpy_f32(backend: str, scene: Scene, steps: int, **options) -> None:
+    """Strict result == numpy float32, or a failure naming the driver that could not."""
+    pos, prev = run(backend, scene, steps, strict=True, **options)
+    ref_pos, ref_prev = reference(scene, steps, "f32")
+    what = f"{backend} --strict on {device_name(backend)}, {scene.name} n={scene.grid}, {steps} steps"
+    assert_bit_exact(pos, ref_pos, f"{what}: pos")
+    assert_bit_exact(prev, ref_prev, f"{what}: prev")
+
+
+# --- strict: bit for bit -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("steps", [1, 500])
+@pytest.mark.parametrize("n", [32, 64])
+def test_strict_matches_numpy_f32_bit_for_bit(backend, n, steps):
+    assert_matches_numpy_f32(backend, sphere(n), steps)
+
+
+@pytest.mark.parametrize("n", [3, 4, 5, 33, 100])
+def test_grids_that_are_not_powers_of_two_work(backend, n):
+    # 3 and 4 have no interior for the compute shader's split; 5 has a 1x1 interior
+    assert_matches_numpy_f32(backend, sphere(n), 20)
+
+
+def test_the_other_read_path_is_exact_too(backend, monkeypatch):
+    # texelFetch (fragment) and SSBO loads (compute): what a driver without image reads uses
+    monkeypatch.setattr(glsl, "PREFER_IMAGE_READS", False)
+    monkeypatch.setattr(glsl_compute, "PREFER_IMAGE_READS", False)
+    with create_backend(backend, sphere(33), BackendOptions(strict=True)) as b:
+        assert not b.image_reads
+    assert_matches_numpy_f32(backend, sphere(33), 100)
+
+
+def every_collider_scene(n: int = 24) -> Scene:
+    """Two spheres, two cylinders (one skewed), a tilted floor and a pinned corner, all
+    touched by the falling sheet within the first 150 steps."""
+    return load_scene("sphere").replace(
+        grid=n,
+        spheres=(Sphere((0.5, 0.5, 0.5), 0.3), Sphere((0.2, 0.62, 0.3), 0.2)),
+        cylinders=(
+            Cylinder((0.1, 0.75, 0.2), (0.9, 0.78, 0.3), 0.06),
+            Cylinder((0.7, 0.0, 0.7), (0.7, 0.8, 0.7), 0.05),
+        ),
+        planes=(Plane((0.0, 0.78, 0.0), (0.1, 1.0, 0.05)),),
+        pin_corners=("top-left",),
+    )
+
+
+@pytest.mark.parametrize("generic", [False, True], ids=["literals", "uniforms"])
+def test_strict_is_exact_with_every_collider_kind(backend, generic):
+    scene = every_collider_scene()
+    free = scene.replace(spheres=(), cylinders=(), planes=())
+    steps = 150
+    # the colliders are actually hit: without them the state differs
+    assert not np.array_equal(reference(scene, steps, "f32")[0], reference(free, steps, "f32")[0])
+    assert_matches_numpy_f32(backend, scene, steps, generic=generic)
+
+
+def test_pinned_particles_never_move(backend):
+    scene = load_scene("drape").replace(grid=17)
+    pos0, _ = scene.initial_state(np.float32)
+    pos, _ = run(backend, scene, 200)
+    pinned = scene.pinned()
+    assert_bit_exact(pos[pinned], pos0[pinned], "pinned corners")
+    assert not np.array_equal(pos, pos0)
+
+
+# --- fast: as accurate as float32 ---------------------------------------------------------
+
+
+def test_fast_mode_is_as_accurate_as_float32(backend):
+    scene, steps = sphere(64), 300
+    pos, _ = run(backend, scene, steps)
+    f64 = reference(scene, steps, "f64")[0]
+    f32_rms, f32_max = position_error(reference(scene, steps, "f32")[0], f64)
+    rms, worst = position_error(pos, f64)
+    assert worst <= FAST_ERROR_FACTOR * f32_max, f"max error {worst:.3g} m, float32's {f32_max:.3g} m"
+    assert rms <= FAST_ERROR_FACTOR * f32_rms, f"RMS error {rms:.3g} m, float32's {f32_rms:.3g} m"
+
+
+# --- normals (docs/normals.md) -------------------------------------------------------------
+
+RING = ((-1, 0), (-1, -1), (0, -1), (1, 0), (1, 1), (0, 1))
+
+
+def expected_normals(pos: np.ndarray, n: int, dtype) -> np.ndarray:
+    """docs/normals.md evaluated in NumPy in `dtype`, in the documented order: (n*n, 3)."""
+    x = pos[:, :3].astype(dtype).reshape(n, n, 3)
+    rows, cols = np.mgrid[0:n, 0:n]
+
+    def neighbour(dr, dc):
+        r, c = rows + dr, cols + dc
+        ok = (r >= 0) & (r < n) & (c >= 0) & (c < n)
+        return x[np.clip(r, 0, n - 1), np.clip(c, 0, n - 1)] - x, ok
+
+    def unit(v):
+        l2 = (v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1]) + v[..., 2] * v[..., 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = v / np.sqrt(l2)[..., None]
+        u[l2 == 0] = 0
+        return u
+
+    total = np.zeros_like(x)
+    for e in range(6):
+        a, ok_a = neighbour(*RING[e])
+        c, ok_c = neighbour(*RING[(e + 1) % 6])
+        f = np.stack(
+            [
+                a[..., 1] * c[..., 2] - a[..., 2] * c[..., 1],
+                a[..., 2] * c[..., 0] - a[..., 0] * c[..., 2],
+                a[..., 0] * c[..., 1] - a[..., 1] * c[..., 0],
+            ],
+            axis=-1,
+        )
+        total = total + np.where((ok_a & ok_c)[..., None], unit(f), 0)
+    return unit(total).reshape(n * n, 3)
+
+
+def normals_of(backend: str, scene: Scene, pos: np.ndarray, strict: bool) -> np.ndarray:
+    """Upload `pos` as both positions, step once, return the normals (of `pos`)."""
+    with create_backend(backend, scene, BackendOptions(strict=strict, normals=True)) as b:
+        b.upload(pos, pos)
+        b.advance(1)
+        normals = b.read_normals()
+    assert normals.shape == (scene.particles, 4) and normals.dtype == np.float32
+    assert np.all(normals[:, 3] == 0)
+    return normals
+
+
+@pytest.mark.parametrize("strict", [True, False], ids=["strict", "fast"])
+def test_flat_sheet_normals_point_along_y(backend, strict):
+    scene = sphere(33)
+    pos, _ = scene.initial_state(np.float32)
+    normals = normals_of(backend, scene, pos, strict)
+    assert np.all(normals[:, [0, 2]] == 0)
+    if strict:  # y / sqrt(y*y) is exactly 1 in IEEE arithmetic
+        assert np.all(normals[:, 1] == 1)
+    else:
+        np.testing.assert_allclose(normals[:, 1], 1, rtol=0, atol=NORMAL_TOLERANCE)
+
+
+def roof(n: int, slope: float) -> tuple[Scene, np.ndarray]:
+    """A flat sheet folded along its middle column: y = height + slope * |x - 0.5|."""
+    scene = sphere(n)
+    pos, _ = scene.initial_state(np.float64)
+    pos[:, 1] += slope * np.abs(pos[:, 0] - 0.5)
+    return scene, pos.astype(np.float32)
+
+
+@pytest.mark.parametrize("strict", [True, False], ids=["strict", "fast"])
+def test_folded_sheet_normals_are_the_average_of_its_faces(backend, strict):
+    n, a = 33, 0.6
+    scene, pos = roof(n, a)
+    normals = normals_of(backend, scene, pos, strict)[:, :3].reshape(n, n, 3)
+    s1, s3 = math.sqrt(1 + a * a), math.sqrt(9 + a * a)
+    ridge = n // 2  # column at x = 0.5
+    expected = np.zeros((n, n, 3))
+    expected[:, :ridge] = (a, 1, 0) / np.float64(s1)  # left face, y = a (0.5 - x) + ...
+    expected[:, ridge + 1 :] = (-a, 1, 0) / np.float64(s1)  # right face
+    expected[:, ridge] = (0, 1, 0)  # 3 left and 3 right triangles
+    expected[0, ridge] = (-a, 3, 0) / np.float64(s3)  # top row: 1 left, 2 right triangles
+    expected[-1, ridge] = (a, 3, 0) / np.float64(s3)  # bottom row: 2 left, 1 right
+    # the fold's float32 positions are planar only to ~ulp(1)/h = 2e-6 in direction
+    np.testing.assert_allclose(normals, expected, rtol=0, atol=1e-5)
+
+
+def bent_state(n: int) -> tuple[Scene, np.ndarray]:
+    scene = sphere(n)
+    pos, _ = scene.initial_state(np.float64)
+    rng = np.random.default_rng(10)
+    pos[:, 1] += 0.2 * np.sin(3 * pos[:, 0]) * np.cos(2 * pos[:, 2]) + 0.01 * rng.standard_normal(n * n)
+    pos[:, :3] += 0.002 * rng.standard_normal((n * n, 3))
+    return scene, pos.astype(np.float32)
+
+
+def test_strict_normals_equal_the_formula_in_float32_bit_for_bit(backend):
+    scene, pos = bent_state(29)
+    normals = normals_of(backend, scene, pos, strict=True)
+    assert_bit_exact(normals[:, :3], expected_normals(pos, scene.grid, np.float32), f"{backend} normals")
+
+
+def test_fast_normals_are_the_formula_within_float32_rounding(backend):
+    scene, pos = bent_state(29)
+    normals = normals_of(backend, scene, pos, strict=False)
+    expected = expected_normals(pos, scene.grid, np.float64)
+    np.testing.assert_allclose(normals[:, :3], expected, rtol=0, atol=NORMAL_TOLERANCE)
+
+
+def test_normals_belong_to_the_positions_the_last_step_read(backend):
+    scene = sphere(32)
+    with create_backend(backend, scene, BackendOptions(strict=True, normals=True)) as b:
+        b.upload(*scene.initial_state(np.float32))
+        b.advance(250)  # draped over the sphere: far from flat
+        pos, prev = b.read()
+        normals = b.read_normals()
+    assert_bit_exact(normals[:, :3], expected_normals(prev, 32, np.float32), "normals of prev")
+    assert not np.array_equal(normals[:, :3], expected_normals(pos, 32, np.float32))
+
+
+def test_normals_cost_nothing_unless_asked_for(backend):
+    scene = sphere(16)
+    with create_backend(backend, scene, BackendOptions()) as b:
+        b.upload(*scene.initial_state(np.float32))
+        b.advance(2)
+        assert b.read_normals() is None
+        assert "normals" not in b.mode
+    with create_backend(backend, scene, BackendOptions(normals=True)) as b:
+        b.upload(*scene.initial_state(np.float32))
+        assert b.read_normals() is None  # no step since the upload: none computed yet
+        b.advance(1)
+        assert b.read_normals() is not None
+        assert "normals" in b.mode
+
+
+def test_normals_do_not_change_the_step(backend):
+    scene = sphere(33)
+    with_normals = run(backend, scene, 50, strict=True, normals=True)
+    assert_bit_exact(with_normals[0], reference(scene, 50, "f32")[0], "pos with normals on")
+
+
+# --- host code: options, modes, caching --------------------------------------------------
+
+
+def test_device_is_the_gl_renderer(backend):
+    renderer = gl_context.get_device("egl").renderer
+    assert availability(backend).device == renderer
+    with create_backend(backend, sphere(8), BackendOptions()) as b:
+        assert b.device == renderer
+
+
+def test_modes_name_what_changes_speed_or_results():
+    require("glsl-compute")
+    scene = sphere(8)
+    assert create_backend("glsl", scene, BackendOptions(strict=True)).mode == "strict"
+    assert create_backend("glsl", scene, BackendOptions(normals=True)).mode == "fast/normals"
+    assert create_backend("glsl-compute", scene, BackendOptions()).mode == "fast/wg=64"
+    assert create_backend("glsl-compute", scene, BackendOptions(local_size=128)).mode == "fast/wg=128"
+    assert glsl.GLSLBackend.sweep_variants == ({"strict": True}, {"strict": False})
+    assert glsl_compute.GLSLComputeBackend.has_local_size and not glsl.GLSLBackend.has_local_size
+
+
+def test_programs_are_compiled_once_per_context(backend):
+    scene = sphere(12).replace(dt=4e-4)  # constants no other test uses: a new program
+    device = gl_context.get_device("egl")
+    with create_backend(backend, scene, BackendOptions(strict=True)):
+        compiled = device.programs_compiled
+    with create_backend(backend, scene, BackendOptions(strict=True)):
+        assert device.programs_compiled == compiled
+
+
+def test_f64_is_refused(backend):
+    with pytest.raises(ClothbenchError, match="f32 only"):
+        create_backend(backend, sphere(8), BackendOptions(precision="f64"))
+
+
+def test_dispatches_larger_than_65535_groups_are_spread_over_y():
+    require("glsl-compute")
+    # local size 1 at n = 260: the interior pass alone is 256^2 = 65536 work groups
+    assert_matches_numpy_f32("glsl-compute", sphere(260), 2, local_size=1)
+
+
+@pytest.mark.parametrize("local_size", [7, 100, 1024])
+def test_any_work_group_size_up_to_the_limit_is_exact(local_size):
+    require("glsl-compute")
+    assert_matches_numpy_f32("glsl-compute", sphere(40), 30, local_size=local_size)
+
+
+def test_work_group_size_past_the_limit_is_refused():
+    require("glsl-compute")
+    with pytest.raises(ClothbenchError, match="--local-size 4096 is more than"):
+        create_backend("glsl-compute", sphere(8), BackendOptions(local_size=4096))
+
+
+def test_the_step_is_the_same_text_in_both_kernels():
+    # the two GLSL files share the step verbatim; only their data access differs
+    def step(filename: str) -> str:
+        text = read_kernel(filename)
+        match = re.search(r"// ---- the step:.*?// ---- end of the step ----", text, re.S)
+        assert match, f"{filename} has no marked step section"
+        return match.group(0)
+
+    assert step("verlet_cloth.frag") == step("verlet_cloth.comp")
+
+
+@pytest.mark.parametrize("name", GL_BACKENDS)
+def test_cli_strict_run_saves_the_numpy_f32_bits(name, tmp_path, capsys):
+    """The issue's must-show: `clothbench run --backend glsl --strict --save` == numpy f32."""
+    require(name)
+    common = ["run", "--scene", "sphere", "--grid", "64", "--steps", "300", "--json"]
+    assert cli.main([*common, "--backend", name, "--strict", "--save", str(tmp_path / "g.npz")]) == 0
+    numpy_args = ["--backend", "numpy", "--precision", "f32", "--save", str(tmp_path / "n.npz")]
+    assert cli.main([*common, *numpy_args]) == 0
+    gl, ref = np.load(tmp_path / "g.npz"), np.load(tmp_path / "n.npz")
+    for key in ("pos", "prev"):
+        assert_bit_exact(gl[key], ref[key], f"{name} {key}")
+    assert '"mode": "strict' in capsys.readouterr().out
+
+
+def test_cli_saves_normals_when_asked(backend, tmp_path):
+    path = tmp_path / "s.npz"
+    args = ["run", "--backend", backend, "--grid", "16", "--steps", "20", "--json", "--save-normals"]
+    assert cli.main([*args, "--save", str(path)]) == 0
+    saved = np.load(path)
+    assert saved["normals"].shape == (256, 4)
+    np.testing.assert_allclose(saved["normals"][:, :3], expected_normals(saved["prev"], 16, np.float64),
+                               rtol=0, atol=NORMAL_TOLERANCE)
+
+
+# --- OSMesa, and no GL at all ------------------------------------------------------------
+
+
+@pytest.fixture
+def osmesa():
+    try:
+        gl_context._load_osmesa()
+    except OSError as e:
+        pytest.skip(f"OSMesa not installed (apt-get install libosmesa6): {e}")
+    return gl_context.get_device("osmesa")
+
+
+def test_osmesa_runs_strict_bit_for_bit(backend, osmesa):
+    assert osmesa.provider == "osmesa" and osmesa.version_code >= 430
+    with create_backend(backend, sphere(32), BackendOptions(gl="osmesa", strict=True)) as b:
+        assert b.mode.startswith("strict/osmesa")
+        assert b.gl is osmesa
+    assert_matches_numpy_f32(backend, sphere(32), 200, gl="osmesa")
+
+
+def test_egl_and_osmesa_contexts_interleave(osmesa):
+    require("glsl")
+    scene = sphere(20)
+    ref = reference(scene, 60, "f32")[0]
+    backends = [create_backend("glsl", scene, BackendOptions(strict=True, gl=gl)) for gl in ("egl", "osmesa")]
+    for b in backends:
+        b.upload(*scene.initial_state(np.float32))
+    for _ in range(6):  # each advance makes its own context current
+        for b in backends:
+            b.advance(10)
+    for b in backends:
+        assert_bit_exact(b.read()[0], ref, b.mode)
+        b.close()
+
+
+@pytest.fixture
+def no_gl_state(monkeypatch):
+    """Fresh context caches (the real ones come back afterwards) and a fresh registry cache."""
+    monkeypatch.setattr(gl_context, "_devices", {})
+    monkeypatch.setattr(gl_context, "_failures", {})
+    availability.cache_clear()
+    yield monkeypatch
+    availability.cache_clear()
+
+
+def _broken(what):
+    def create():
+        raise RuntimeError(what)
+
+    return create
+
+
+def test_egl_failing_falls_back_to_osmesa(no_gl_state, osmesa):
+    no_gl_state.setattr(gl_context, "_create_egl", _broken("no EGL display"))
+    assert availability("glsl").usable
+    with create_backend("glsl", sphere(16), BackendOptions()) as b:
+        assert b.mode == "fast/osmesa"
+
+
+def test_without_any_gl_the_backends_say_why_and_tests_skip(no_gl_state, capsys):
+    no_gl_state.setattr(gl_context, "_create_egl", _broken("found 0 devices"))
+    no_gl_state.setattr(gl_context, "_create_osmesa", _broken("libOSMesa not found"))
+    for name in GL_BACKENDS:
+        a = availability(name)
+        assert not a.usable
+        assert a.reason.startswith("no EGL display (RuntimeError: found 0 devices) and no OSMesa")
+        assert "libegl1 libegl-mesa0 libgl1-mesa-dri" in a.reason
+        with pytest.raises(pytest.skip.Exception, match=f"{name} unavailable: no EGL display"):
+            require(name)
+        assert cli.main(["run", "--backend", name, "--grid", "8", "--steps", "2"]) == 2
+        err = capsys.readouterr().err
+        assert f"{name} unavailable: no EGL display" in err and "Traceback" not in err
+
+
+def test_asking_for_osmesa_without_it_says_so(no_gl_state):
+    require("glsl")  # EGL works; only OSMesa is missing
+    no_gl_state.setattr(gl_context, "_create_osmesa", _broken("libOSMesa not found"))
+    with pytest.raises(BackendUnavailable, match=r"glsl unavailable: no OSMesa context: .*libosmesa6"):
+        create_backend("glsl", sphere(8), BackendOptions(gl="osmesa"))
