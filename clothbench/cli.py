@@ -167,6 +167,7 @@ EXTRA_COMMAND_MODULES = (
     "clothbench.harness.sweep_cli",
     "clothbench.reports.plot_cli",
     "clothbench.accuracy_cli",
+    "clothbench.reports.render_cli",
 )
 
 
