@@ -28,6 +28,10 @@ def _add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--grid", type=int, help="particles per side (n >= 3)")
     p.add_argument("--steps", type=int, help="steps to simulate")
     p.add_argument("--dt", type=float, help="time step (s)")
+    p.add_argument("--solver", choices=["verlet", "pbd"], help="mass-spring Verlet or PBD (docs/pbd.md)")
+    p.add_argument("--pbd-method", choices=["jacobi", "coloured"], help="PBD: Jacobi or coloured Gauss-Seidel")
+    p.add_argument("--iterations", type=int, help="PBD: constraint passes per substep")
+    p.add_argument("--substeps", type=int, help="PBD: substeps per step")
 
 
 def _add_backend_args(p: argparse.ArgumentParser) -> None:
@@ -45,7 +49,8 @@ def _add_backend_args(p: argparse.ArgumentParser) -> None:
 
 def scene_from_args(args) -> Scene:
     scene = load_scene(args.scene)
-    changes = {k: getattr(args, k) for k in ("grid", "steps", "dt") if getattr(args, k, None) is not None}
+    names = ("grid", "steps", "dt", "solver", "pbd_method", "iterations", "substeps")
+    changes = {k: getattr(args, k) for k in names if getattr(args, k, None) is not None}
     return scene.replace(**changes) if changes else scene
 
 
@@ -81,6 +86,10 @@ def cmd_run(args) -> int:
             backend, scene, scene.steps, on_progress=progress.update, raise_on_blowup=False, build_s=build_s
         )
         normals = backend.read_normals() if args.save_normals else None
+        stages = None
+        if args.profile and result.blowup is None:
+            backend.upload(*scene.initial_state(options.dtype))
+            stages = backend.profile_stages(scene.steps)
     if args.save:
         arrays = {"pos": result.pos, "prev": result.prev}
         if normals is not None:
@@ -93,6 +102,7 @@ def cmd_run(args) -> int:
         "device": result.device,
         "mode": result.mode,
         "scene": scene.name,
+        "solver": scene.solver,
         "grid": scene.grid,
         "particles": scene.particles,
         "springs": scene.springs,
@@ -109,6 +119,8 @@ def cmd_run(args) -> int:
     }
     if result.device_ms_per_step:
         summary["device_ms_per_step"] = statistics.median(result.device_ms_per_step)
+    if args.profile:
+        summary["stages_ms_per_step"] = stages  # None: this backend has one stage
     if args.json:
         print(json.dumps(summary))
     else:
@@ -151,6 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_backend_args(run)
     run.add_argument("--save", help="write pos, prev (and normals) to this .npz")
     run.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    run.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
     run.set_defaults(func=cmd_run)
 
     backends = sub.add_parser("backends", help="list every backend, whether it runs here, and why not")

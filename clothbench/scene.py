@@ -29,10 +29,13 @@ OFFSET_LENGTH = tuple(math.hypot(dr, dc) for dr, dc in OFFSETS)
 CORNERS = ("top-left", "top-right", "bottom-left", "bottom-right")
 EDGES = ("top", "bottom", "left", "right")
 STARTS = ("rest", "second-order")
+SOLVERS = ("verlet", "pbd")
+PBD_METHODS = ("jacobi", "coloured")
 
 # Keys the scene file may use, per table: anything else is a typo and is refused.
 _CLOTH_KEYS = {"grid", "size", "height", "mass", "stiffness", "damping"}
-_SIM_KEYS = {"dt", "steps", "gravity", "start"}
+_SIM_KEYS = {"dt", "steps", "gravity", "start", "solver"}
+_PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance"}
 _SPHERE_KEYS = {"center", "radius"}
 _PIN_KEYS = {"indices", "corners", "edge"}
 _COLLIDER_KEYS = {
@@ -40,7 +43,7 @@ _COLLIDER_KEYS = {
     "cylinder": ("start", "end", "radius"),
     "plane": ("point", "normal"),
 }
-_TABLES = {"name", "description", "cloth", "sim", "pins", *_COLLIDER_KEYS}
+_TABLES = {"name", "description", "cloth", "sim", "pbd", "pins", *_COLLIDER_KEYS}
 
 
 @dataclass(frozen=True)
@@ -118,6 +121,13 @@ class Scene:
     steps: int = 300
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     start: str = "rest"
+    solver: str = "verlet"
+    # [pbd]: the Position Based Dynamics solver (docs/pbd.md)
+    pbd_method: str = "jacobi"
+    iterations: int = 10
+    substeps: int = 1
+    relaxation: float = 1.5  # Jacobi over-relaxation of the averaged correction
+    compliance: tuple[float, float, float] | None = None  # per kind; None: 1/stiffness
     # colliders and pins
     spheres: tuple[Sphere, ...] = ()
     cylinders: tuple[Cylinder, ...] = ()
@@ -146,6 +156,12 @@ class Scene:
     def colliders(self) -> tuple:
         """Every collider in the order the step applies them: spheres, cylinders, planes."""
         return self.spheres + self.cylinders + self.planes
+
+    def pbd_compliance(self) -> tuple[float, float, float]:
+        """XPBD compliance (m/N) of structural, shear and bend constraints."""
+        if self.compliance is not None:
+            return self.compliance
+        return (1.0 / self.stiffness,) * 3
 
     def rest_lengths(self) -> tuple[float, ...]:
         """Rest length of each stencil offset, |(dr, dc)| * h, in float64."""
@@ -240,6 +256,22 @@ def _validate(s: Scene) -> None:
         if positive is False and value < 0:
             raise SceneError(f"{name} must be >= 0, got {value!r}")
     object.__setattr__(s, "gravity", _vec3(s.gravity, "gravity"))
+    if s.solver not in SOLVERS:
+        raise SceneError(f"solver must be one of {', '.join(SOLVERS)}, got {s.solver!r}")
+    if s.pbd_method not in PBD_METHODS:
+        raise SceneError(f"pbd method must be one of {', '.join(PBD_METHODS)}, got {s.pbd_method!r}")
+    for name in ("iterations", "substeps"):
+        value = getattr(s, name)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise SceneError(f"{name} must be an integer >= 1, got {value!r}")
+    if not _finite(s.relaxation) or not 0 < s.relaxation < 2:
+        raise SceneError(f"relaxation must be in (0, 2), got {s.relaxation!r}")
+    if s.compliance is not None:
+        object.__setattr__(s, "compliance", _vec3(s.compliance, "compliance"))
+        if min(s.compliance) < 0:
+            raise SceneError(f"compliance must be >= 0, got {list(s.compliance)}")
+    elif s.solver == "pbd" and s.stiffness == 0:
+        raise SceneError("the pbd solver needs stiffness > 0 or an explicit [pbd] compliance")
     if s.start not in STARTS:
         raise SceneError(f"start must be one of {', '.join(STARTS)}, got {s.start!r}")
     for sphere in s.spheres:
@@ -320,9 +352,11 @@ def scene_from_dict(data: dict, where: str = "scene") -> Scene:
     cloth = _table(data, "cloth", _CLOTH_KEYS, where)
     sim = _table(data, "sim", _SIM_KEYS, where)
     pins = _table(data, "pins", _PIN_KEYS, where)
+    pbd = _table(data, "pbd", _PBD_KEYS, where)
     colliders = {kind: _colliders(data, kind, where) for kind in COLLIDER_KINDS}
     kwargs = dict(cloth)
-    kwargs.update({k: v for k, v in sim.items()})
+    kwargs.update(sim)
+    kwargs.update({("pbd_method" if k == "method" else k): v for k, v in pbd.items()})
     if "gravity" in kwargs:
         kwargs["gravity"] = _vec3(kwargs["gravity"], "gravity")
     indices = pins.get("indices", [])

@@ -23,16 +23,33 @@ class BackendEntry:
     cls: str
     peer: bool = False  # a system users would pick instead of clothbench (not ours)
     summary: str = ""
+    pbd: tuple[str, str] | None = None  # (module, class) of its PBD solver, if it has one
 
 
 BACKENDS: dict[str, BackendEntry] = {
     e.name: e
     for e in (
-        BackendEntry("numpy", "numpy", "NumpyBackend", summary="vectorised NumPy reference (CPU)"),
-        BackendEntry("opencl", "opencl", "OpenCLBackend", summary="OpenCL kernel via pyopencl"),
+        BackendEntry(
+            "numpy",
+            "numpy",
+            "NumpyBackend",
+            summary="vectorised NumPy reference (CPU)",
+            pbd=("numpy_pbd", "NumpyPbdBackend"),
+        ),
+        BackendEntry(
+            "opencl",
+            "opencl",
+            "OpenCLBackend",
+            summary="OpenCL kernel via pyopencl",
+            pbd=("opencl_pbd", "OpenCLPbdBackend"),
+        ),
         BackendEntry("glsl", "glsl", "GLSLBackend", summary="GLSL fragment shader, FBO ping-pong"),
         BackendEntry(
-            "glsl-compute", "glsl_compute", "GLSLComputeBackend", summary="GLSL compute shader"
+            "glsl-compute",
+            "glsl_compute",
+            "GLSLComputeBackend",
+            summary="GLSL compute shader",
+            pbd=("glsl_compute_pbd", "GLSLComputePbdBackend"),
         ),
         BackendEntry("cuda", "cuda", "CudaBackend", summary="CUDA kernel via CuPy RawKernel"),
         BackendEntry("taichi", "taichi", "TaichiBackend", peer=True, summary="Taichi (peer)"),
@@ -44,9 +61,8 @@ BACKENDS: dict[str, BackendEntry] = {
 OWN_BACKENDS = [name for name, e in BACKENDS.items() if not e.peer]
 
 
-def _module(name: str):
-    entry = BACKENDS[name]
-    full = f"{__name__}.{entry.module}"
+def _module(name: str, module: str | None = None):
+    full = f"{__name__}.{module or BACKENDS[name].module}"
     try:
         return importlib.import_module(full)
     except ModuleNotFoundError as e:
@@ -74,10 +90,20 @@ def availability(name: str) -> Availability:
         return Availability(False, f"probe failed: {type(e).__name__}: {e}")
 
 
-def backend_class(name: str) -> type[Backend] | None:
-    """The Backend subclass for `name`, or None where its file does not exist yet."""
-    module = _module(name)
-    return getattr(module, check_name(name).cls) if module is not None else None
+def backend_class(name: str, solver: str = "verlet") -> type[Backend] | None:
+    """The Backend subclass for `name` and `solver`, or None where there is none yet."""
+    entry = check_name(name)
+    module_name, cls = entry.module, entry.cls
+    if solver == "pbd":
+        if entry.pbd is None:
+            return None
+        module_name, cls = entry.pbd
+    module = _module(name, module_name)
+    return getattr(module, cls) if module is not None else None
+
+
+def pbd_backends() -> list[str]:
+    return [name for name in BACKENDS if backend_class(name, "pbd") is not None]
 
 
 def create_backend(name: str, scene: Scene, options: BackendOptions | None = None) -> Backend:
@@ -87,7 +113,12 @@ def create_backend(name: str, scene: Scene, options: BackendOptions | None = Non
     avail = availability(name)
     if not avail.usable:
         raise BackendUnavailable(name, avail.reason)
-    return backend_class(name)(scene, options)
+    cls = backend_class(name, scene.solver)
+    if cls is None:
+        raise ClothbenchError(
+            f"{name} has no {scene.solver} solver (it runs on: {', '.join(pbd_backends())})"
+        )
+    return cls(scene, options)
 
 
 def resolve_names(spec: str, include_peers: bool = True) -> list[str]:
@@ -110,6 +141,7 @@ __all__ = [
     "OWN_BACKENDS",
     "availability",
     "backend_class",
+    "pbd_backends",
     "create_backend",
     "resolve_names",
 ]

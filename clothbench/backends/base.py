@@ -89,6 +89,12 @@ class Backend(ABC):
         """Device-measured time of the last advance() (profiling events), where available."""
         return None
 
+    def profile_stages(self, steps: int) -> dict[str, float] | None:
+        """Advance `steps` steps timing each stage on its own (synchronised between stages,
+        so slower than advance()); ms per step for each stage, or None where a backend has
+        a single stage."""
+        return None
+
     def close(self) -> None:
         """Release device resources."""
 

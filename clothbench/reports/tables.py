@@ -27,6 +27,11 @@ def print_run(s: dict) -> None:
         ("finite", "yes" if s["finite"] else "NO"),
         ("max penetration", f"{s['max_penetration']:.3g} m"),
     ]
+    if s.get("stages_ms_per_step"):
+        for stage, ms in s["stages_ms_per_step"].items():
+            rows.append((f"  stage {stage}", f"{ms:.3f} ms/step (synchronised per stage)"))
+    elif "stages_ms_per_step" in s:
+        rows.append(("stages", "one kernel: no separate stages to profile"))
     for what, value in rows:
         table.add_row(what, str(value))
     Console().print(table)
