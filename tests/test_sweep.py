@@ -82,13 +82,24 @@ class PeerBackend(NumpyBackend):
     sweep_variants = ({},)
 
 
+class GenericBackend(NumpyBackend):
+    """Has a generic kernel beside its specialised one: the generic one is slower."""
+
+    name = "fake-generic"
+    sweep_variants = ({},)
+    has_generic = True
+
+    def advance(self, steps: int) -> None:
+        super().advance(steps * (3 if self.options.generic else 1))
+
+
 @pytest.fixture
 def fake_backends(monkeypatch):
     usable = types.ModuleType("clothbench.backends._fake_usable")
     usable.probe = lambda: Availability(True, device="fake device")
     absent = types.ModuleType("clothbench.backends._fake_absent")
     absent.probe = lambda: Availability(False, "no fake device on this machine")
-    for cls in (LocalSizeBackend, ExplodingBackend, NaNBackend, PeerBackend):
+    for cls in (LocalSizeBackend, ExplodingBackend, NaNBackend, PeerBackend, GenericBackend):
         setattr(usable, cls.__name__, cls)
     monkeypatch.setitem(sys.modules, usable.__name__, usable)
     monkeypatch.setitem(sys.modules, absent.__name__, absent)
@@ -97,6 +108,7 @@ def fake_backends(monkeypatch):
         ("fake-explode", "_fake_usable", "ExplodingBackend", False),
         ("fake-nan", "_fake_usable", "NaNBackend", False),
         ("fake-peer", "_fake_usable", "PeerBackend", True),
+        ("fake-generic", "_fake_usable", "GenericBackend", False),
         ("fake-absent", "_fake_absent", "Nothing", False),
     ):
         monkeypatch.setitem(BACKENDS, name, BackendEntry(name, module, cls, peer=peer))
@@ -256,3 +268,27 @@ def test_resume_after_a_kill_measures_only_the_missing_rows_and_leaves_no_partia
     assert out.read_text().splitlines()[1 : 1 + len(finished)] == finished  # kept, not re-measured
     assert len(rows) == 8 and len({row_key(r) for r in rows}) == 8
     assert all(r["status"] == "ok" for r in rows)
+
+
+def test_generic_both_measures_each_kernel_and_reports_the_specialised_speedup(tmp_path, fake_backends):
+    out = tmp_path / "g.csv"
+    assert main(["sweep", "--backends", "fake-generic,numpy", "--grids", "12", *TINY, "--generic", "both", "--out", str(out)]) == 0
+    rows = read_csv(out)
+    generic = [r for r in rows if r["backend"] == "fake-generic" and r["generic"] == "true"]
+    special = [r for r in rows if r["backend"] == "fake-generic" and r["generic"] == "false"]
+    assert len(generic) == 1 and len(special) == 1
+    # the generic kernel does three times the work here: the speed-up is measured, not assumed
+    assert float(generic[0]["specialised_speedup"]) > 1.5
+    assert all(r["generic"] == "false" for r in rows if r["backend"] == "numpy")  # numpy has one kernel
+
+
+def test_solvers_add_pbd_rows_where_a_backend_has_that_solver(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--solvers", "verlet,pbd", "--scene", "curtain", "--out", str(out)]) == 0
+    rows = read_csv(out)
+    assert {(r["solver"], r["precision"]) for r in rows} == {
+        ("verlet", "f32"), ("verlet", "f64"), ("pbd", "f32"), ("pbd", "f64"),
+    }
+    pbd = [r for r in rows if r["solver"] == "pbd"]
+    assert all(r["pbd_method"] == "jacobi" and r["iterations"] == "10" and r["status"] == "ok" for r in pbd)
+    assert len({row_key(r) for r in rows}) == len(rows)

@@ -51,6 +51,9 @@ class Backend(ABC):
     sweep_variants: tuple[dict, ...] = ({},)
     # Whether options.local_size means something here (work-group / block size).
     has_local_size: bool = False
+    # Whether options.generic selects a different kernel (one for every scene) from the
+    # default one specialised for the scene.
+    has_generic: bool = False
 
     def __init__(self, scene: Scene, options: BackendOptions):
         self.scene = scene

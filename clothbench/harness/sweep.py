@@ -36,20 +36,23 @@ from . import environment
 from .simulate import position_error, reference
 from .timing import run_timed
 
-SOLVER = "verlet"  # the only integrator so far (docs/semantics.md)
 PER_STEP_TRANSFERS = frozenset({"per-step"})  # transfer modes that move the state host<->device every step
 
 # Every column, in file order, with what it means. COLUMNS is the header.
 COLUMN_DOCS: dict[str, str] = {
     "backend": "registry name (see `clothbench backends`)",
     "peer": "true for a peer system (taichi, warp, numba), false for clothbench's own kernels",
-    "solver": "the integrator: 'verlet' (docs/semantics.md) until other solvers exist",
+    "solver": "the integrator: 'verlet' (mass-spring, docs/semantics.md) or 'pbd' (XPBD, docs/pbd.md)",
+    "pbd_method": "pbd only: 'jacobi' or 'coloured' (Gauss-Seidel over 12 independent batches)",
+    "iterations": "pbd only: constraint passes per substep",
+    "substeps": "pbd only: substeps per step",
     "mode": "the backend's own name for the settings that change speed or results",
     "precision": "working precision: f32, or f64 (numpy only, the reference)",
     "strict": "the strict option: bit-exact with numpy f32 (no FMA contraction, no fast math)",
     "transfer": "transfer mode (opencl resident|per-step, cuda swap|copy); empty = the backend's default",
     "local_size": "work-group / block size; empty = the runtime chooses",
     "generic": "true = one kernel for every scene; false = the backend's default (specialised where it has one)",
+    "specialised_speedup": "generic rows only: ms/step of this generic kernel / ms/step of the same backend's specialised kernel (same grid, mode and sweep)",
     "device": "what the work ran on, as the driver names it",
     "scene": "scene name",
     "grid": "n, particles per side",
@@ -84,7 +87,9 @@ COLUMN_DOCS: dict[str, str] = {
 }
 COLUMNS: tuple[str, ...] = tuple(COLUMN_DOCS)
 # What identifies a row: a sweep measures each key once, and --resume skips keys in the file.
-KEY_COLUMNS = ("backend", "solver", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size")
+KEY_COLUMNS = (
+    "backend", "solver", "pbd_method", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
+)  # fmt: skip
 MEASUREMENT_COLUMNS = (
     "ms_median", "ms_min", "ms_max", "ms_iqr", "device_ms_median", "particles_per_s", "ms_per_sim_s",
     "warmup_s", "finite", "max_penetration_m", "err_rms_m", "err_max_m",
@@ -104,14 +109,19 @@ class PlannedRow:
     grid: int
     options: BackendOptions
     label: str = "default"  # the variant, named from its overrides (the mode until measured)
+    solver: str = "verlet"
 
     def fields(self, scene: Scene) -> dict[str, str]:
         """The columns known before measuring (the key among them)."""
         o = self.options
+        pbd = scene.solver == "pbd"
         return {
             "backend": self.backend,
             "peer": fmt(self.peer),
-            "solver": getattr(o, "solver", SOLVER),
+            "solver": scene.solver,
+            "pbd_method": scene.pbd_method if pbd else "",
+            "iterations": str(scene.iterations) if pbd else "",
+            "substeps": str(scene.substeps) if pbd else "",
             "mode": self.label,
             "precision": o.precision,
             "strict": fmt(o.strict),
@@ -138,48 +148,67 @@ class Plan:
     skipped: list[tuple[str, str]]  # (backend, why it cannot run here)
 
 
+GENERIC_CHOICES = ("no", "yes", "both")
+
+
 def plan_sweep(
     names: Iterable[str],
     grids: Iterable[int],
     base: BackendOptions = BackendOptions(),
     local_sizes: Iterable[int] = (),
+    solvers: Iterable[str] = ("verlet",),
+    generic: str = "no",
 ) -> Plan:
-    """Rows for every usable backend × its sweep_variants × grids (× local sizes where it has
-    one); unusable backends go to `skipped` with the reason. Grid-major, so an interrupted
-    sweep holds every backend at the small grids; the float64 reference first in each grid."""
+    """Rows for every usable backend × solver × its sweep_variants × grids (× local sizes
+    where it has one; × generic and specialised kernels with generic="both", the generic
+    row right after its specialised twin); unusable backends go to `skipped` with the
+    reason. Grid-major, so an interrupted sweep holds every backend at the small grids;
+    the float64 reference first in each grid and solver."""
     grids, local_sizes = list(grids), tuple(local_sizes)
-    per_backend: dict[str, tuple[bool, list[tuple[BackendOptions, str]]]] = {}
+    kernels = {"no": (False,), "yes": (True,), "both": (False, True)}[generic]
+    per_backend: dict[tuple[str, str], tuple[bool, list[tuple[BackendOptions, str]]]] = {}
     skipped: list[tuple[str, str]] = []
-    for name in names:
-        a = availability(name)
-        if not a.usable:
-            skipped.append((name, a.reason))
-            continue
-        try:
-            cls = backend_class(name)
-            variants = [dataclasses.replace(base, **v) for v in cls.sweep_variants]
-            sizes = (None, *local_sizes) if cls.has_local_size else (None,)
-        except Exception as e:  # a backend that cannot say what to sweep is skipped, not fatal
-            skipped.append((name, f"cannot read its sweep_variants: {type(e).__name__}: {e}"))
-            continue
-        options = []
-        for overrides, v in zip(cls.sweep_variants, variants):
-            label = variant_label(overrides, base)
-            own_size = "local_size" in overrides  # a variant that fixes its size keeps it
-            options += [(v if own_size else dataclasses.replace(v, local_size=ls), label) for ls in sizes]
-        per_backend[name] = (BACKENDS[name].peer, options)
+    for solver in solvers:
+        for name in names:
+            a = availability(name)
+            if not a.usable:
+                if solver == "verlet" or "verlet" not in solvers:
+                    skipped.append((name, a.reason))
+                continue
+            try:
+                cls = backend_class(name, solver)
+                if cls is None:
+                    skipped.append((f"{name} ({solver})", f"{name} has no {solver} solver"))
+                    continue
+                variants = [dataclasses.replace(base, **v) for v in cls.sweep_variants]
+                sizes = (None, *local_sizes) if cls.has_local_size else (None,)
+                with_generic = kernels if cls.has_generic else (base.generic,)
+            except Exception as e:  # a backend that cannot say what to sweep is skipped, not fatal
+                skipped.append((name, f"cannot read its sweep_variants: {type(e).__name__}: {e}"))
+                continue
+            options = []
+            for overrides, v in zip(cls.sweep_variants, variants):
+                own_size = "local_size" in overrides  # a variant that fixes its size keeps it
+                for ls in sizes:
+                    for g in with_generic:
+                        o = dataclasses.replace(v if own_size else dataclasses.replace(v, local_size=ls), generic=g)
+                        options.append((o, variant_label(overrides, o)))
+            per_backend[(name, solver)] = (BACKENDS[name].peer, options)
 
     rows: list[PlannedRow] = []
     for grid in grids:
-        in_grid: dict[tuple, PlannedRow] = {}
-        for name, (peer, options) in per_backend.items():
-            for o, label in options:
-                in_grid.setdefault((name, o), PlannedRow(name, peer, grid, o, label))  # listed twice: once
-        rows += sorted(in_grid.values(), key=lambda r: not r.is_reference)  # stable: reference first
+        for solver in solvers:
+            in_grid: dict[tuple, PlannedRow] = {}
+            for (name, s), (peer, options) in per_backend.items():
+                if s != solver:
+                    continue
+                for o, label in options:
+                    in_grid.setdefault((name, o), PlannedRow(name, peer, grid, o, label, solver))  # once
+            rows += sorted(in_grid.values(), key=lambda r: not r.is_reference)  # stable: reference first
     return Plan(rows, skipped)
 
 
-def variant_label(overrides: dict, base: BackendOptions) -> str:
+def variant_label(overrides: dict, options: BackendOptions) -> str:
     """A mode name from a variant's option overrides, e.g. 'strict per-step' or 'f64'."""
     parts = []
     for k, v in overrides.items():
@@ -187,7 +216,7 @@ def variant_label(overrides: dict, base: BackendOptions) -> str:
             parts.append(k if v else ("fast" if k == "strict" else f"no-{k}"))
         elif v is not None:
             parts.append(str(v))
-    if base.generic and "generic" not in overrides:
+    if options.generic and "generic" not in overrides:
         parts.append("generic")
     return " ".join(parts) or "default"
 
@@ -451,6 +480,8 @@ class SweepSettings:
     repeats: int
     base: BackendOptions = field(default_factory=BackendOptions)
     local_sizes: tuple[int, ...] = ()
+    solvers: tuple[str, ...] = ("verlet",)
+    generic: str = "no"  # no | yes | both (GENERIC_CHOICES)
 
     def __post_init__(self):
         if self.steps < 1:
@@ -459,8 +490,14 @@ class SweepSettings:
             raise ClothbenchError(f"--repeat must be >= 1 (timed chunks per row), got {self.repeats}")
         if not self.grids:
             raise ClothbenchError("no grid size given (e.g. --grids 32,64,128,256)")
-        # every grid is checked as a scene now, before anything is measured
-        self.scenes = {g: self.scene.replace(grid=g, steps=self.steps * self.repeats) for g in self.grids}
+        if self.generic not in GENERIC_CHOICES:
+            raise ClothbenchError(f"--generic takes {', '.join(GENERIC_CHOICES)}, got {self.generic!r}")
+        # every grid and solver is checked as a scene now, before anything is measured
+        self.scenes = {
+            (solver, g): self.scene.replace(grid=g, steps=self.steps * self.repeats, solver=solver)
+            for solver in self.solvers
+            for g in self.grids
+        }
 
 
 @dataclass
@@ -495,6 +532,15 @@ def check_resumable(rows: list[dict[str, str]], s: SweepSettings, path: Path) ->
             )
 
 
+def _specialised_twin(row: dict[str, str], rows: list[dict[str, str]]) -> dict[str, str] | None:
+    """The specialised row measured with the same key as generic `row`, if any and ok."""
+    want = row_key({**row, "generic": "false"})
+    for r in reversed(rows):
+        if row_key(r) == want and r["status"] == "ok" and r["ms_median"]:
+            return r
+    return None
+
+
 def run_sweep(
     names: Iterable[str],
     settings: SweepSettings,
@@ -510,7 +556,9 @@ def run_sweep(
     rows, so a caller holding it can report after a Ctrl-C); on_step(steps_done, description)
     as steps run; on_row(row) after each row is on the disk.
     """
-    plan = plan_sweep(names, settings.grids, settings.base, settings.local_sizes)
+    plan = plan_sweep(
+        names, settings.grids, settings.base, settings.local_sizes, settings.solvers, settings.generic
+    )
     if not plan.rows:
         raise ClothbenchError(
             "nothing to measure: no backend named can run here ("
@@ -520,7 +568,7 @@ def run_sweep(
     with SweepFile(out, resume=resume) as f:
         check_resumable(f.rows, settings, f.path)
         have = f.keys()
-        todo = [r for r in plan.rows if r.key(settings.scenes[r.grid]) not in have]
+        todo = [r for r in plan.rows if r.key(settings.scenes[(r.solver, r.grid)]) not in have]
         commits = {r["git_commit"] for r in f.rows} - {environment.machine()["git_commit"]}
         progress = SweepProgress(plan, todo, len(f.rows), f.dropped_bytes, commits)
         if on_start:
@@ -528,9 +576,10 @@ def run_sweep(
         references: dict = {}
         per_row = settings.steps * settings.repeats
         for i, row in enumerate(todo):
-            scene = settings.scenes[row.grid]
+            scene = settings.scenes[(row.solver, row.grid)]
             size = f" local {row.options.local_size}" if row.options.local_size else ""
-            description = f"{row.backend} {row.label}{size} n={row.grid} ({i + 1}/{len(todo)})"
+            solver = " pbd" if row.solver == "pbd" else ""
+            description = f"{row.backend}{solver} {row.label}{size} n={row.grid} ({i + 1}/{len(todo)})"
             report = None
             if on_step:
                 on_step(i * per_row, description)
@@ -539,6 +588,10 @@ def run_sweep(
                     on_step(before + done, what)
 
             result = measure_row(row, scene, settings.steps, settings.repeats, references, on_progress=report)
+            if row.options.generic and result["status"] == "ok":
+                twin = _specialised_twin(result, f.rows + progress.measured)
+                if twin is not None:
+                    result["specialised_speedup"] = fmt(float(result["ms_median"]) / float(twin["ms_median"]))
             f.append(result)
             progress.measured.append(result)
             if on_row:

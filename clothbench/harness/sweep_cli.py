@@ -76,7 +76,20 @@ def register(subparsers) -> None:
     )
     p.add_argument("--device", help="device selector, passed to every backend (opencl: 'platform:device')")
     p.add_argument("--gl", choices=["egl", "osmesa"], default="egl", help="GL context provider")
-    p.add_argument("--generic", action="store_true", help="one kernel for every scene (no specialisation)")
+    p.add_argument(
+        "--generic",
+        nargs="?",
+        const="yes",
+        default="no",
+        choices=["no", "yes", "both"],
+        help="time the generic kernel (one for every scene) instead of the specialised one; "
+        "'both' times each and writes the specialised speed-up on the generic row",
+    )
+    p.add_argument(
+        "--solvers",
+        default="verlet",
+        help="comma-separated: verlet (mass-spring), pbd (docs/pbd.md), or both (default verlet)",
+    )
     p.add_argument("--out", default="sweep.csv", help="the CSV to write (default sweep.csv)")
     p.add_argument("--resume", action="store_true", help="add only the rows --out lacks (after an interruption)")
     p.add_argument("--columns", action="store_true", help="print what every CSV column means, and exit")
@@ -104,8 +117,10 @@ def cmd_sweep(args) -> int:
         grids=args.grids,
         steps=args.steps,
         repeats=args.repeat,
-        base=BackendOptions(device=args.device, gl=args.gl, generic=args.generic),
+        base=BackendOptions(device=args.device, gl=args.gl),
         local_sizes=tuple(args.local_sizes),
+        solvers=_solvers(args.solvers),
+        generic=args.generic,
     )
     bar: LazyProgress | None = None
     state: list = []  # the sweep's progress, once it has started
@@ -157,6 +172,17 @@ def cmd_sweep(args) -> int:
         + (f"; {len(bad)} not ok (see the status and note columns)" if bad else "")
     )
     return 0
+
+
+def _solvers(text: str) -> tuple[str, ...]:
+    from ..errors import ClothbenchError
+    from ..scene import SOLVERS
+
+    solvers = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    bad = [s for s in solvers if s not in SOLVERS]
+    if bad or not solvers:
+        raise ClothbenchError(f"--solvers takes {', '.join(SOLVERS)} (comma-separated), got {text!r}")
+    return solvers
 
 
 def print_rows(rows: list[dict[str, str]], title: str) -> None:

@@ -82,6 +82,8 @@ class Row:
     dt: float
     err_rms: float | None
     raw: dict
+    solver: str = "verlet"
+    pbd_method: str = ""
 
 
 @dataclass
@@ -93,13 +95,15 @@ class Series:
     color: str = "black"
     marker: str = "o"
     peer: bool = False
+    pbd: bool = False
 
     def style(self) -> dict:
-        """Own kernels solid with filled markers; peers dashed with hollow markers."""
+        """Own kernels solid with filled markers; peers dashed with hollow markers; the PBD
+        solver dash-dotted."""
         return dict(
             color=self.color,
             marker=self.marker,
-            linestyle="--" if self.peer else "-",
+            linestyle="--" if self.peer else ("-." if self.pbd else "-"),
             markerfacecolor="white" if self.peer else self.color,
             markersize=5,
             linewidth=1.4,
@@ -143,6 +147,8 @@ def load(path) -> tuple[list[Row], list[dict]]:
                     dt=float(r["dt"]),
                     err_rms=float(r["err_rms_m"]) if r["err_rms_m"] else None,
                     raw=r,
+                    solver=r.get("solver") or "verlet",
+                    pbd_method=r.get("pbd_method") or "",
                 )
             )
         except ValueError as e:
@@ -154,6 +160,8 @@ def _variant(r: Row, precisions: set[str], stricts: set[bool]) -> str:
     """'strict', 'fast per-step', 'f64', ... from the option columns; only what tells a
     backend's lines apart in this file (and a precision other than f32) is named."""
     parts = []
+    if r.solver == "pbd":
+        parts.append(f"PBD {r.pbd_method}".rstrip())
     if precisions != {"f32"}:
         parts.append(r.precision)
     if r.strict:
@@ -205,13 +213,14 @@ def _group(rows: list[Row], by) -> list[Series]:
                 color=colors[first.backend],
                 marker=MARKERS[variants[first.backend].index(variant) % len(MARKERS)],
                 peer=first.peer,
+                pbd=first.solver == "pbd",
             )
         )
     return series
 
 
 def _by_variant(r: Row) -> tuple:
-    return (r.backend, r.precision, r.strict, r.transfer, r.generic, r.scene, r.device)
+    return (r.backend, r.solver, r.pbd_method, r.precision, r.strict, r.transfer, r.generic, r.scene, r.device)
 
 
 def _devices_line(rows: list[Row]) -> str:
