@@ -2,21 +2,27 @@
  * One mass-spring cloth step, one CUDA thread per particle: the chapter's
  * verlet_cloth_kernel.cu (Game Engine Gems 2, section 22.7, after Listing 22.1).
  *
- * The step is defined operation by operation in docs/semantics.md; this kernel performs
- * those operations in that order and does not restate them. The launch is in Python
- * (clothbench/backends/cuda.py: PingPong), which owns the two pairs of buffers
- * (pos, pos_prev) x (in, out) and either swaps them or copies out to in after each step.
+ * The step is defined operation by operation in docs/semantics.md, the normals in
+ * docs/normals.md; this kernel performs those operations in that order and does not restate
+ * them. The launch is in Python (clothbench/backends/cuda.py: PingPong), which owns the two
+ * pairs of buffers (pos, pos_prev) x (in, out) and either swaps them or copies out to in
+ * after each step.
  *
- * Constants are kernel arguments, float32 values the host rounded once from float64
- * (docs/semantics.md, "Constants"), so one compiled kernel serves every scene.
+ * The host builds this one file in several ways, with -D switches (cuda.kernel_defines):
  *
- * Two modes, chosen by the host's compile options (cuda.compile_options):
- *   CLOTH_STRICT defined: sqrtf and '/', built with --fmad=false --ftz=false
- *       --prec-div=true --prec-sqrt=true, so every operation is one correctly rounded
- *       IEEE float operation and the result equals the NumPy float32 reference bit for bit.
- *   otherwise (fast): rsqrtf for the spring and collision normalisation, built with
- *       --use_fast_math (contraction, flush-to-zero, approximate division); measured
- *       against the float64 reference instead.
+ *   CLOTH_STRICT   sqrtf and '/', built with --fmad=false --ftz=false --prec-div=true
+ *                  --prec-sqrt=true, so every operation is one correctly rounded IEEE float
+ *                  operation and the result equals the NumPy float32 reference bit for bit.
+ *                  Otherwise (fast): rsqrtf for the spring, sphere and normal normalisation,
+ *                  built with --use_fast_math; measured against the float64 reference instead.
+ *   CLOTH_GENERIC  one kernel for every scene: the constants, and every collider kind with its
+ *                  count and parameters, are kernel arguments (`--generic`).
+ *                  Otherwise (specialised, the default): the scene's values are compile-time
+ *                  constants, exact float literals rounded once on the host (CLOTH_N, CLOTH_DT,
+ *                  ..., CLOTH_SPHERE_COUNT, CLOTH_SPHERES = {{x, y, z, r}, ...}, ...), and the
+ *                  code of a collider kind the scene lacks is not compiled at all.
+ *   CLOTH_NORMALS  also write the normal of x(t) to a fifth buffer; without it there is no
+ *                  normal code and no normal buffer.
  */
 
 // A neighbour's offset in the grid: (row, column), as docs/semantics.md writes it.
@@ -24,10 +30,52 @@ struct Offset {
     int dr, dc;
 };
 
-// |d|^2 summed as (x*x + y*y) + z*z, the documented order (no dot(): its order is not ours).
-__device__ __forceinline__ float length2(float3 d)
+#ifdef CLOTH_GENERIC
+#define HAS_SPHERES 1
+#define HAS_CYLINDERS 1
+#define HAS_PLANES 1
+#elif !defined(CLOTH_N)
+#error "build with -DCLOTH_GENERIC, or with the scene's -D values (clothbench.backends.cuda.kernel_defines)"
+#else
+// the scene, baked in: the compiler folds these into the code (n * n, i / n, k * ..., ...)
+constexpr int n = CLOTH_N;
+constexpr float dt = CLOTH_DT, dt2 = CLOTH_DT2;
+constexpr float k = CLOTH_K, b = CLOTH_B;
+constexpr float gx = CLOTH_GX, gy = CLOTH_GY, gz = CLOTH_GZ;
+constexpr float rest_structural = CLOTH_REST_STRUCTURAL, rest_shear = CLOTH_REST_SHEAR,
+                rest_bend = CLOTH_REST_BEND;
+#define HAS_SPHERES (CLOTH_SPHERE_COUNT > 0)
+#define HAS_CYLINDERS (CLOTH_CYLINDER_COUNT > 0)
+#define HAS_PLANES (CLOTH_PLANE_COUNT > 0)
+// the colliders, in the row layout the generic kernel takes as arguments (see verlet_step)
+#if HAS_SPHERES
+constexpr int sphere_count = CLOTH_SPHERE_COUNT;
+static __device__ const float4 spheres[sphere_count] = CLOTH_SPHERES;
+#endif
+#if HAS_CYLINDERS
+constexpr int cylinder_count = CLOTH_CYLINDER_COUNT;
+static __device__ const float4 cylinders[3 * cylinder_count] = CLOTH_CYLINDERS;
+#endif
+#if HAS_PLANES
+constexpr int plane_count = CLOTH_PLANE_COUNT;
+static __device__ const float4 planes[2 * plane_count] = CLOTH_PLANES;
+#endif
+#endif
+
+__device__ __forceinline__ bool inside_grid(int r, int c, int n)
 {
-    return (d.x * d.x + d.y * d.y) + d.z * d.z;
+    return r >= 0 && r < n && c >= 0 && c < n;
+}
+
+__device__ __forceinline__ float3 minus(float3 a, float3 c)
+{
+    return make_float3(a.x - c.x, a.y - c.y, a.z - c.z);
+}
+
+// (a.x*c.x + a.y*c.y) + a.z*c.z, the documented order (no dot(): its order is not ours).
+__device__ __forceinline__ float dot3(float3 a, float3 c)
+{
+    return (a.x * c.x + a.y * c.y) + a.z * c.z;
 }
 
 // Steps 5.3-5.5: the factor s with spring force s * d, d = x_j - x_i: k (L - rest) / L.
@@ -44,14 +92,15 @@ __device__ __forceinline__ float spring_scale(float L2, float rest, float k)
 #endif
 }
 
+#if HAS_SPHERES
 // Section 22.3: a particle inside the sphere (centre xyz, radius w) is moved to the surface
 // along the ray from the centre; one exactly at the centre has no ray and goes straight up.
 __device__ __forceinline__ float3 collide_sphere(float3 x, float4 sphere)
 {
     const float3 c = make_float3(sphere.x, sphere.y, sphere.z);
     const float r = sphere.w;
-    const float3 d = make_float3(x.x - c.x, x.y - c.y, x.z - c.z);
-    const float L2 = length2(d);
+    const float3 d = minus(x, c);
+    const float L2 = dot3(d, d);
 #ifdef CLOTH_STRICT
     const float L = sqrtf(L2);
     if (!(L < r)) return x;
@@ -64,26 +113,107 @@ __device__ __forceinline__ float3 collide_sphere(float3 x, float4 sphere)
 #endif
     return make_float3(c.x + d.x * s, c.y + d.y * s, c.z + d.z * s);
 }
+#endif
 
-// Every collider, in scene order. Spheres only for now; other shapes get their own function.
-__device__ __forceinline__ float3 collide(float3 x, const float4* spheres, int sphere_count)
+#if HAS_CYLINDERS
+// A capped cylinder, rows (start a, length len), (unit axis u, radius r), (radial_r, 0):
+// a particle inside is pushed out the shortest way, through the side or the nearer cap.
+__device__ __forceinline__ float3 collide_cylinder(float3 x, float4 a_len, float4 u_r, float4 radial_r)
 {
-    for (int s = 0; s < sphere_count; ++s) x = collide_sphere(x, spheres[s]);
-    return x;
+    const float3 a = make_float3(a_len.x, a_len.y, a_len.z);
+    const float3 u = make_float3(u_r.x, u_r.y, u_r.z);
+    const float len = a_len.w, r = u_r.w;
+    const float3 d = minus(x, a);
+    const float t = dot3(d, u);  // axial coordinate from the start cap
+    const float3 q = make_float3(u.x * t, u.y * t, u.z * t);
+    const float3 p = minus(d, q);  // radial vector
+    const float rho2 = dot3(p, p);
+    const float rho = sqrtf(rho2);
+    if (!(t > 0.0f && t < len && rho < r)) return x;
+    const float side = r - rho;
+    const float to_end = len - t;
+    if (side <= t && side <= to_end) {  // through the curved side
+        const float3 base = make_float3(a.x + q.x, a.y + q.y, a.z + q.z);
+        if (!(rho2 > 0.0f))  // exactly on the axis: out along the fixed radial direction
+            return make_float3(base.x + radial_r.x, base.y + radial_r.y, base.z + radial_r.z);
+        const float s = r / rho;
+        return make_float3(base.x + p.x * s, base.y + p.y * s, base.z + p.z * s);
+    }
+    if (t <= to_end) return minus(x, q);                                   // through the start cap
+    return make_float3(x.x + u.x * to_end, x.y + u.y * to_end, x.z + u.z * to_end);  // the end cap
 }
+#endif
+
+#if HAS_PLANES
+// A one-sided plane, rows (point p0, 0), (unit normal nrm, 0): solid where the signed
+// distance is negative (a floor); a particle below it is moved back onto it along nrm.
+__device__ __forceinline__ float3 collide_plane(float3 x, float4 point, float4 normal)
+{
+    const float3 nrm = make_float3(normal.x, normal.y, normal.z);
+    const float dist = dot3(minus(x, make_float3(point.x, point.y, point.z)), nrm);
+    if (!(dist < 0.0f)) return x;
+    return make_float3(x.x - nrm.x * dist, x.y - nrm.y * dist, x.z - nrm.z * dist);
+}
+#endif
+
+#ifdef CLOTH_NORMALS
+// docs/normals.md: v / |v|, or 0 for a zero vector (a degenerate triangle has no direction)
+__device__ __forceinline__ float3 unit_or_zero(float3 v)
+{
+    const float L2 = dot3(v, v);
+    if (!(L2 > 0.0f)) return make_float3(0.0f, 0.0f, 0.0f);
+#ifdef CLOTH_STRICT
+    const float L = sqrtf(L2);
+    return make_float3(v.x / L, v.y / L, v.z / L);
+#else
+    const float inv_L = rsqrtf(L2);
+    return make_float3(v.x * inv_L, v.y * inv_L, v.z * inv_L);
+#endif
+}
+
+// The chapter's per-particle normal: the normalised sum of the unit normals of the (up to
+// six) triangles around (row, col), each grid quad split along its (r,c)-(r+1,c+1) diagonal.
+__device__ __forceinline__ float3 normal_at(const float4* pos, int row, int col, int n, float3 x)
+{
+    // the ring of neighbours: up, up-left, left, down, down-right, right (then up again)
+    const Offset ring[7] = {{-1, 0}, {-1, -1}, {0, -1}, {1, 0}, {1, 1}, {0, 1}, {-1, 0}};
+    float3 sum = make_float3(0.0f, 0.0f, 0.0f);
+#pragma unroll
+    for (int e = 0; e < 6; ++e) {
+        const int ra = row + ring[e].dr, ca = col + ring[e].dc;
+        const int rb = row + ring[e + 1].dr, cb = col + ring[e + 1].dc;
+        if (!inside_grid(ra, ca, n) || !inside_grid(rb, cb, n)) continue;
+        const float4 pa = pos[ra * n + ca], pb = pos[rb * n + cb];
+        const float3 a = minus(make_float3(pa.x, pa.y, pa.z), x);
+        const float3 c = minus(make_float3(pb.x, pb.y, pb.z), x);
+        const float3 f = unit_or_zero(make_float3(a.y * c.z - a.z * c.y,    // a x c, written out
+                                                  a.z * c.x - a.x * c.z,
+                                                  a.x * c.y - a.y * c.x));
+        sum = make_float3(sum.x + f.x, sum.y + f.y, sum.z + f.z);
+    }
+    return unit_or_zero(sum);
+}
+#endif
 
 extern "C" __global__ void verlet_step(
     const float4* __restrict__ pos,       // x(t); w = inverse mass, 0 = pinned
     const float4* __restrict__ pos_prev,  // x(t - dt)
     float4* __restrict__ pos_out,         // x(t + dt)
-    float4* __restrict__ pos_prev_out,    // x(t), the next step's previous position
-    int n,                                // particles per side
+    float4* __restrict__ pos_prev_out     // x(t), the next step's previous position
+#ifdef CLOTH_NORMALS
+    , float4* __restrict__ normal_out     // the normal of x(t), w = 0 (docs/normals.md)
+#endif
+#ifdef CLOTH_GENERIC
+    , int n,                              // particles per side
     float dt, float dt2,                  // dt2 = dt*dt rounded once on the host
     float k, float b,                     // spring stiffness and damping
     float gx, float gy, float gz,         // gravity, an acceleration (differs: not scaled by 1/m)
     float rest_structural, float rest_shear, float rest_bend,  // |(dr, dc)| * h
-    const float4* __restrict__ spheres,   // (centre, radius) per sphere, in scene order
-    int sphere_count)
+    const float4* __restrict__ spheres, int sphere_count,      // (centre, radius)
+    const float4* __restrict__ cylinders, int cylinder_count,  // 3 rows each, as collide_cylinder
+    const float4* __restrict__ planes, int plane_count         // 2 rows each, as collide_plane
+#endif
+)
 {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= n * n) return;
@@ -114,10 +244,10 @@ extern "C" __global__ void verlet_step(
     for (int o = 0; o < 12; ++o) {
         const int r = row + stencil[o].dr;
         const int c = col + stencil[o].dc;
-        if (r < 0 || r >= n || c < 0 || c >= n) continue;
+        if (!inside_grid(r, c, n)) continue;
         const float4 pj = pos[r * n + c];
         const float3 d = make_float3(pj.x - x.x, pj.y - x.y, pj.z - x.z);
-        const float s = spring_scale(length2(d), rest[o / 4], k);
+        const float s = spring_scale(dot3(d, d), rest[o / 4], k);
         // damping -b*vel once per existing spring, as in the listing
         force.x += s * d.x - bv.x;
         force.y += s * d.y - bv.y;
@@ -131,10 +261,26 @@ extern "C" __global__ void verlet_step(
         x_new = make_float3((2.0f * x.x - xp.x) + acc.x * dt2,
                             (2.0f * x.y - xp.y) + acc.y * dt2,
                             (2.0f * x.z - xp.z) + acc.z * dt2);
-        x_new = collide(x_new, spheres, sphere_count);
+        // every collider in the fixed order: all spheres, all cylinders, all planes
+#if HAS_SPHERES
+        for (int s = 0; s < sphere_count; ++s)
+            x_new = collide_sphere(x_new, spheres[s]);
+#endif
+#if HAS_CYLINDERS
+        for (int c = 0; c < cylinder_count; ++c)
+            x_new = collide_cylinder(x_new, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
+#endif
+#if HAS_PLANES
+        for (int f = 0; f < plane_count; ++f)
+            x_new = collide_plane(x_new, planes[2 * f], planes[2 * f + 1]);
+#endif
     }
 
     // steps 7-8: the new position, and the current one as the next step's previous
     pos_out[i] = make_float4(x_new.x, x_new.y, x_new.z, w);
     pos_prev_out[i] = make_float4(x.x, x.y, x.z, w);
+#ifdef CLOTH_NORMALS
+    const float3 normal = normal_at(pos, row, col, n, x);  // for rendering only
+    normal_out[i] = make_float4(normal.x, normal.y, normal.z, 0.0f);
+#endif
 }

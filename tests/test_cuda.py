@@ -1,12 +1,16 @@
 """The CUDA backend, proved as far as a machine without a GPU can prove it.
 
 1. nvcc (and NVRTC, where its library loads) compiles kernels/verlet_cloth.cu for sm_80 in
-   strict and fast mode with no warning, and the strict PTX has no fused multiply-add.
-2. g++ compiles the same source, unmodified, with clothbench/cuda_shim/shim.h into a
-   shared library; PingPong (the CuPy backend's own host logic: argument list, launch
-   geometry, swap or copy) drives it through ctypes, and the strict result equals the
-   NumPy float32 reference bit for bit. 2b runs CudaBackend itself over a stand-in cupy
-   whose kernel is that CPU build.
+   strict and fast mode, specialised for a scene and generic, with and without normals,
+   with no warning; the strict PTX has no fused multiply-add; a specialised build holds no
+   code for the collider kinds its scene lacks.
+2. g++ compiles the same source, unmodified, with clothbench/cuda_shim/shim.h and the same
+   -D switches (cuda.kernel_defines) into a shared library; PingPong (the CuPy backend's
+   own host logic: argument list, launch geometry, swap or copy) drives it through ctypes,
+   and the strict result equals the NumPy float32 reference bit for bit, with every
+   collider kind, specialised and generic; the normals equal docs/normals.md in float32.
+   2b runs CudaBackend itself over a stand-in cupy whose kernel is the CPU build of what
+   the backend asked the compiler for.
 3. The real-GPU tests run the backend itself; here they skip with "no CUDA device".
 4. Without a device the CLI exits 2 with one line saying why.
 """
@@ -30,15 +34,17 @@ from clothbench.backends import BackendOptions, availability, create_backend
 from clothbench.backends import cuda
 from clothbench.backends.cuda import PingPong, compile_options
 from clothbench.errors import ClothbenchError
-from clothbench.harness import position_error, reference, run_timed, simulate
+from clothbench.harness import max_penetration, position_error, reference, run_timed, simulate
+from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import kernel_path
-from clothbench.scene import Scene, Sphere, load_scene
+from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
 from conftest import assert_bit_exact, require
 
 KERNEL = kernel_path(cuda.KERNEL_FILE)
 SHIM = Path(clothbench.__file__).parent / "cuda_shim"
 MODES = {"strict": True, "fast": False}
+BUILDS = {"specialised": False, "generic": True}  # the value of BackendOptions.generic
 
 # Fast mode is another float32 computation (approximate rsqrt, contraction), so it is held
 # to float32's own accuracy: its distance to the float64 reference may be at most this many
@@ -60,6 +66,37 @@ def sphere(n: int) -> Scene:
     return load_scene("sphere").replace(grid=n)
 
 
+def every_kind(n: int = 32) -> Scene:
+    """The built-in `cylinder` scene lowered onto a sphere and a raised, tilted floor, so that
+    within ALL_KINDS_STEPS all three kinds hold particles (tests check that they do)."""
+    return load_scene("cylinder").replace(
+        name="every-kind", grid=n, height=0.7,
+        spheres=(Sphere((0.8, 0.45, 0.2), 0.2),), planes=(Plane((0.0, 0.6, 0.0), (0.15, 1.0, 0.0)),),
+    )  # fmt: skip
+
+
+ALL_KINDS_STEPS = 300
+CURTAIN_STEPS = 600  # the curtain reaches its sphere after about 500 steps
+# float32 rounding leaves a pushed-out particle up to a few ulp inside: measured 6e-8 m
+PENETRATION_TOLERANCE = 1e-6
+
+
+def touching(pos: np.ndarray, scene: Scene) -> list[int]:
+    """How many particles lie on each collider's surface (within 1e-5 m), in scene order."""
+    xyz = pos[:, :3].astype(np.float64)
+    counts = []
+    for s in scene.spheres:
+        counts.append(np.abs(np.linalg.norm(xyz - s.center, axis=1) - s.radius) < 1e-5)
+    for c in scene.cylinders:
+        d = xyz - c.start
+        t = d @ np.array(c.axis)
+        rho = np.linalg.norm(d - np.outer(t, c.axis), axis=1)
+        counts.append((np.abs(rho - c.radius) < 1e-5) & (t > 0) & (t < c.length))
+    for p in scene.planes:
+        counts.append(np.abs((xyz - p.point) @ np.array(p.unit_normal)) < 1e-5)
+    return [int(c.sum()) for c in counts]
+
+
 def state_after(pingpong: PingPong, scene: Scene, steps: int):
     pingpong.upload(*scene.initial_state(np.float32))
     for _ in range(steps):
@@ -69,58 +106,165 @@ def state_after(pingpong: PingPong, scene: Scene, steps: int):
 
 # --- 1. the compile check ------------------------------------------------------------
 
+# (mode, build, normals) of the nvcc check: every switch of the kernel, both ways
+VARIANTS = [(mode, build, normals) for mode in MODES for build in BUILDS for normals in (False, True)]
+
+
+def variant_id(variant) -> str:
+    mode, build, normals = variant
+    return f"{mode}-{build}" + ("-normals" if normals else "")
+
+
+def nvcc_build(scene: Scene, strict: bool, generic: bool, normals: bool, out: Path):
+    """nvcc -ptx -arch=sm_80 with the backend's options and -D switches: (process, PTX)."""
+    defines = [cuda._nvcc_escaped(d) for d in cuda.kernel_defines(scene, normals, generic)]
+    cmd = ["nvcc", "-ptx", "-arch=sm_80", *compile_options(strict), *defines,
+           "-Werror", "all-warnings", "-o", str(out), str(KERNEL)]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    return done, out.read_text() if out.exists() else ""
+
 
 @pytest.fixture(scope="module")
 def nvcc_ptx(tmp_path_factory):
-    """PTX of the kernel from nvcc -ptx -arch=sm_80 with the backend's options, per mode."""
+    """(mode, build, normals) -> (nvcc's process, PTX) for the every-kind scene."""
     if shutil.which("nvcc") is None:
         pytest.skip("nvcc not found on PATH (CUDA toolkit not installed)")
-    out = {}
-    for mode, strict in MODES.items():
-        ptx = tmp_path_factory.mktemp("nvcc") / f"{mode}.ptx"
-        cmd = ["nvcc", "-ptx", "-arch=sm_80", *compile_options(strict), "-Werror", "all-warnings",
-               "-o", str(ptx), str(KERNEL)]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        out[mode] = (done, ptx.read_text() if ptx.exists() else "")
-    return out
+    folder = tmp_path_factory.mktemp("nvcc")
+    return {
+        v: nvcc_build(every_kind(), MODES[v[0]], BUILDS[v[1]], v[2], folder / f"{variant_id(v)}.ptx")
+        for v in VARIANTS
+    }
 
 
-@pytest.mark.parametrize("mode", MODES)
-def test_kernel_compiles_for_sm80_without_errors_or_warnings(nvcc_ptx, mode):
-    done, ptx = nvcc_ptx[mode]
+def entry_parameters(ptx: str) -> int:
+    head = ptx[ptx.index(".entry verlet_step(") :]
+    return head[: head.index(")")].count(".param")
+
+
+@pytest.mark.parametrize("variant", VARIANTS, ids=variant_id)
+def test_kernel_compiles_for_sm80_without_errors_or_warnings(nvcc_ptx, variant):
+    done, ptx = nvcc_ptx[variant]
     assert done.returncode == 0 and not (done.stdout + done.stderr).strip(), (
-        f"nvcc ({mode}): {done.stdout}{done.stderr}"
+        f"nvcc ({variant_id(variant)}): {done.stdout}{done.stderr}"
     )
     assert ".entry verlet_step(" in ptx  # extern "C": the name the host looks up
+    # four state buffers, a normal buffer when asked for, and the scene only when generic
+    _, build, normals = variant
+    scene_parameters = 11 + 3 * 2 if BUILDS[build] else 0  # constants; (rows, count) per kind
+    assert entry_parameters(ptx) == 4 + normals + scene_parameters
 
 
-def test_strict_ptx_rounds_every_operation_on_its_own(nvcc_ptx):
+@pytest.mark.parametrize("build", BUILDS)
+@pytest.mark.parametrize("normals", [False, True], ids=["", "normals"])
+def test_strict_ptx_rounds_every_operation_on_its_own(nvcc_ptx, build, normals):
     # --fmad=false must leave no fused multiply-add, and sqrt and '/' must be the
     # correctly rounded instructions, with denormals kept: that is what NumPy computes
-    ptx = nvcc_ptx["strict"][1]
+    ptx = nvcc_ptx["strict", build, normals][1]
     assert "fma." not in ptx and "rsqrt" not in ptx and ".approx" not in ptx and ".ftz" not in ptx
     assert "sqrt.rn.f32" in ptx and "div.rn.f32" in ptx
 
 
-def test_fast_ptx_uses_the_approximate_instructions(nvcc_ptx):
+@pytest.mark.parametrize("build", BUILDS)
+def test_fast_ptx_uses_the_approximate_instructions(nvcc_ptx, build):
     # fast mode is a different computation, or the strict/fast comparison measures nothing
-    ptx = nvcc_ptx["fast"][1]
+    ptx = nvcc_ptx["fast", build, False][1]
     assert "rsqrt.approx" in ptx and "fma.rn" in ptx
+
+
+def test_specialised_ptx_has_the_scene_baked_in(nvcc_ptx):
+    # the only memory a specialised step reads is its own and its 12 neighbours' positions:
+    # constants and colliders are immediates, and the grid size is folded into the addressing
+    specialised = nvcc_ptx["strict", "specialised", False][1]
+    generic = nvcc_ptx["strict", "generic", False][1]
+    assert specialised.count("ld.global") == 2 + 12
+    assert "ld.param.f32" not in specialised
+    assert generic.count("ld.global") > 2 + 12 and "ld.param.f32" in generic
+
+
+def test_sphere_only_build_holds_no_cylinder_or_plane_code(tmp_path):
+    # preprocessed: the specialised source keeps the sphere and drops the other kinds and
+    # the normals; the generic one keeps every kind. g++ -E runs the same #if switches.
+    def preprocessed(scene, generic, normals=False):
+        cmd = [_gxx(), "-E", "-P", "-x", "c++", *cuda.kernel_defines(scene, normals, generic), str(KERNEL)]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    only_spheres = preprocessed(sphere(16), generic=False)
+    assert "collide_sphere" in only_spheres
+    for absent in ("collide_cylinder", "collide_plane", "cylinders", "planes", "normal_at"):
+        assert absent not in only_spheres, f"{absent} compiled into a sphere-only kernel"
+    everything = preprocessed(sphere(16), generic=True, normals=True)
+    for present in ("collide_sphere", "collide_cylinder", "collide_plane", "normal_at"):
+        assert present in everything
+    no_colliders = preprocessed(load_scene("drape"), generic=False)
+    assert "collide_" not in no_colliders
+    if shutil.which("nvcc"):  # and in nvcc's PTX, only the sphere's constants exist
+        done, ptx = nvcc_build(sphere(16), True, False, False, tmp_path / "sphere.ptx")
+        assert done.returncode == 0, done.stderr
+        assert " spheres[16]" in ptx and "cylinders" not in ptx and "planes" not in ptx
+
+
+def test_generic_defines_are_one_key_and_specialised_ones_name_the_scene():
+    a, b = sphere(32), every_kind(32)
+    assert cuda.kernel_defines(a, generic=True) == cuda.kernel_defines(b, generic=True) == ("-DCLOTH_GENERIC",)
+    assert cuda.kernel_defines(a) != cuda.kernel_defines(b)
+    assert cuda.kernel_defines(a) != cuda.kernel_defines(a.replace(dt=4e-4))
+    assert cuda.kernel_defines(a) != cuda.kernel_defines(sphere(33))
+    assert cuda.kernel_defines(a, normals=True) == ("-DCLOTH_NORMALS", *cuda.kernel_defines(a))
+
+    def values(scene):
+        return dict(d[2:].split("=", 1) for d in cuda.kernel_defines(scene))
+
+    def floats(literal: str) -> list[np.float32]:  # "{{0x1p-1f,...},...}" back to float32
+        items = literal.replace("{", "").replace("}", "").split(",")
+        assert all(v.endswith("f") for v in items)  # float literals, not doubles
+        return [np.float32(float.fromhex(v[:-1])) for v in items]
+
+    defines = values(b)
+    assert defines["CLOTH_N"] == "32" and floats(defines["CLOTH_DT"]) == [np.float32(5e-4)]
+    assert floats(defines["CLOTH_DT2"]) == [np.float32(5e-4 * 5e-4)]  # rounded once from float64
+    counts = (defines["CLOTH_SPHERE_COUNT"], defines["CLOTH_CYLINDER_COUNT"], defines["CLOTH_PLANE_COUNT"])
+    assert counts == ("1", "1", "1")
+    assert floats(defines["CLOTH_SPHERES"]) == list(np.float32([0.8, 0.45, 0.2, 0.2]))
+    cylinder = b.cylinders[0]  # (start, length), (axis, radius), (radial * radius, 0)
+    assert floats(defines["CLOTH_CYLINDERS"]) == list(np.float32([
+        *cylinder.start, cylinder.length, *cylinder.axis, cylinder.radius,
+        *(np.float64(cylinder.radial) * cylinder.radius), 0.0,
+    ]))  # fmt: skip
+    assert floats(defines["CLOTH_PLANES"])[4:7] == list(np.float32(b.planes[0].unit_normal))
+    only_spheres = values(sphere(8))
+    assert only_spheres["CLOTH_PLANE_COUNT"] == "0" and "CLOTH_PLANES" not in only_spheres
 
 
 @pytest.mark.parametrize("using", ["nvrtc", "nvcc"])
 def test_backend_compiles_the_kernel_the_way_it_loads_it(using):
     # cuda.compile_kernel is what CudaBackend runs before RawModule(path=...); it needs
-    # no device, only cupy and the compiler
+    # no device, only cupy and the compiler. The every-kind defines hold commas, which nvcc
+    # would split at without escaping.
     pytest.importorskip("cupy", reason="cupy not installed (pip install -e '.[cuda]')")
     if using == "nvrtc" and not cuda._nvrtc_available():
         pytest.skip("libnvrtc not loadable (pip install nvidia-cuda-nvrtc-cu12)")
     if using == "nvcc" and not cuda._nvcc_available():
         pytest.skip("nvcc not found by cupy")
-    strict_ptx = cuda.compile_kernel(True, "80", using, "ptx").decode()
+    specialised = cuda.kernel_defines(every_kind(), normals=True)
+    strict_ptx = cuda.compile_kernel(True, "80", using, "ptx", specialised).decode()
     assert "fma." not in strict_ptx and "sqrt.rn.f32" in strict_ptx
-    cubin = cuda.compile_kernel(False, "80", using, "cubin")
+    assert entry_parameters(strict_ptx) == 5 and " cylinders[48]" in strict_ptx
+    cubin = cuda.compile_kernel(False, "80", using, "cubin", ("-DCLOTH_GENERIC",))
     assert cubin[:4] == b"\x7fELF"  # a device binary cuModuleLoad accepts
+
+
+def test_compiled_kernels_are_cached_by_their_specialisation():
+    pytest.importorskip("cupy", reason="cupy not installed (pip install -e '.[cuda]')")
+    using = cuda.compiler() or pytest.skip("no CUDA compiler")
+    before = cuda.compile_kernel.cache_info()
+    first = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(20)))
+    again = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(20)))
+    other = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(21)))
+    after = cuda.compile_kernel.cache_info()
+    assert again is first and other != first
+    assert (after.hits - before.hits, after.misses - before.misses) == (1, 2)
 
 
 # --- 2. the same kernel on the CPU ----------------------------------------------------
@@ -135,12 +279,20 @@ def _gxx():
     return gxx
 
 
-def test_unmodified_kernel_compiles_with_the_shim(tmp_path):
+@pytest.mark.parametrize("build", BUILDS)
+def test_unmodified_kernel_compiles_with_the_shim(tmp_path, build):
     # the header's promise, as its comment writes it
-    cmd = [_gxx(), *GXX_FLAGS, "-x", "c++", "-include", str(SHIM / "shim.h"), str(KERNEL),
-           "-c", "-o", str(tmp_path / "verlet_cloth.o")]
+    cmd = [_gxx(), *GXX_FLAGS, "-x", "c++", "-include", str(SHIM / "shim.h"),
+           *cuda.kernel_defines(every_kind(), generic=BUILDS[build]), str(KERNEL),
+           "-c", "-o", str(tmp_path / "verlet_cloth.o")]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
+
+
+def test_a_build_without_its_scene_says_what_it_needs(tmp_path):
+    cmd = [_gxx(), *GXX_FLAGS, "-x", "c++", "-include", str(SHIM / "shim.h"), str(KERNEL), "-fsyntax-only"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and "build with -DCLOTH_GENERIC, or with the scene's -D values" in done.stderr
 
 
 class CpuShimRuntime:
@@ -193,28 +345,44 @@ class CpuShimRuntime:
 
 
 @pytest.fixture(scope="module")
-def cpu_kernel(tmp_path_factory):
-    """mode -> a function making a fresh CpuShimRuntime on the g++ build of that mode."""
+def shim_library(tmp_path_factory):
+    """(strict, defines) -> the g++ build of the kernel with those -D switches, built once."""
     gxx = _gxx()
-    libs = {}
-    for mode, strict in MODES.items():
-        lib = tmp_path_factory.mktemp("cuda_shim") / f"libverlet_cloth_{mode}.so"
-        cmd = [gxx, *GXX_FLAGS, "-Wall", "-Wextra", "-Wno-unknown-pragmas", "-fPIC", "-shared",
-               "-include", str(SHIM / "shim.h"), "-I", str(KERNEL.parent),
-               *(["-DCLOTH_STRICT"] if strict else []),
-               str(SHIM / "verlet_cloth_cpu.cpp"), "-o", str(lib)]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0 and not done.stderr.strip(), f"g++ ({mode}): {done.stderr}"
-        libs[mode] = ctypes.CDLL(str(lib))
-    return lambda mode: CpuShimRuntime(libs[mode])
+    folder = tmp_path_factory.mktemp("cuda_shim")
+    libraries = {}
+
+    def build(strict: bool, defines: tuple[str, ...]) -> ctypes.CDLL:
+        if (strict, defines) not in libraries:
+            lib = folder / f"libverlet_cloth_{len(libraries)}.so"
+            cmd = [gxx, *GXX_FLAGS, "-Wall", "-Wextra", "-Wno-unknown-pragmas", "-fPIC", "-shared",
+                   "-include", str(SHIM / "shim.h"), "-I", str(KERNEL.parent),
+                   *(["-DCLOTH_STRICT"] if strict else []), *defines,
+                   str(SHIM / "verlet_cloth_cpu.cpp"), "-o", str(lib)]  # fmt: skip
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+            assert done.returncode == 0 and not done.stderr.strip(), f"g++ {defines}: {done.stderr}"
+            libraries[strict, defines] = ctypes.CDLL(str(lib))
+        return libraries[strict, defines]
+
+    return build
+
+
+@pytest.fixture(scope="module")
+def cpu_pingpong(shim_library):
+    """make(scene, strict=True, generic=False, normals=False, **PingPong options) -> a PingPong
+    on a fresh CpuShimRuntime of the CPU build for exactly that scene and those switches."""
+
+    def make(scene: Scene, strict=True, generic=False, normals=False, **options) -> PingPong:
+        lib = shim_library(strict, cuda.kernel_defines(scene, normals, generic))
+        return PingPong(CpuShimRuntime(lib), scene, generic=generic, normals=normals, **options)
+
+    return make
 
 
 @pytest.mark.parametrize("transfer", ["swap", "copy"])
 @pytest.mark.parametrize("n", [32, 64])
-def test_strict_kernel_on_cpu_matches_numpy_bit_for_bit(cpu_kernel, n, transfer):
+def test_strict_kernel_on_cpu_matches_numpy_bit_for_bit(cpu_pingpong, n, transfer):
     scene = sphere(n)
-    runtime = cpu_kernel("strict")
-    pp = PingPong(runtime, scene, transfer)
+    pp = cpu_pingpong(scene, transfer=transfer)
     pp.upload(*scene.initial_state(np.float32))
     pp.step()
     for got, want, what in zip(pp.read(), reference(scene, 1, "f32"), ("pos", "prev")):
@@ -223,13 +391,13 @@ def test_strict_kernel_on_cpu_matches_numpy_bit_for_bit(cpu_kernel, n, transfer)
         pp.step()
     for got, want, what in zip(pp.read(), reference(scene, 500, "f32"), ("pos", "prev")):
         assert_bit_exact(got, want, f"{what} after 500 steps, n={n}, {transfer}")
-    assert runtime.launches == 500
+    assert pp.runtime.launches == 500
 
 
-def test_a_block_that_does_not_divide_the_grid_changes_nothing(cpu_kernel):
+def test_a_block_that_does_not_divide_the_grid_changes_nothing(cpu_pingpong):
     # 1024 particles in blocks of 100: the last block has 76 threads past the end
     scene = sphere(32)
-    pp = PingPong(cpu_kernel("strict"), scene, block=100)
+    pp = cpu_pingpong(scene, block=100)
     assert (pp.grid, pp.block) == (11, 100)
     pos, prev = state_after(pp, scene, 50)
     assert_bit_exact(pos, reference(scene, 50, "f32")[0], "pos, block 100")
@@ -247,68 +415,240 @@ def overlapping_spheres() -> Scene:
     [lambda: load_scene("drape").replace(grid=32), overlapping_spheres],
     ids=["pinned-corners-no-collider", "two-spheres-in-order"],
 )
-def test_strict_kernel_on_cpu_matches_numpy_in_other_scenes(cpu_kernel, make_scene):
+def test_strict_kernel_on_cpu_matches_numpy_in_other_scenes(cpu_pingpong, make_scene):
     scene = make_scene()
-    pos, prev = state_after(PingPong(cpu_kernel("strict"), scene), scene, 300)
+    pos, prev = state_after(cpu_pingpong(scene), scene, 300)
     assert_bit_exact(pos, reference(scene, 300, "f32")[0], f"pos, {scene.name}")
     assert_bit_exact(prev, reference(scene, 300, "f32")[1], f"prev, {scene.name}")
 
 
-def one_step_both(runtime, scene, pos, prev):
-    pp = PingPong(runtime, scene)
-    pp.upload(pos, prev)
-    pp.step()
+COLLIDER_SCENES = {
+    "every-kind": (lambda: every_kind(32), ALL_KINDS_STEPS),
+    "curtain": (lambda: load_scene("curtain").replace(grid=32), CURTAIN_STEPS),
+}
+
+
+@pytest.mark.parametrize("build", BUILDS)
+@pytest.mark.parametrize("name", COLLIDER_SCENES)
+def test_strict_kernel_on_cpu_matches_numpy_with_every_collider_kind(cpu_pingpong, name, build):
+    make_scene, steps = COLLIDER_SCENES[name]
+    scene = make_scene()
+    ref_pos, ref_prev = reference(scene, steps, "f32")
+    assert all(touching(ref_pos, scene)), f"{name}: a collider holds no particle, the test proves less"
+    pos, prev = state_after(cpu_pingpong(scene, generic=BUILDS[build]), scene, steps)
+    assert_bit_exact(pos, ref_pos, f"pos, {name}, {build}")
+    assert_bit_exact(prev, ref_prev, f"prev, {name}, {build}")
+    assert max_penetration(pos, scene) < PENETRATION_TOLERANCE  # no particle ends inside
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_specialised_and_generic_kernels_agree(cpu_pingpong, mode):
+    # strict: the same bits, every step; fast: the folded constants may round differently
+    # only where fast math lets the compiler reassociate, so compare to float32's accuracy
+    scene = every_kind(32)
+    specialised = cpu_pingpong(scene, strict=MODES[mode])
+    generic = cpu_pingpong(scene, strict=MODES[mode], generic=True)
+    for pp in (specialised, generic):
+        pp.upload(*scene.initial_state(np.float32))
+    for step in range(1, ALL_KINDS_STEPS + 1):
+        specialised.step()
+        generic.step()
+        if mode == "strict" and step % 50 == 0:
+            assert_bit_exact(specialised.read()[0], generic.read()[0], f"pos after {step} steps")
+    if mode == "fast":
+        assert_as_accurate_as_float32(specialised.read()[0], scene, ALL_KINDS_STEPS)
+        assert_as_accurate_as_float32(generic.read()[0], scene, ALL_KINDS_STEPS)
+
+
+def one_step_both(pingpong: PingPong, scene, pos, prev):
+    pingpong.upload(pos, prev)
+    pingpong.step()
     with create_backend("numpy", scene, BackendOptions(precision="f32")) as b:
         b.upload(pos, prev)
         b.advance(1)
-        return pp.read()[0], b.read()[0]
+        return pingpong.read()[0], b.read()[0]
 
 
-def test_coincident_particles_take_the_documented_branch(cpu_kernel):
+def test_coincident_particles_take_the_documented_branch(cpu_pingpong):
     scene = Scene(grid=4, damping=0.01)
     pos, prev = scene.initial_state(np.float32)
     pos[5, :3] = pos[6, :3]  # a structural spring of length 0: no spring force, damping still
     prev[5, :3] = prev[6, :3]
-    got, want = one_step_both(cpu_kernel("strict"), scene, pos, prev)
+    got, want = one_step_both(cpu_pingpong(scene), scene, pos, prev)
     assert np.isfinite(got).all()
     assert_bit_exact(got, want, "pos with coincident particles")
 
 
-def test_particle_at_sphere_centre_goes_straight_up(cpu_kernel):
+def test_particle_at_sphere_centre_goes_straight_up(cpu_pingpong):
     # no springs, no gravity, no damping: the particle stays exactly at the centre until collided
     scene = Scene(grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0),
                   spheres=(Sphere((0.5, 1.0, 0.5), 0.25),))
     pos, prev = scene.initial_state(np.float32)  # particle 4 sits exactly at the centre
-    got, want = one_step_both(cpu_kernel("strict"), scene, pos, prev)
+    got, want = one_step_both(cpu_pingpong(scene), scene, pos, prev)
     assert np.array_equal(got[4, :3], np.float32([0.5, 1.25, 0.5]))
     assert_bit_exact(got, want, "pos with a particle at the centre")
 
 
-def test_fast_kernel_on_cpu_is_as_accurate_as_float32(cpu_kernel):
+def every_branch() -> tuple[Scene, np.ndarray, np.ndarray]:
+    """Nine particles placed by hand, one in each branch of docs/semantics.md's colliders.
+    No springs, gravity or damping: each particle stays where it is until collided."""
+    scene = Scene(
+        grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0),
+        spheres=(Sphere((3.0, 0.0, 0.0), 0.5),),
+        cylinders=(Cylinder((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 0.2),),  # along x; radial_r = (0, 0, 0.2)
+        planes=(Plane((0.0, 0.0, 2.0), (0.3, 0.0, -1.0)),),  # solid beyond z = 2 (+ 0.3 x)
+    )  # fmt: skip
+    pos = np.array([
+        (0.5, 0.0, 0.0),    # 0: exactly on the cylinder's axis -> out along radial_r
+        (0.5, 0.1, 0.0),    # 1: inside, nearest the curved side -> (0.5, 0.2, 0)
+        (0.03, 0.1, 0.0),   # 2: nearest the start cap -> (0, 0.1, 0)
+        (0.97, 0.1, 0.0),   # 3: nearest the end cap -> (1, 0.1, 0)
+        (0.5, 0.5, 0.0),    # 4: outside everything: unchanged
+        (0.3, 0.3, 2.5),    # 5: beyond the plane -> back onto it
+        (3.1, 0.2, 0.0),    # 6: inside the sphere -> its surface
+        (0.5, 0.05, 0.0),   # 7: inside the cylinder but pinned: never collided
+        (0.5, 0.05, 0.05),  # 8: inside the cylinder, off-axis diagonally -> the side
+    ], dtype=np.float64)  # fmt: skip
+    state = np.concatenate([pos, np.full((9, 1), 100.0)], axis=1).astype(np.float32)
+    state[7, 3] = 0.0
+    return scene, state, state.copy()
+
+
+@pytest.mark.parametrize("build", BUILDS)
+def test_every_collider_branch_matches_numpy(cpu_pingpong, build):
+    scene, pos, prev = every_branch()
+    got, want = one_step_both(cpu_pingpong(scene, generic=BUILDS[build]), scene, pos, prev)
+    assert_bit_exact(got, want, f"pos, every branch, {build}")
+    expected = {
+        0: (0.5, 0.0, 0.2), 1: (0.5, 0.2, 0.0), 2: (0.0, 0.1, 0.0), 3: (1.0, 0.1, 0.0),
+        4: (0.5, 0.5, 0.0), 7: (0.5, 0.05, 0.0), 8: (0.5, 0.2 / np.sqrt(2), 0.2 / np.sqrt(2)),
+    }  # fmt: skip
+    for i, xyz in expected.items():
+        np.testing.assert_allclose(got[i, :3], xyz, rtol=0, atol=1e-6, err_msg=f"particle {i}")
+    assert np.array_equal(got[7], pos[7])  # pinned: the very same bits
+    plane = scene.planes[0]
+    assert abs(np.dot(got[5, :3] - plane.point, plane.unit_normal)) < 1e-6  # on the plane
+    assert abs(np.linalg.norm(got[6, :3] - scene.spheres[0].center) - 0.5) < 1e-6  # on the sphere
+
+
+def test_fast_kernel_on_cpu_is_as_accurate_as_float32(cpu_pingpong):
     scene = sphere(64)
-    fast, _ = state_after(PingPong(cpu_kernel("fast"), scene), scene, scene.steps)
+    fast, _ = state_after(cpu_pingpong(scene, strict=False), scene, scene.steps)
     assert_as_accurate_as_float32(fast, scene, scene.steps)
     assert not np.array_equal(fast, reference(scene, scene.steps, "f32")[0])  # the fast path ran
 
 
-def test_the_argument_list_is_checked_against_the_kernel(cpu_kernel):
+def test_fast_kernel_on_cpu_with_every_kind_is_as_accurate_as_float32(cpu_pingpong):
+    scene = every_kind(32)
+    fast, _ = state_after(cpu_pingpong(scene, strict=False), scene, ALL_KINDS_STEPS)
+    assert_as_accurate_as_float32(fast, scene, ALL_KINDS_STEPS)
+    assert max_penetration(fast, scene) < PENETRATION_TOLERANCE
+
+
+def test_the_argument_list_is_checked_against_the_kernel(cpu_pingpong):
     # the check that guards the CPU proof: a Python float where the kernel takes a float fails
-    runtime = cpu_kernel("strict")
-    pp = PingPong(runtime, sphere(8))
+    pp = cpu_pingpong(sphere(8), generic=True)
     args = list(pp.args())
     args[5] = float(args[5])  # dt
     with pytest.raises(AssertionError, match="kernel parameters"):
-        runtime.launch(pp.grid, pp.block, tuple(args))
+        pp.runtime.launch(pp.grid, pp.block, tuple(args))
 
 
-def test_scenes_with_colliders_the_kernel_lacks_are_refused():
-    scene = sphere(8)
-    if not hasattr(scene, "planes"):
-        pytest.skip("this Scene has no planes yet")
-    from clothbench.scene import Plane
+def test_specialised_kernel_takes_only_the_buffers(cpu_pingpong):
+    # the scene is compiled in: four state buffers, a fifth for normals, nothing else; the
+    # generic argument list is refused by it
+    pp = cpu_pingpong(every_kind(8))
+    assert pp.runtime.signature == "pppp" and len(pp.args()) == 4
+    assert cpu_pingpong(every_kind(8), normals=True).runtime.signature == "ppppp"
+    generic = cpu_pingpong(every_kind(8), generic=True)
+    # n; dt, dt2, k, b, g (3), rest (3); (rows, count) per collider kind
+    assert generic.runtime.signature == "pppp" + "i" + "f" * 10 + "pi" * 3
+    with pytest.raises(AssertionError, match="kernel parameters"):
+        pp.runtime.launch(pp.grid, pp.block, generic.args())
 
-    with pytest.raises(ClothbenchError, match="spheres only"):
-        PingPong(None, scene.replace(planes=(Plane((0, 0, 0), (0, 1, 0)),)))
+
+# --- 2a. normals (docs/normals.md), on the CPU build ----------------------------------
+
+
+def normals_on_cpu(cpu_pingpong, scene: Scene, pos: np.ndarray, strict=True, generic=False) -> np.ndarray:
+    """Upload `pos` as both positions, step once, return the normals (of `pos`)."""
+    pp = cpu_pingpong(scene, strict=strict, generic=generic, normals=True)
+    pp.upload(pos, pos)
+    assert pp.read_normals() is None  # no step since the upload: none computed yet
+    pp.step()
+    normals = pp.read_normals()
+    assert normals.shape == (scene.particles, 4) and normals.dtype == np.float32
+    assert np.all(normals[:, 3] == 0)
+    return normals
+
+
+def bent_state(n: int) -> tuple[Scene, np.ndarray]:
+    """A sheet with hills and noise: every face a different direction."""
+    scene = sphere(n)
+    pos, _ = scene.initial_state(np.float64)
+    rng = np.random.default_rng(10)
+    pos[:, 1] += 0.2 * np.sin(3 * pos[:, 0]) * np.cos(2 * pos[:, 2]) + 0.01 * rng.standard_normal(n * n)
+    pos[:, :3] += 0.002 * rng.standard_normal((n * n, 3))
+    return scene, pos.astype(np.float32)
+
+
+# Normals in fast mode vs the formula in float64 on the same float32 positions: each of the
+# ~20 float32 operations on unit-length values rounds by at most 6e-8; 1/sqrt stands in for
+# the GPU's rsqrt.approx (2 ulp) on the CPU.
+NORMAL_TOLERANCE = 1e-6
+
+
+@pytest.mark.parametrize("build", BUILDS)
+@pytest.mark.parametrize("mode", MODES)
+def test_flat_sheet_normals_point_straight_up(cpu_pingpong, mode, build):
+    scene = sphere(33)
+    pos, _ = scene.initial_state(np.float32)
+    normals = normals_on_cpu(cpu_pingpong, scene, pos, MODES[mode], BUILDS[build])
+    assert np.all(normals[:, [0, 2]] == 0)
+    if mode == "strict":  # y / sqrt(y*y) is exactly 1 in IEEE arithmetic
+        assert np.all(normals[:, 1] == 1)
+    else:
+        np.testing.assert_allclose(normals[:, 1], 1, rtol=0, atol=NORMAL_TOLERANCE)
+
+
+@pytest.mark.parametrize("build", BUILDS)
+def test_strict_normals_equal_the_formula_in_float32_bit_for_bit(cpu_pingpong, build):
+    scene, pos = bent_state(29)
+    normals = normals_on_cpu(cpu_pingpong, scene, pos, generic=BUILDS[build])
+    expected = grid_normals(pos, scene.grid, np.float32)
+    assert_bit_exact(normals[:, :3], expected, f"normals, {build}")
+    assert np.abs(expected[:, 1]).max() < 1  # bent: the test is not the flat sheet again
+
+
+def test_fast_normals_are_the_formula_within_float32_rounding(cpu_pingpong):
+    scene, pos = bent_state(29)
+    normals = normals_on_cpu(cpu_pingpong, scene, pos, strict=False)
+    expected = grid_normals(pos, scene.grid, np.float64)
+    np.testing.assert_allclose(normals[:, :3], expected, rtol=0, atol=NORMAL_TOLERANCE)
+
+
+@pytest.mark.parametrize("transfer", ["swap", "copy"])
+def test_normals_belong_to_the_positions_the_last_step_read(cpu_pingpong, transfer):
+    # as the GL backends: the normals of x(t), which after the step is read()[1]
+    scene = sphere(32)
+    pp = cpu_pingpong(scene, normals=True, transfer=transfer)
+    pos, prev = state_after(pp, scene, 250)  # draped over the sphere: far from flat
+    normals = pp.read_normals()
+    assert_bit_exact(normals[:, :3], grid_normals(prev, 32, np.float32), "normals of prev")
+    assert not np.array_equal(normals[:, :3], grid_normals(pos, 32, np.float32))
+
+
+@pytest.mark.parametrize("build", BUILDS)
+def test_normals_do_not_change_the_step(cpu_pingpong, build):
+    scene = every_kind(32)
+    pos, prev = state_after(cpu_pingpong(scene, generic=BUILDS[build], normals=True), scene, 100)
+    assert_bit_exact(pos, reference(scene, 100, "f32")[0], f"pos with normals on, {build}")
+
+
+def test_without_normals_there_is_no_normal_buffer(cpu_pingpong):
+    pp = cpu_pingpong(sphere(8))
+    state_after(pp, sphere(8), 2)
+    assert pp.normals is None and pp.read_normals() is None
 
 
 # --- 2b. CudaBackend itself, on a stand-in cupy that runs the CPU build ---------------
@@ -324,10 +664,11 @@ class StandInKernel:
         self.runtime.launch(grid[0], block[0], args)
 
 
-def stand_in_cupy(runtime: CpuShimRuntime) -> types.ModuleType:
-    """The part of cupy CudaBackend calls, with "device" arrays in host memory and the CPU
-    build as the kernel. It checks the backend's own control flow (buffers, stream, events,
-    swap or copy through memcpyAsync), not CuPy: the GPU tests below check CuPy."""
+def stand_in_cupy(load_kernel) -> types.ModuleType:
+    """The part of cupy CudaBackend calls, with "device" arrays in host memory and
+    RawModule(path=...) loading load_kernel(path), a CPU build. It checks the backend's own
+    control flow (compile, buffers, stream, events, swap or copy through memcpyAsync), not
+    CuPy: the GPU tests below check CuPy."""
 
     class ndarray(np.ndarray):
         def set(self, host, stream=None):
@@ -377,7 +718,7 @@ def stand_in_cupy(runtime: CpuShimRuntime) -> types.ModuleType:
     )
     cp = types.ModuleType("cupy")
     cp.array = lambda host: np.array(host).view(ndarray)
-    cp.RawModule = lambda path: types.SimpleNamespace(get_function=lambda name: StandInKernel(runtime))
+    cp.RawModule = lambda path: types.SimpleNamespace(get_function=lambda name: load_kernel(path))
     cp.cuda = types.SimpleNamespace(
         runtime=rt,
         Device=lambda index: types.SimpleNamespace(use=lambda: None, compute_capability="80"),
@@ -389,15 +730,29 @@ def stand_in_cupy(runtime: CpuShimRuntime) -> types.ModuleType:
 
 
 @pytest.fixture
-def cuda_on_cpu(cpu_kernel, monkeypatch):
-    """make(scene, **options) -> (CudaBackend over the stand-in cupy, its CpuShimRuntime)."""
+def cuda_on_cpu(shim_library, monkeypatch):
+    """make(scene, **options) -> (CudaBackend over the stand-in cupy, its CpuShimRuntime).
+
+    The backend's "binary" records what it asked compile_kernel for (strict, defines), and
+    the stand-in RawModule runs the CPU build of exactly that: the backend's own
+    specialisation is what runs."""
+    compiled = []
+
+    def compile_kernel(strict, arch, using, code="cubin", defines=()):
+        compiled.append((strict, defines))
+        return json.dumps({"strict": strict, "defines": defines}).encode()
+
+    def load_kernel(path):
+        spec = json.loads(Path(path).read_text())
+        return StandInKernel(CpuShimRuntime(shim_library(spec["strict"], tuple(spec["defines"]))))
 
     def make(scene, **options):
-        runtime = cpu_kernel("strict" if options.get("strict") else "fast")
-        monkeypatch.setitem(sys.modules, "cupy", stand_in_cupy(runtime))
+        monkeypatch.setitem(sys.modules, "cupy", stand_in_cupy(load_kernel))
         monkeypatch.setattr(cuda, "compiler", lambda: "stand-in")
-        monkeypatch.setattr(cuda, "compile_kernel", lambda *args: b"")
-        return cuda.CudaBackend(scene, BackendOptions(**options)), runtime
+        monkeypatch.setattr(cuda, "compile_kernel", compile_kernel)
+        backend = cuda.CudaBackend(scene, BackendOptions(**options))
+        assert compiled[-1] == (bool(options.get("strict")), backend.defines)
+        return backend, backend.state.runtime.kernel.runtime
 
     return make
 
@@ -421,14 +776,39 @@ def test_cuda_backend_host_code_matches_numpy_on_the_cpu_build(cuda_on_cpu, tran
     assert copies == (2 * 500 if transfer == "copy" else 0)  # both buffers, every step
 
 
+@pytest.mark.parametrize("build", BUILDS)
+def test_cuda_backend_runs_every_collider_kind(cuda_on_cpu, build):
+    # the backend no longer refuses cylinders and planes, specialised or generic
+    scene = every_kind(32)
+    backend, runtime = cuda_on_cpu(scene, strict=True, generic=BUILDS[build], normals=True)
+    assert backend.defines == cuda.kernel_defines(scene, normals=True, generic=BUILDS[build])
+    with backend:
+        assert backend.mode == "strict/normals" + ("/generic" if BUILDS[build] else "") + "/swap/bs=auto"
+        backend.upload(*scene.initial_state(np.float32))
+        assert backend.read_normals() is None
+        backend.advance(ALL_KINDS_STEPS)
+        pos, prev = backend.read()
+        normals = backend.read_normals()
+    assert_bit_exact(pos, reference(scene, ALL_KINDS_STEPS, "f32")[0], f"pos, {build}")
+    assert_bit_exact(normals[:, :3], grid_normals(prev, 32, np.float32), f"normals, {build}")
+    assert runtime.signature.startswith("ppppp")  # the normal buffer is the fifth argument
+
+
 def test_cuda_backend_reports_event_times_per_chunk(cuda_on_cpu):
     scene = sphere(16).replace(steps=20)
     backend, _ = cuda_on_cpu(scene, local_size=64)
     with backend:
         assert backend.device_elapsed_ms() is None  # nothing timed yet
+        assert backend.read_normals() is None  # not asked for
         result = run_timed(backend, scene, scene.steps, chunk=5)
     assert result.mode == "fast/swap/bs=64"
     assert len(result.device_ms_per_step) == 4 and all(t > 0 for t in result.device_ms_per_step)
+
+
+def test_cuda_backend_generic_mode_says_so(cuda_on_cpu):
+    backend, runtime = cuda_on_cpu(sphere(8), generic=True, transfer="copy", local_size=32)
+    assert backend.mode == "fast/generic/copy/bs=32"
+    assert backend.defines == ("-DCLOTH_GENERIC",) and len(runtime.signature) > 4
 
 
 @pytest.mark.parametrize(
@@ -492,6 +872,36 @@ def test_cuda_timing_reports_positive_times():
         result = run_timed(b, scene, scene.steps, chunk=10)
     assert len(result.chunk_ms_per_step) == 4 and all(t > 0 for t in result.chunk_ms_per_step)
     assert len(result.device_ms_per_step) == 4 and all(t > 0 for t in result.device_ms_per_step)
+
+
+@pytest.mark.parametrize("build", BUILDS)
+@pytest.mark.parametrize("name", COLLIDER_SCENES)
+def test_cuda_strict_matches_numpy_with_every_collider_kind(name, build):
+    require("cuda")
+    make_scene, steps = COLLIDER_SCENES[name]
+    scene = make_scene()
+    pos, prev = simulate("cuda", scene, steps, BackendOptions(strict=True, generic=BUILDS[build]))
+    assert_bit_exact(pos, reference(scene, steps, "f32")[0], f"pos, {name}, {build}")
+    assert max_penetration(pos, scene) < PENETRATION_TOLERANCE
+
+
+def test_cuda_specialised_equals_generic_bit_for_bit():
+    require("cuda")
+    scene = every_kind(64)
+    specialised = simulate("cuda", scene, ALL_KINDS_STEPS, BackendOptions(strict=True))
+    generic = simulate("cuda", scene, ALL_KINDS_STEPS, BackendOptions(strict=True, generic=True))
+    assert_bit_exact(specialised[0], generic[0], "pos, specialised vs generic")
+
+
+@pytest.mark.parametrize("build", BUILDS)
+def test_cuda_strict_normals_equal_the_formula_in_float32(build):
+    require("cuda")
+    scene, pos = bent_state(29)
+    with create_backend("cuda", scene, BackendOptions(strict=True, normals=True, generic=BUILDS[build])) as b:
+        b.upload(pos, pos)
+        b.advance(1)
+        normals = b.read_normals()
+    assert_bit_exact(normals[:, :3], grid_normals(pos, scene.grid, np.float32), f"normals, {build}")
 
 
 # --- 4. without a device: unavailable, with the reason ---------------------------------

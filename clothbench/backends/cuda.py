@@ -8,6 +8,11 @@ copy costs. `PingPong` holds that logic once, written against a small runtime (a
 copy, launch), so the CPU build of the same kernel (tests/test_cuda.py, through
 clothbench/cuda_shim/) is driven with the same argument list, launch geometry and swap.
 
+Specialisation: by default the kernel is built for the scene, its constants and colliders
+compile-time constants (exact float literals in -D defines) and the code of a collider kind
+the scene lacks left out; `--generic` builds the one kernel that takes them all as
+arguments. `kernel_defines` gives the -D switches, and compiled kernels are cached by them.
+
 Compilation: we compile the kernel ourselves (NVRTC through CuPy's binding, or nvcc) and
 load the binary with RawModule(path=...). CuPy's own RawModule(code=...) path appends
 `-ftz=true`, flushing denormals that NumPy keeps, which `--strict` cannot allow.
@@ -26,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ClothbenchError
-from ..kernel_source import read_kernel
+from ..kernel_source import c_float, read_kernel
 from ..scene import Scene
 from .base import Availability, Backend, BackendOptions
 
@@ -51,6 +56,69 @@ def compile_options(strict: bool) -> tuple[str, ...]:
             "-DCLOTH_STRICT",
         )
     return ("--std=c++17", "--use_fast_math")
+
+
+ROWS_PER_COLLIDER = {"spheres": 1, "cylinders": 3, "planes": 2}  # float4 rows, as collider_rows
+
+
+def collider_rows(scene: Scene) -> dict[str, np.ndarray]:
+    """The colliders as the kernel reads them, float64 values rounded once to float32 rows of
+    float4: spheres (centre, radius); cylinders (start, length), (unit axis, radius),
+    (radial_r, 0); planes (point, 0), (unit normal, 0). docs/semantics.md, "Constants"."""
+
+    def rows(values) -> np.ndarray:
+        return np.array(values, dtype=np.float64).reshape(-1, 4).astype(np.float32)
+
+    def cylinder(c):
+        radial_r = (e * c.radius for e in c.radial)  # multiplied in float64, rounded once
+        return ((*c.start, c.length), (*c.axis, c.radius), (*radial_r, 0.0))
+
+    return {
+        "spheres": rows([(*s.center, s.radius) for s in scene.spheres]),
+        "cylinders": rows([row for c in scene.cylinders for row in cylinder(c)]),
+        "planes": rows([row for p in scene.planes for row in ((*p.point, 0.0), (*p.unit_normal, 0.0))]),
+    }
+
+
+def scene_constants(scene: Scene) -> dict[str, object]:
+    """The step's constants, rounded once from float64 (np.float32), in kernel parameter order."""
+    f32 = np.float32
+    rest = [f32(r) for r in scene.rest_lengths()]
+    kinds = (rest[0], rest[4], rest[8])  # structural, shear, bend: OFFSETS order
+    # the kernel takes one rest length per kind and indexes it as rest[o / 4]
+    assert all(r == kinds[o // 4] for o, r in enumerate(rest)), "stencil order changed"
+    gx, gy, gz = (f32(g) for g in scene.gravity)
+    return {
+        "n": np.int32(scene.grid),
+        "dt": f32(scene.dt),
+        "dt2": f32(scene.dt * scene.dt),  # rounded once from float64
+        "k": f32(scene.stiffness),
+        "b": f32(scene.damping),
+        "gx": gx, "gy": gy, "gz": gz,
+        "rest_structural": kinds[0], "rest_shear": kinds[1], "rest_bend": kinds[2],
+    }  # fmt: skip
+
+
+def kernel_defines(scene: Scene, normals: bool = False, generic: bool = False) -> tuple[str, ...]:
+    """The -D switches that build verlet_cloth.cu for this scene: the specialisation key.
+
+    Generic: only CLOTH_GENERIC (and CLOTH_NORMALS), so every scene shares one kernel.
+    Specialised: the constants as exact float literals, the collider counts, and the
+    colliders of each kind the scene has as a brace list of float4 rows.
+    """
+    defines = ["-DCLOTH_NORMALS"] if normals else []
+    if generic:
+        return (*defines, "-DCLOTH_GENERIC")
+    for name, value in scene_constants(scene).items():
+        literal = str(value) if name == "n" else c_float(value)
+        defines.append(f"-DCLOTH_{name.upper()}={literal}")
+    for kind, rows in collider_rows(scene).items():
+        singular = kind[:-1].upper()
+        defines.append(f"-DCLOTH_{singular}_COUNT={len(rows) // ROWS_PER_COLLIDER[kind]}")
+        if len(rows):
+            items = ",".join("{" + ",".join(c_float(v) for v in row) + "}" for row in rows)
+            defines.append(f"-DCLOTH_{kind.upper()}={{{items}}}")
+    return tuple(defines)
 
 
 # --- availability ---------------------------------------------------------------------
@@ -110,15 +178,23 @@ def probe() -> Availability:
 # --- compilation ----------------------------------------------------------------------
 
 
-@lru_cache(maxsize=8)
-def compile_kernel(strict: bool, arch: str, using: str, code: str = "cubin") -> bytes:
+def _nvcc_escaped(option: str) -> str:
+    """nvcc splits an option's value at commas (-D a,b defines a and b); '\\,' keeps one."""
+    return option.replace(",", "\\,") if option.startswith("-D") else option
+
+
+@lru_cache(maxsize=64)
+def compile_kernel(
+    strict: bool, arch: str, using: str, code: str = "cubin", defines: tuple[str, ...] = ()
+) -> bytes:
     """verlet_cloth.cu compiled for compute capability `arch` (e.g. "80") with NVRTC or nvcc.
 
-    `code` is "cubin" (for one device) or "ptx". Needs no device: tests/test_cuda.py runs
-    it on machines without a GPU.
+    `code` is "cubin" (for one device) or "ptx"; `defines` are kernel_defines(...), so the
+    cache holds one binary per specialisation. Needs no device: tests/test_cuda.py runs it
+    on machines without a GPU.
     """
     source = read_kernel(KERNEL_FILE)
-    options = compile_options(strict)
+    options = (*compile_options(strict), *defines)
     if using == "nvrtc":
         from cupy_backends.cuda.libs import nvrtc
 
@@ -143,6 +219,7 @@ def compile_kernel(strict: bool, arch: str, using: str, code: str = "cubin") -> 
         from cupy.cuda.compiler import CompileException, compile_using_nvcc
 
         try:
+            options = tuple(_nvcc_escaped(o) for o in options)
             return compile_using_nvcc(source, options, arch=arch, filename=KERNEL_FILE, code_type=code)
         except CompileException as e:
             raise ClothbenchError(f"nvcc could not compile {KERNEL_FILE}: {e.get_message()}") from None
@@ -170,59 +247,50 @@ class PingPong:
         copy(dst, src)  (device to device)       launch(grid, block, args)
 
     CudaBackend's runtime is CuPy; tests/test_cuda.py's is the CPU build of the same
-    kernel, so both launch it with the argument list built here, in this order.
+    kernel, so both launch it with the argument list built here, in this order. `generic`
+    and `normals` must be those the kernel was built with (kernel_defines).
     """
 
-    def __init__(self, runtime, scene: Scene, transfer: str = "swap", block: int = AUTO_BLOCK):
+    def __init__(
+        self,
+        runtime,
+        scene: Scene,
+        transfer: str = "swap",
+        block: int = AUTO_BLOCK,
+        generic: bool = False,
+        normals: bool = False,
+    ):
         if transfer not in TRANSFERS:
             raise ValueError(f"transfer must be swap or copy, got {transfer!r}")
-        # the kernel collides with spheres only: refuse other colliders rather than skip them
-        others = [kind for kind in ("cylinders", "planes") if getattr(scene, kind, ())]
-        if others:
-            raise ClothbenchError(
-                f"cuda collides with spheres only so far; this scene has {' and '.join(others)}"
-            )
         self.runtime = runtime
         self.transfer = transfer
         self.block = block
         self.grid = math.ceil(scene.particles / block)  # blocks; the last may run past n*n
-        f32 = np.float32
-        rest = [f32(r) for r in scene.rest_lengths()]  # rounded once, as every backend does
-        kinds = (rest[0], rest[4], rest[8])  # structural, shear, bend: OFFSETS order
-        # the kernel takes one rest length per kind and indexes it as rest[o / 4]
-        assert all(r == kinds[o // 4] for o, r in enumerate(rest)), "stencil order changed"
-        self.constants = (
-            np.int32(scene.grid),
-            f32(scene.dt),
-            f32(scene.dt * scene.dt),  # dt2: rounded once from float64
-            f32(scene.stiffness),
-            f32(scene.damping),
-            *(f32(g) for g in scene.gravity),
-            *kinds,
-        )
-        spheres = np.array([(*s.center, s.radius) for s in scene.spheres], dtype=f32).reshape(-1, 4)
-        # never a zero-size buffer: its pointer is passed even when no sphere is read
-        self.spheres = runtime.alloc(spheres if len(spheres) else np.zeros((1, 4), f32))
-        self.sphere_count = np.int32(len(scene.spheres))
-        empty = np.zeros((scene.particles, 4), dtype=f32)
+        self.scene_args: tuple = ()  # the specialised kernel has the scene compiled in
+        if generic:
+            colliders = []
+            for kind, rows in collider_rows(scene).items():
+                # never a zero-size buffer: its pointer is passed even when no collider is read
+                buffer = runtime.alloc(rows if len(rows) else np.zeros((1, 4), np.float32))
+                colliders += [buffer, np.int32(len(rows) // ROWS_PER_COLLIDER[kind])]
+            self.scene_args = (*scene_constants(scene).values(), *colliders)
+        empty = np.zeros((scene.particles, 4), dtype=np.float32)
         self.pos_in, self.prev_in = runtime.alloc(empty), runtime.alloc(empty)
         self.pos_out, self.prev_out = runtime.alloc(empty), runtime.alloc(empty)
+        self.normals = runtime.alloc(empty) if normals else None  # written, never read back in
+        self.has_normals = False  # whether the last step since upload() wrote them
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         self.runtime.upload(self.pos_in, np.ascontiguousarray(pos, dtype=np.float32))
         self.runtime.upload(self.prev_in, np.ascontiguousarray(prev, dtype=np.float32))
+        self.has_normals = False
 
     def args(self) -> tuple:
         """The kernel's arguments, in verlet_step's parameter order."""
-        return (
-            self.pos_in,
-            self.prev_in,
-            self.pos_out,
-            self.prev_out,
-            *self.constants,
-            self.spheres,
-            self.sphere_count,
-        )
+        buffers = (self.pos_in, self.prev_in, self.pos_out, self.prev_out)
+        if self.normals is not None:
+            buffers += (self.normals,)
+        return (*buffers, *self.scene_args)
 
     def step(self) -> None:
         self.runtime.launch(self.grid, self.block, self.args())
@@ -232,10 +300,15 @@ class PingPong:
         else:  # the output becomes the next input: swap the pointers, move no data
             self.pos_in, self.pos_out = self.pos_out, self.pos_in
             self.prev_in, self.prev_out = self.prev_out, self.prev_in
+        self.has_normals = self.normals is not None
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """(pos, prev) after the last step: always the input pair, whichever the transfer."""
         return self.runtime.download(self.pos_in), self.runtime.download(self.prev_in)
+
+    def read_normals(self) -> np.ndarray | None:
+        """The normals of read()[1], x(t) of the last step; None before a step or unasked."""
+        return self.runtime.download(self.normals) if self.has_normals else None
 
 
 class _CupyRuntime:
@@ -294,7 +367,8 @@ class CudaBackend(Backend):
         props = cupy.cuda.runtime.getDeviceProperties(index)
         self._name = props["name"].decode() if isinstance(props["name"], bytes) else str(props["name"])
         self._binary_dir = None
-        kernel = self._load_kernel(options.strict, self._device.compute_capability)
+        self.defines = kernel_defines(scene, options.normals, options.generic)
+        kernel = self._load_kernel(options.strict, self._device.compute_capability, self.defines)
         if not 1 <= block <= kernel.max_threads_per_block:
             raise ClothbenchError(
                 f"cuda --local-size must be 1 .. {kernel.max_threads_per_block} here, got {block}"
@@ -303,9 +377,11 @@ class CudaBackend(Backend):
         self.stream = cupy.cuda.Stream(non_blocking=True)
         self._start, self._end = cupy.cuda.Event(), cupy.cuda.Event()
         self._timed = False
-        self.state = PingPong(_CupyRuntime(kernel, self.stream), scene, transfer, block)
+        self.state = PingPong(
+            _CupyRuntime(kernel, self.stream), scene, transfer, block, options.generic, options.normals
+        )
 
-    def _load_kernel(self, strict: bool, arch: str):
+    def _load_kernel(self, strict: bool, arch: str, defines: tuple[str, ...]):
         import cupy
 
         using = compiler()
@@ -314,7 +390,7 @@ class CudaBackend(Backend):
         # RawModule loads from a file; keep it until close() in case CuPy reads it lazily
         self._binary_dir = tempfile.TemporaryDirectory(prefix="clothbench-cuda-")
         path = Path(self._binary_dir.name) / "verlet_cloth.bin"  # cuModuleLoad tells cubin from PTX
-        path.write_bytes(compile_kernel(strict, arch, using))
+        path.write_bytes(compile_kernel(strict, arch, using, "cubin", defines))
         return cupy.RawModule(path=str(path)).get_function(KERNEL_NAME)
 
     @property
@@ -323,8 +399,9 @@ class CudaBackend(Backend):
 
     @property
     def mode(self) -> str:
-        bs = self.options.local_size or "auto"
-        return f"{'strict' if self.options.strict else 'fast'}/{self.transfer}/bs={bs}"
+        o = self.options
+        parts = ["strict" if o.strict else "fast"] + ["normals"] * o.normals + ["generic"] * o.generic
+        return "/".join(parts + [self.transfer, f"bs={o.local_size or 'auto'}"])
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         self.state.upload(pos, prev)
@@ -341,6 +418,10 @@ class CudaBackend(Backend):
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         return self.state.read()
+
+    def read_normals(self) -> np.ndarray | None:
+        """Normals of the positions the last step read (read()[1]), see docs/normals.md."""
+        return self.state.read_normals()
 
     def device_elapsed_ms(self) -> float | None:
         if not self._timed:

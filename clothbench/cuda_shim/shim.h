@@ -1,7 +1,8 @@
 // Just enough of CUDA for g++ to compile an unmodified kernels/*.cu and run it on the CPU:
 //
-//   g++ -std=c++17 -O2 -ffp-contract=off -x c++ -include shim.h kernels/verlet_cloth.cu
+//   g++ -std=c++17 -O2 -ffp-contract=off -x c++ -include shim.h -DCLOTH_GENERIC kernels/verlet_cloth.cu
 //
+// (or, instead of -DCLOTH_GENERIC, the scene's -D switches: clothbench.backends.cuda.kernel_defines).
 // Threads run one after another, so a kernel must not use __shared__ or __syncthreads()
 // (ours read the input buffers and write only their own particle of the output buffers).
 // Keep -ffp-contract=off: g++ fuses a*b+c silently under -march=native / -mfma, and the
