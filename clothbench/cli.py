@@ -78,6 +78,10 @@ def cmd_run(args) -> int:
     options = options_from_args(args)
     if args.precision == "f64" and args.backend != "numpy":
         raise ClothbenchError(f"{args.backend} runs in f32 only; f64 is the numpy reference")
+    from .harness.energy import predicted_fast_impact
+
+    if warning := predicted_fast_impact(scene):
+        print(f"clothbench: warning: {warning}", file=sys.stderr)
     t0 = time.perf_counter()
     backend = create_backend(args.backend, scene, options)
     build_s = time.perf_counter() - t0
@@ -90,6 +94,8 @@ def cmd_run(args) -> int:
         if args.profile and result.blowup is None:
             backend.upload(*scene.initial_state(options.dtype))
             stages = backend.profile_stages(scene.steps)
+    for warning in result.warnings:
+        print(f"clothbench: warning: {warning}", file=sys.stderr)
     if args.save:
         arrays = {"pos": result.pos, "prev": result.prev}
         if normals is not None:

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import BlowUp
 from ..scene import Scene
+from .energy import fast_impact_warning
 from .health import max_penetration, state_problem
 
 WARMUP_STEPS = 3
@@ -39,6 +40,7 @@ class RunResult:
     pos: np.ndarray | None = None
     prev: np.ndarray | None = None
     blowup: BlowUp | None = None
+    warnings: list[str] = field(default_factory=list)  # one line each, said once
 
     @property
     def ms_per_step(self) -> float:
@@ -115,6 +117,9 @@ def run_timed(
                 raise result.blowup
             return result
         pos, prev = new_pos, new_prev
+        warning = fast_impact_warning(pos, prev, scene)
+        if warning and warning.split(":")[0] not in {w.split(":")[0] for w in result.warnings}:
+            result.warnings.append(warning)
         done += c
         if on_progress:
             on_progress(done)

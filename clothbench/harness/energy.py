@@ -1,0 +1,215 @@
+"""Total energy of a state, and the energy-growth bound every command shares.
+
+Verlet keeps two positions, x(t) and x(t - dt), so the energy is measured as the scheme
+sees it, at the half step between them (all in float64, whatever the working precision):
+
+- kinetic: sum of m |v|^2 / 2 with the Verlet velocity estimate v = (x - x_prev) / dt;
+- gravitational: sum of -m g . x, averaged over x and x_prev (for a constant force this
+  average makes Verlet's energy exactly constant);
+- spring: sum over springs of k (L - rest)(L_prev - rest) / 2, the product of the two
+  stretches rather than the mean of their squares: for a linear spring that is the energy
+  position Verlet conserves exactly, so a stable undamped run shows no O((w dt)^2) ripple
+  from the fast spring modes, only the slow drift of the nonlinear geometry.
+
+Pinned particles (w = 0) do not move, so they hold no kinetic energy and their constant
+potential is left out; a spring to a pinned particle still counts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from ..scene import OFFSETS, Scene
+
+# Each spring once: the offsets pointing "forward" (the stencil lists both ends).
+FORWARD = tuple(o for o in OFFSETS if o[0] > 0 or (o[0] == 0 and o[1] > 0))
+
+# A run is blown up once its total energy exceeds the start by ENERGY_GROWTH times the
+# energy scale of the scene (see energy_scale): a stable cloth only converts energy
+# (gravity -> motion -> springs) and damping removes it; sphere contacts add a little.
+ENERGY_GROWTH = 1.0
+# Floor of the scale: the whole cloth moving at FLOOR_SPEED, so a scene with no gravity
+# and no initial motion still has a finite bound.
+FLOOR_SPEED = 0.1  # m/s
+
+
+@dataclass(frozen=True)
+class Energy:
+    kinetic: float
+    spring: float
+    gravity: float
+
+    @property
+    def total(self) -> float:
+        return self.kinetic + self.spring + self.gravity
+
+    def watched(self, scene: Scene) -> float:
+        """The energy the blow-up check watches. PBD's constraints are as stiff as its
+        iterations make them, not k, so k*(L - rest)^2/2 is not its energy: there only
+        kinetic + gravitational energy is watched (a stable PBD step only loses it)."""
+        return self.total if scene.solver != "pbd" else self.kinetic + self.gravity
+
+
+def _grid(a: np.ndarray, n: int) -> np.ndarray:
+    return a[:, :3].astype(np.float64).reshape(n, n, 3)
+
+
+def _lengths(x: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    n = x.shape[0]
+    a = x[max(0, -dr) : n - max(0, dr), max(0, -dc) : n - max(0, dc)]
+    b = x[max(0, dr) : n + min(0, dr), max(0, dc) : n + min(0, dc)]
+    return np.sqrt(((b - a) ** 2).sum(axis=-1))
+
+
+def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene) -> Energy:
+    """Kinetic, spring and gravitational energy (J) of the state (pos, prev) of `scene`."""
+    n, m, k = scene.grid, scene.mass, scene.stiffness
+    free = pos[:, 3] != 0
+    x, xp = _grid(pos, n), _grid(prev, n)
+    v = (x - xp) / scene.dt
+    kinetic = 0.5 * m * float((v * v).sum(axis=-1).reshape(-1)[free].sum())
+    g = np.array(scene.gravity)
+    mid = 0.5 * (x + xp).reshape(-1, 3)[free]
+    gravity = -m * float((mid @ g).sum())
+    spring = 0.0
+    rest = dict(zip(OFFSETS, scene.rest_lengths()))
+    for dr, dc in FORWARD:
+        s_now = _lengths(x, dr, dc) - rest[(dr, dc)]
+        s_prev = _lengths(xp, dr, dc) - rest[(dr, dc)]
+        spring += 0.5 * k * float((s_now * s_prev).sum())
+    return Energy(kinetic, spring, gravity)
+
+
+def energy_scale(scene: Scene, pos: np.ndarray | None = None, prev: np.ndarray | None = None) -> float:
+    """What a stable run of `scene` can plausibly move around (J): the energy of lifting the
+    free particles by the size of the sheet, plus the kinetic and elastic energy at the start,
+    plus the cloth moving at FLOOR_SPEED."""
+    if pos is None:
+        pos, prev = scene.initial_state(np.float64)
+    free_mass = scene.mass * int((pos[:, 3] != 0).sum())
+    g = math.sqrt(sum(c * c for c in scene.gravity))
+    xyz = pos[:, :3].astype(np.float64)
+    extent = max(scene.size, float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0))))
+    e = total_energy(pos, prev, scene)
+    spring = abs(e.spring) if scene.solver != "pbd" else 0.0
+    return free_mass * g * extent + abs(e.kinetic) + spring + 0.5 * free_mass * FLOOR_SPEED**2
+
+
+@lru_cache(maxsize=32)
+def _start(scene: Scene) -> tuple[float, float]:
+    pos, prev = scene.initial_state(np.float64)
+    return total_energy(pos, prev, scene).watched(scene), energy_scale(scene, pos, prev)
+
+
+def energy_bound(scene: Scene, start: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
+    """(E0, limit): the start's total energy and the largest total a stable run reaches.
+
+    `start` is the initial (pos, prev) when the run did not start from scene.initial_state()."""
+    if start is None:
+        e0, scale = _start(scene)
+    else:
+        e0 = total_energy(*start, scene).watched(scene)
+        scale = energy_scale(scene, *start)
+    return e0, e0 + ENERGY_GROWTH * scale
+
+
+def energy_problem(
+    pos: np.ndarray,
+    prev: np.ndarray,
+    scene: Scene,
+    step: int,
+    start: tuple[np.ndarray, np.ndarray] | None = None,
+) -> str | None:
+    """None while the total energy stays under the bound, else what is wrong (one line).
+
+    Same signature as harness.health.state_problem, so it can be chained after it."""
+    e0, limit = energy_bound(scene, start)
+    with np.errstate(all="ignore"):
+        e = total_energy(pos, prev, scene).watched(scene)
+    if not math.isfinite(e):
+        return "the total energy is not finite"
+    if e > limit:
+        return (
+            f"the total energy grew from {e0:.4g} J to {e:.4g} J, past the bound {limit:.4g} J "
+            f"(a stable run only loses energy; try a smaller dt)"
+        )
+    return None
+
+
+# --- fast impact -----------------------------------------------------------------------
+#
+# The sphere collider only sees where a particle lands: x_new inside the sphere is pushed out
+# along the line from the centre. A particle that moves D per step can land past the centre
+# once D > r (and is pushed out through the far side), and can jump the sphere entirely once
+# D > 2r. So the rule: when a free particle's displacement per step |x - x_prev| reaches the
+# radius of the smallest sphere, contacts can tunnel; warn and say what dt would catch it.
+
+
+def max_step_displacement(pos: np.ndarray, prev: np.ndarray) -> tuple[float, int]:
+    """(largest |x - x_prev| of a free particle (m), that particle's index)."""
+    free = pos[:, 3] != 0
+    d = np.sqrt(((pos[:, :3].astype(np.float64) - prev[:, :3]) ** 2).sum(axis=1))
+    d[~free] = 0.0
+    i = int(np.argmax(d))
+    return float(d[i]), i
+
+
+def fast_impact_warning(pos: np.ndarray, prev: np.ndarray, scene: Scene) -> str | None:
+    """A warning (one line) if a particle moves as far per step as the smallest sphere's
+    radius, so the collider could let it through; None otherwise or with no spheres."""
+    if not scene.spheres:
+        return None
+    r = min(s.radius for s in scene.spheres)
+    d, i = max_step_displacement(pos, prev)
+    if not math.isfinite(d) or d < r:
+        return None
+    speed = d / scene.dt
+    return (
+        f"fast impact: particle {i} moves {d:.3g} m per step ({speed:.3g} m/s), at least the "
+        f"sphere radius {r:.3g} m, so it can pass through the sphere; use dt < {r / speed:.2g} s"
+    )
+
+
+def predicted_fast_impact(scene: Scene) -> str | None:
+    """Before a run: the free-fall speed a particle reaches by the bottom of the lowest-reaching
+    sphere, times dt, against the smallest radius (the same rule, predicted from the scene)."""
+    if not scene.spheres:
+        return None
+    g = np.array(scene.gravity)
+    gn = float(np.linalg.norm(g))
+    if gn == 0:
+        return None
+    down = g / gn
+    pos, prev = scene.initial_state(np.float64)
+    free = pos[:, 3] != 0
+    if not free.any():
+        return None
+    xyz = pos[free, :3]
+    v0 = float(np.sqrt((((pos[free, :3] - prev[free, :3]) / scene.dt) ** 2).sum(axis=1)).max())
+    # the deepest point any sphere reaches along gravity, measured from the highest particle
+    drop = max(float(np.dot(np.array(s.center), down)) + s.radius for s in scene.spheres)
+    drop -= float((xyz @ down).min())
+    speed = math.sqrt(v0 * v0 + 2 * gn * max(drop, 0.0))
+    r = min(s.radius for s in scene.spheres)
+    if speed * scene.dt < r:
+        return None
+    return (
+        f"fast impact: falling freely the cloth reaches {speed:.3g} m/s, {speed * scene.dt:.3g} m "
+        f"per step, at least the sphere radius {r:.3g} m; use dt < {r / speed:.2g} s"
+    )
+
+
+__all__ = [
+    "Energy",
+    "total_energy",
+    "energy_scale",
+    "energy_bound",
+    "energy_problem",
+    "max_step_displacement",
+    "fast_impact_warning",
+    "predicted_fast_impact",
+]

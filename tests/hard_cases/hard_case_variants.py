@@ -1,0 +1,54 @@
+"""Every hard case runs on every backend the registry knows, once per sweep variant (mode).
+
+A backend that cannot run here contributes one test that skips with the registry's reason
+(tests/conftest.py require()), so the skip list says what was not compared and why.
+A test module uses it with `from hard_case_variants import variant`.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from clothbench.accuracy import backend_variants
+from clothbench.backends import BACKENDS, availability
+
+from conftest import require  # tests/conftest.py
+
+__all__ = ["require", "variant", "run_from", "exact_arithmetic"]
+
+
+def _params():
+    params = []
+    for name in BACKENDS:
+        if not availability(name).usable:
+            params.append(pytest.param((name, None), id=name))
+            continue
+        for v in backend_variants([name])[0]:
+            tag = "-".join(f"{k}={val}" if not isinstance(val, str) else val for k, val in v.overrides)
+            params.append(pytest.param((name, v), id=f"{name}-{tag}" if tag else name))
+    return params
+
+
+@pytest.fixture(params=_params())
+def variant(request):
+    """A usable Variant (backend + options), or a skip with the reason it cannot run."""
+    name, v = request.param
+    require(name)
+    return v
+
+
+def run_from(v, scene, start, steps):
+    """(pos, prev) after `steps` steps of `scene` on variant `v` from the float64 state `start`
+    (rounded once to the variant's precision, as Scene.initial_state does)."""
+    from clothbench.backends import create_backend
+
+    dtype = v.options.dtype
+    with create_backend(v.backend, scene, v.options) as b:
+        b.upload(start[0].astype(dtype), start[1].astype(dtype))
+        b.advance(steps)
+        return b.read()
+
+
+def exact_arithmetic(v) -> bool:
+    """Whether the variant promises the NumPy operation order (numpy itself, or --strict)."""
+    return v.backend == "numpy" or v.options.strict
