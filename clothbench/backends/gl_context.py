@@ -1,5 +1,6 @@
-"""What the two GL backends share: one OpenGL context per provider, its program cache, and
-the scene constants as shader source or uniforms.
+"""What the two GL backends share: one OpenGL context per provider, its program cache, the
+kernel sources with their includes resolved, and the scene constants as shader source or
+uniforms.
 
 Providers: EGL (headless, glcontext's `egl` backend: Mesa llvmpipe here, a GPU driver
 elsewhere) and OSMesa (Debian's libosmesa6; glcontext has no OSMesa backend, so the context
@@ -15,6 +16,8 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import re
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -28,6 +31,17 @@ MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspeciali
 
 class GLUnavailable(ClothbenchError):
     """No context could be made with the provider asked for; the message says why."""
+
+
+@dataclass(frozen=True)
+class DrawableState:
+    """Where a GL backend keeps x(t) and its normals (docs/normals.md) on the device, for the
+    renderer to draw without a readback: RGBA32F n x n textures (`glsl`) or vec4 buffers
+    (`glsl-compute`), moderngl objects of `device`'s context."""
+
+    device: "GLDevice"
+    positions: object
+    normals: object
 
 
 class GLDevice:
@@ -215,11 +229,64 @@ def _create_osmesa() -> GLDevice:
 # --- the scene constants ------------------------------------------------------------------
 
 
-def shader_source(filename: str, version: int, defines: dict[str, object]) -> str:
-    """The kernel file with `#version` and the build switches in front of it."""
-    lines = [f"#version {version} core"]
+# The collider kinds, in the order the step applies them (kernels/collide_KIND.glsl).
+COLLIDER_KINDS = ("sphere", "cylinder", "plane")
+_INCLUDE = re.compile(r'^[ \t]*#include[ \t]+(?:"([^"]+)"|<([^>]+)>)[ \t]*(?://.*)?$', re.M)
+
+
+def collider_kinds(scene: Scene, generic: bool) -> tuple[str, ...]:
+    """The collider kinds a program for `scene` handles: the ones it has, or all (generic)."""
+    if generic:
+        return COLLIDER_KINDS
+    groups = (scene.spheres, scene.cylinders, scene.planes)
+    return tuple(kind for kind, group in zip(COLLIDER_KINDS, groups) if group)
+
+
+def collider_source(kinds: tuple[str, ...]) -> str:
+    """What `#include <colliders>` stands for: kernels/collide_KIND.glsl of each kind the
+    program handles, and collide(), applying them in the fixed order. A kind the program
+    does not handle is not in its source at all."""
+    calls = "".join(f"    x = collide_{kind}s(x);\n" for kind in kinds)
+    parts = [f'#include "collide_{kind}.glsl"\n' for kind in kinds]
+    parts.append(f"vec3 collide(vec3 x)\n{{\n{calls}    return x;\n}}\n")
+    return "".join(parts)
+
+
+def shader_source(
+    filename: str, version: int, defines: dict[str, object], colliders: tuple[str, ...] = ()
+) -> str:
+    """The kernel file with `#version` and the build switches in front of it, and its includes
+    resolved: `#include "file"` is kernels/file, `#include <colliders>` the collider files of
+    `colliders` (collider_source). GLSL has no #include; `#line 1 S` at each file start (and
+    after each include) keeps a compiler message's line number the line of that file, with
+    S its number in the list on the source's second line (Mesa prints every source as 0)."""
+    files: list[str] = []
+
+    def expand(name: str, text: str) -> str:
+        number = len(files)
+        files.append(name)
+        out, last = [f"#line 1 {number}\n"], 0
+        for match in _INCLUDE.finditer(text):
+            out.append(text[last : match.start()])
+            if match.group(1):
+                out.append(expand(match.group(1), read_kernel(match.group(1))))
+            elif match.group(2) == "colliders":
+                out.append(expand("<colliders>", collider_source(colliders)))
+            else:
+                raise ClothbenchError(f"{name}: unknown #include <{match.group(2)}>")
+            line = text.count("\n", 0, match.end()) + 2  # the line after the #include
+            out.append(f"\n#line {line} {number}")
+            last = match.end()
+        out.append(text[last:])
+        return "".join(out)
+
+    body = expand(filename, read_kernel(filename))
+    lines = [f"#version {version} core", f"// sources: {', '.join(f'{i} {f}' for i, f in enumerate(files))}"]
     lines += [f"#define {k} {v}".rstrip() for k, v in defines.items()]
-    return "\n".join(lines) + "\n#line 1\n" + read_kernel(filename)
+    return "\n".join(lines) + "\n" + body
+
+
+ROWS_PER_COLLIDER = {"sphere": 1, "cylinder": 3, "plane": 2}  # vec4 rows, as collider_rows
 
 
 def collider_rows(scene: Scene) -> dict[str, np.ndarray]:
@@ -250,15 +317,15 @@ def collider_rows(scene: Scene) -> dict[str, np.ndarray]:
 def constant_defines(scene: Scene, generic: bool) -> dict[str, object]:
     """Defines that make the kernel specialised (exact literals) or generic (uniforms).
 
-    Specialised (the default): every constant is an exact float32 literal (glsl_float, the
-    bit pattern), rounded once from the scene's float64 value as docs/semantics.md fixes,
-    and the compiler folds them. Generic: the kernel declares uniforms, which
+    Specialised (the default): the grid size, the counts and every constant are baked in,
+    each value an exact float32 literal (glsl_float, the bit pattern), rounded once from the
+    scene's float64 value as docs/semantics.md fixes, and the compiler folds them; only the
+    collider kinds the scene has get a count and values (their code is included only for
+    them: collider_kinds). Generic: the kernel declares uniforms, which
     set_constant_uniforms fills with the same float32 values; one program serves every scene.
     """
-    counts = {"SPHERE_COUNT": len(scene.spheres), "CYLINDER_COUNT": len(scene.cylinders),
-              "PLANE_COUNT": len(scene.planes)}
     if generic:
-        worst = max(counts.values())
+        worst = max(len(scene.spheres), len(scene.cylinders), len(scene.planes))
         if worst > MAX_GENERIC_COLLIDERS:
             raise ClothbenchError(
                 f"--generic takes up to {MAX_GENERIC_COLLIDERS} colliders of each kind, the scene "
@@ -280,11 +347,12 @@ def constant_defines(scene: Scene, generic: bool) -> dict[str, object]:
         "G_VALUE": "vec3({})".format(", ".join(glsl_float(c) for c in scene.gravity)),
         # the three distinct rest lengths: structural h, shear sqrt(2) h, bend 2 sqrt(2) h
         "REST_VALUE": "float[3]({}, {}, {})".format(*(glsl_float(rest[o]) for o in (0, 4, 8))),
-        **counts,
     }
-    for name, rows in collider_rows(scene).items():
+    # only the kinds the scene has: SPHERE_COUNT and SPHERES_VALUE, ... (collider_kinds)
+    for kind, rows in zip(COLLIDER_KINDS, collider_rows(scene).values()):
         if len(rows):
-            defines[f"{name.upper()}_VALUE"] = vec4s(rows)
+            defines[f"{kind.upper()}_COUNT"] = len(rows) // ROWS_PER_COLLIDER[kind]
+            defines[f"{kind.upper()}S_VALUE"] = vec4s(rows)
     return defines
 
 

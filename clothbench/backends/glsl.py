@@ -1,6 +1,8 @@
 """GLSL fragment-shader backend: the chapter's section 22.6 in modern OpenGL (moderngl).
 
-Kernel: kernels/verlet_cloth.vert + kernels/verlet_cloth.frag. The state lives in two
+Kernel: kernels/verlet_cloth.vert + kernels/verlet_cloth.frag, which includes the step
+(kernels/verlet_cloth_step.glsl, shared with glsl-compute) and the collider files of the
+kinds the scene has (kernels/collide_*.glsl). The state lives in two
 framebuffers, each with RGBA32F colour attachments (position, previous position, and the
 normal when asked for); a step draws one full-viewport triangle from one into the other,
 then the two swap roles. Nothing leaves the device until read().
@@ -96,19 +98,22 @@ class GLSLBackend(Backend):
         defines = kernel_defines(self.scene, self.options)
         if self.image_reads:
             defines["IMAGE_READS"] = ""
+        vertex = gl_context.shader_source("verlet_cloth.vert", version, {})
+        fragment = gl_context.shader_source(
+            "verlet_cloth.frag", version, defines, gl_context.collider_kinds(self.scene, self.options.generic)
+        )
 
         def build():
-            ctx = self.gl.ctx
-            program = ctx.program(
-                vertex_shader=gl_context.shader_source("verlet_cloth.vert", version, {}),
-                fragment_shader=gl_context.shader_source("verlet_cloth.frag", version, defines),
-            )
+            program = self.gl.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
             if not self.image_reads:
                 program["pos_tex"].value = 0  # texture units, as bound in advance()
                 program["prev_tex"].value = 1
             return program
 
-        program = self.gl.program(("frag", version, tuple(defines.items())), build)
+        # the source is the specialisation key: the same scene constants, switches and
+        # collider kinds share one program (a sweep's repeats, every --generic scene)
+        program = self.gl.program(("frag", vertex, fragment), build)
+        self.source = fragment
         if self.options.generic:
             gl_context.set_constant_uniforms(program, self.scene)
         return program
@@ -171,6 +176,13 @@ class GLSLBackend(Backend):
             return None
         with self.gl:
             return self._read_attachment(2)
+
+    def drawable_state(self) -> gl_context.DrawableState:
+        """x(t) (read()[1]) and its normals as this backend's own textures, for drawing."""
+        if not self.has_normals:
+            raise ClothbenchError("glsl: no normals to draw; create the backend with normals=True and step")
+        _, prev_tex, normal_tex = self.textures[self.current]
+        return gl_context.DrawableState(self.gl, prev_tex, normal_tex)
 
     def close(self) -> None:
         with self.gl:  # the context is shared (gl_context), so only our objects go

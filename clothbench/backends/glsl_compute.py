@@ -1,9 +1,11 @@
 """GLSL compute-shader backend: the same step as `glsl`, as a GL 4.3 compute shader on SSBOs.
 
-Kernel: kernels/verlet_cloth.comp. The state is two (pos, prev) pairs of std430 vec4
-storage buffers; a step reads one pair and writes the other (bindings 2-3), then the pairs
-swap roles: no copy. The input pair is read through imageBuffer views of the same buffers
-(no copy either): llvmpipe loads SSBOs one lane at a time, images with vector gathers.
+Kernel: kernels/verlet_cloth.comp, with the step and colliders it shares with `glsl`
+(kernels/verlet_cloth_step.glsl, kernels/collide_*.glsl). The state is two (pos, prev)
+pairs of std430 vec4 storage buffers; a step reads one pair and writes the other
+(bindings 2-3), then the pairs swap roles: no copy. The input pair is read through
+imageBuffer views of the same buffers (no copy either): llvmpipe loads SSBOs one lane at a
+time, images with vector gathers.
 Each step is two dispatches, the interior (every neighbour present, no bounds tests) and
 the border, then a memory barrier before the next step reads what this one wrote.
 """
@@ -59,6 +61,7 @@ class GLSLComputeBackend(Backend):
             )
         n = scene.grid
         self.image_reads = PREFER_IMAGE_READS and self.gl.max_texture_buffer_size >= scene.particles
+        self.sources: dict[int, str] = {}  # the compiled source of each pass
         # interior and border when there is an interior (n >= 5); else one pass with tests
         if n >= 5:
             counts = {PASS_INTERIOR: (n - 4) ** 2, PASS_BORDER: 8 * n - 16}
@@ -85,8 +88,11 @@ class GLSLComputeBackend(Backend):
         defines.update(LOCAL_SIZE=self.local_size, PASS=pass_id)
         if self.image_reads:
             defines["IMAGE_READS"] = ""
-        source = gl_context.shader_source("verlet_cloth.comp", 430, defines)
-        program = self.gl.program(("comp", tuple(defines.items())), lambda: self.gl.ctx.compute_shader(source))
+        kinds = gl_context.collider_kinds(self.scene, self.options.generic)
+        source = gl_context.shader_source("verlet_cloth.comp", 430, defines, kinds)
+        # the source is the specialisation key (see glsl.GLSLBackend._program)
+        program = self.gl.program(("comp", source), lambda: self.gl.ctx.compute_shader(source))
+        self.sources[pass_id] = source
         if self.options.generic:
             gl_context.set_constant_uniforms(program, self.scene)
         return program
@@ -152,6 +158,14 @@ class GLSLComputeBackend(Backend):
             return None
         with self.gl:
             return self._read_buffer(self.normals)
+
+    def drawable_state(self) -> gl_context.DrawableState:
+        """x(t) (read()[1]) and its normals as this backend's own storage buffers, for drawing."""
+        if not self.has_normals:
+            raise ClothbenchError(
+                "glsl-compute: no normals to draw; create the backend with normals=True and step"
+            )
+        return gl_context.DrawableState(self.gl, self.pairs[self.current][1], self.normals)
 
     def close(self) -> None:
         with self.gl:  # the context is shared (gl_context), so only our objects go

@@ -1,0 +1,493 @@
+"""Drawing the cloth and its colliders offscreen with moderngl: `clothbench render`.
+
+The cloth is the n x n sheet as indexed triangles (kernels/render_cloth.*), each grid quad
+split along its (r, c)-(r+1, c+1) diagonal as in docs/normals.md, lit on both sides with the
+particles' normals and patterned with a checker so folds show. The colliders are meshes
+(kernels/render_collider.*): spheres, capped cylinders, and a square patch of each plane.
+A frame shows x(t), the state the last step read, with its normals: what the GL kernels
+compute (read()[1] of any backend).
+
+Where the cloth comes from:
+- `glsl` and `glsl-compute`: from the backend's own state textures / storage buffers
+  (`drawable_state()`), as the chapter maps its render target to a vertex buffer: nothing
+  leaves the device but the finished image;
+- any other backend: its positions read back each frame and uploaded, with normals from
+  `clothbench.harness.normals` (or the backend's own, where it computes them).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..backends import BackendOptions, create_backend, gl_context
+from ..errors import ClothbenchError
+from ..harness.normals import grid_normals
+from ..scene import Scene
+
+BACKGROUND = (0.86, 0.89, 0.93)
+CLOTH_COLOURS = ((0.80, 0.16, 0.13), (0.97, 0.78, 0.30))  # checker: red and gold
+CHECKS = 8  # checker squares per sheet side
+COLLIDER_COLOUR = (0.36, 0.52, 0.74)
+FLOOR_COLOUR = (0.66, 0.66, 0.64)
+# From the scene's centre toward the camera: above the sheet's first row (z = 0, the pinned
+# side of `drape` and `curtain`, so the curtain's sphere is in view) and to its side.
+VIEW = (0.9, 0.75, -1.2)
+LIGHT = (0.2, 1.0, -0.6)  # toward the light: above, from the camera's side
+FOV_Y = 35.0  # degrees
+SAMPLES = 4  # multisampling (anti-aliased edges), where the driver has it
+# Colliders are drawn this much smaller than they are, so that the cloth lying on one (whose
+# flat triangles cut slightly into it) is not hidden by it.
+COLLIDER_SHRINK = 0.985
+HANG = 1.5  # a sheet hanging from a pin reaches this many times its side below it
+FLOOR_DROP = 0.003  # m, the floor patch is drawn this far below its plane, for the same reason
+
+OUTPUT_KINDS = "a .png (the last frame), a .gif (every frame) or a folder/ (one PNG per frame)"
+
+
+# --- geometry ----------------------------------------------------------------------------
+
+
+def cloth_indices(n: int) -> np.ndarray:
+    """Triangles of the n x n grid as particle indices, two per quad split along its
+    (r, c)-(r+1, c+1) diagonal, wound counter-clockwise seen from the side the normals of
+    docs/normals.md point to (so the front face is that side)."""
+    r, c = np.divmod(np.arange((n - 1) * (n - 1)), n - 1)
+    i = r * n + c
+    lower = np.stack([i, i + n, i + n + 1], axis=1)  # (r,c), (r+1,c), (r+1,c+1)
+    upper = np.stack([i, i + n + 1, i + 1], axis=1)  # (r,c), (r+1,c+1), (r,c+1)
+    return np.concatenate([lower, upper]).astype(np.uint32)
+
+
+def sphere_mesh(segments: int = 48, rings: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A unit sphere: (vertices as (x, y, z, nx, ny, nz), triangle indices)."""
+    theta = np.linspace(0, math.pi, rings + 1)[:, None]
+    phi = np.linspace(0, 2 * math.pi, segments + 1)[None, :]
+    p = np.stack(
+        [np.sin(theta) * np.cos(phi), np.cos(theta) * np.ones_like(phi), np.sin(theta) * np.sin(phi)], axis=-1
+    ).reshape(-1, 3)
+    return np.hstack([p, p]).astype(np.float32), _grid_triangles(rings, segments)
+
+
+def cylinder_mesh(segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """A capped cylinder of radius 1 around the z axis from z = 0 to z = 1."""
+    a = np.linspace(0, 2 * math.pi, segments + 1)
+    ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
+    side = [np.hstack([ring + (0, 0, z), ring]) for z in (0.0, 1.0)]
+    vertices = [np.vstack(side)]
+    indices = [_grid_triangles(1, segments)]
+    for z, nz in ((0.0, -1.0), (1.0, 1.0)):  # the caps: a centre and a ring each
+        base = sum(len(v) for v in vertices)
+        cap = np.vstack([[0.0, 0.0, z], ring + (0, 0, z)])
+        vertices.append(np.hstack([cap, np.tile([0.0, 0.0, nz], (len(cap), 1))]))
+        k = np.arange(1, segments + 1)
+        indices.append(base + np.stack([np.zeros_like(k), k, k + 1], axis=1))
+    return np.vstack(vertices).astype(np.float32), np.vstack(indices).astype(np.uint32)
+
+
+def _grid_triangles(rows: int, cols: int) -> np.ndarray:
+    """Two triangles per cell of a (rows + 1) x (cols + 1) vertex grid."""
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    i = r * (cols + 1) + c
+    j = i + cols + 1
+    return np.concatenate([np.stack([i, j, i + 1], 1), np.stack([i + 1, j, j + 1], 1)]).astype(np.uint32)
+
+
+def _perpendicular(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors completing the unit vector u to an orthonormal basis."""
+    helper = np.eye(3)[int(np.argmin(np.abs(u)))]
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(u, e1)
+
+
+def scene_bounds(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """A box around where the cloth goes and the round colliders: the sheet, as far down as it
+    is long when pinned (hanging, stretched by its weight: HANG), or down to the lowest
+    collider when it lands on them, and every sphere and cylinder; not below a floor."""
+    lo = np.array([0.0, scene.height - HANG * scene.size, 0.0])
+    hi = np.array([scene.size, scene.height, scene.size])
+    lowest = [s.center[1] - s.radius for s in scene.spheres]
+    lowest += [min(c.start[1], c.end[1]) - c.radius for c in scene.cylinders]
+    if not len(scene.pinned()) and lowest:  # it lands on the colliders and drapes over them
+        lo[1] = min(max(lo[1], min(lowest)), hi[1])
+    for s in scene.spheres:
+        lo = np.minimum(lo, np.array(s.center) - s.radius)
+        hi = np.maximum(hi, np.array(s.center) + s.radius)
+    for c in scene.cylinders:
+        for end in (c.start, c.end):
+            lo = np.minimum(lo, np.array(end) - c.radius)
+            hi = np.maximum(hi, np.array(end) + c.radius)
+    for p in scene.planes:  # a floor (normal up) cuts the box off at its height
+        nrm = np.array(p.unit_normal)
+        if nrm[1] > 0.99:
+            lo[1] = max(lo[1], min(p.point[1], hi[1]))
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class Camera:
+    eye: np.ndarray
+    view_projection: np.ndarray  # 4x4, row-major (p_clip = view_projection @ p)
+    size: tuple[int, int]  # (width, height) in pixels
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (column, row from the top) of world points (k, 3)."""
+        p = np.hstack([points, np.ones((len(points), 1))]) @ self.view_projection.T
+        ndc = p[:, :2] / p[:, 3:4]
+        w, h = self.size
+        return np.stack([(ndc[:, 0] + 1) / 2 * w, (1 - ndc[:, 1]) / 2 * h], axis=1)
+
+
+def frame_scene(scene: Scene, size: tuple[int, int]) -> Camera:
+    """A fixed camera above and in front of the scene, as close as keeps its bounds in view."""
+    lo, hi = scene_bounds(scene)
+    centre = (lo + hi) / 2
+    back = np.array(VIEW) / np.linalg.norm(VIEW)  # from the centre toward the eye
+    right = np.cross((0.0, 1.0, 0.0), back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    tan_v = math.tan(math.radians(FOV_Y) / 2)
+    tan_h = tan_v * size[0] / size[1]
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    rel = corners - centre
+    x, y, z = rel @ right, rel @ up, rel @ back
+    distance = 1.06 * float(np.max(z + np.maximum(np.abs(x) / tan_h, np.abs(y) / tan_v)))
+    eye = centre + back * distance
+    radius = float(np.linalg.norm(hi - lo))
+    near, far = max(1e-3, distance - 2 * radius), distance + 6 * radius
+    view = np.eye(4)
+    view[0, :3], view[1, :3], view[2, :3] = right, up, back
+    view[:3, 3] = -view[:3, :3] @ eye
+    projection = np.zeros((4, 4))
+    projection[0, 0], projection[1, 1] = 1 / tan_h, 1 / tan_v
+    projection[2, 2], projection[2, 3] = (far + near) / (near - far), 2 * far * near / (near - far)
+    projection[3, 2] = -1
+    return Camera(eye, projection @ view, size)
+
+
+# --- drawing -----------------------------------------------------------------------------
+
+
+def _matrix(m: np.ndarray) -> bytes:
+    """A matrix as a GL uniform: float32, column-major."""
+    return np.ascontiguousarray(m.T, dtype=np.float32).tobytes()
+
+
+@dataclass
+class _Shape:
+    vao: object
+    model: np.ndarray
+    colour: tuple[float, float, float]
+    tiles: bool = False
+
+
+class Renderer:
+    """Draws frames of one scene into an offscreen framebuffer of `device`'s context."""
+
+    def __init__(self, device: gl_context.GLDevice, scene: Scene, size: tuple[int, int]):
+        self.gl, self.scene, self.size, self.n = device, scene, size, scene.grid
+        self.camera = frame_scene(scene, size)
+        self._vaos: dict = {}  # cloth vertex arrays by the objects they draw from
+        self._owned: list = []  # every GL object made here, released by close()
+        with device:
+            ctx = device.ctx
+            samples = min(SAMPLES, ctx.max_samples)
+            self.fbo = self._own(
+                ctx.framebuffer(
+                    [self._own(ctx.renderbuffer(size, 4, samples=samples))],
+                    self._own(ctx.depth_renderbuffer(size, samples=samples)),
+                )
+            )
+            self.resolved = self._own(ctx.framebuffer([self._own(ctx.renderbuffer(size, 4))]))
+            self.indices = self._own(ctx.buffer(cloth_indices(self.n).tobytes()))
+            self.collider_program = self._program("render_collider", {})
+            self.shapes = self._collider_shapes()
+            self.uploaded = None  # (positions, normals) buffers for backends without GL state
+
+    def _own(self, obj):
+        self._owned.append(obj)
+        return obj
+
+    def _program(self, name: str, defines: dict):
+        version = self.gl.version_code
+        vertex = gl_context.shader_source(f"{name}.vert", version, defines)
+        fragment = gl_context.shader_source(f"{name}.frag", version, defines)
+
+        def build():
+            return self.gl.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
+
+        return self.gl.program(("render", vertex, fragment), build)
+
+    def _collider_shapes(self) -> list[_Shape]:
+        ctx, shapes = self.gl.ctx, []
+
+        def vao(vertices, indices):
+            return self._own(
+                ctx.vertex_array(
+                    self.collider_program,
+                    [(self._own(ctx.buffer(vertices.tobytes())), "3f 3f", "position", "normal")],
+                    index_buffer=self._own(ctx.buffer(indices.tobytes())),
+                    index_element_size=4,
+                )
+            )
+
+        if self.scene.spheres:
+            mesh = vao(*sphere_mesh())
+            for s in self.scene.spheres:
+                model = np.diag([s.radius * COLLIDER_SHRINK] * 3 + [1.0])
+                model[:3, 3] = s.center
+                shapes.append(_Shape(mesh, model, COLLIDER_COLOUR))
+        if self.scene.cylinders:
+            mesh = vao(*cylinder_mesh())
+            for c in self.scene.cylinders:
+                u = np.array(c.axis)
+                e1, e2 = _perpendicular(u)
+                r, trim = c.radius * COLLIDER_SHRINK, c.radius * (1 - COLLIDER_SHRINK)
+                model = np.eye(4)
+                model[:3, 0], model[:3, 1], model[:3, 2] = e1 * r, e2 * r, u * (c.length - 2 * trim)
+                model[:3, 3] = np.array(c.start) + u * trim
+                shapes.append(_Shape(mesh, model, COLLIDER_COLOUR))
+        if self.scene.planes:
+            lo, hi = scene_bounds(self.scene)
+            half = 4.0 * float(np.max(hi - lo))
+            square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+            for p in self.scene.planes:
+                nrm = np.array(p.unit_normal)
+                e1, e2 = _perpendicular(nrm)
+                centre = (lo + hi) / 2
+                centre = centre - nrm * (np.dot(centre - p.point, nrm) + FLOOR_DROP)  # onto the plane
+                corners = centre + half * (square[:, :1] * e1 + square[:, 1:] * e2)
+                vertices = np.hstack([corners, np.tile(nrm, (4, 1))]).astype(np.float32)
+                square_vao = vao(vertices, np.array([0, 1, 2, 0, 2, 3], np.uint32))
+                shapes.append(_Shape(square_vao, np.eye(4), FLOOR_COLOUR, tiles=True))
+        return shapes
+
+    # --- the cloth's sources ---
+
+    def draw_backend(self, backend) -> np.ndarray:
+        """A frame of `backend`'s current state: from its device state where it has one."""
+        drawable = getattr(backend, "drawable_state", None)
+        if drawable is not None:
+            return self.draw_state(drawable())
+        _, prev = backend.read()
+        normals = backend.read_normals()
+        if normals is None:
+            normals = grid_normals(prev, self.n, np.float32)
+        return self.draw_arrays(prev, normals)
+
+    def draw_state(self, state: gl_context.DrawableState) -> np.ndarray:
+        """A frame drawn from a GL backend's textures or buffers: no readback of the state."""
+        if state.device is not self.gl:
+            raise ClothbenchError("the backend's GL context is not the renderer's")
+        import moderngl
+
+        with self.gl:
+            textures = isinstance(state.positions, moderngl.Texture)
+            key = (state.positions.glo, state.normals.glo)
+            if key not in self._vaos:
+                if textures:  # the vertex shader fetches texel (col, row) by gl_VertexID
+                    program = self._program("render_cloth", {"STATE_TEXTURES": ""})
+                    content = []
+                else:  # storage buffers as vertex buffers: vec4 per particle
+                    program = self._program("render_cloth", {})
+                    content = [(state.positions, "4f", "position"), (state.normals, "4f", "normal")]
+                self._vaos[key] = self._own(
+                    self.gl.ctx.vertex_array(program, content, index_buffer=self.indices, index_element_size=4)
+                )
+            if textures:
+                state.positions.use(location=0)
+                state.normals.use(location=1)
+                self._vaos[key].program["positions"].value = 0
+                self._vaos[key].program["normals"].value = 1
+            return self._draw(self._vaos[key])
+
+    def draw_arrays(self, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """A frame of (n*n, 3 or 4) positions and normals from the host, uploaded."""
+        with self.gl:
+            ctx = self.gl.ctx
+            if self.uploaded is None:
+                size = self.n * self.n * 16
+                self.uploaded = tuple(self._own(ctx.buffer(reserve=size, dynamic=True)) for _ in range(2))
+            for buf, values in zip(self.uploaded, (positions, normals)):
+                vec4 = np.zeros((self.n * self.n, 4), dtype=np.float32)
+                vec4[:, :3] = values[:, :3]
+                buf.write(vec4.tobytes())
+            state = gl_context.DrawableState(self.gl, *self.uploaded)
+        return self.draw_state(state)
+
+    def _draw(self, cloth_vao) -> np.ndarray:
+        ctx, cam = self.gl.ctx, self.camera
+        light = np.array(LIGHT) / np.linalg.norm(LIGHT)
+        self.fbo.use()
+        self.fbo.clear(*BACKGROUND, 1.0, depth=1.0)
+        ctx.enable(ctx.DEPTH_TEST)
+        ctx.disable(ctx.CULL_FACE | ctx.BLEND)
+        for program in (self.collider_program, cloth_vao.program):
+            program["view_projection"].write(_matrix(cam.view_projection))
+            program["eye"].value = tuple(cam.eye)
+            program["light"].value = tuple(light)
+        cp = self.collider_program
+        for shape in self.shapes:
+            cp["model"].write(_matrix(shape.model))
+            cp["normal_matrix"].write(_matrix(np.linalg.inv(shape.model[:3, :3]).T))
+            cp["base"].value = shape.colour
+            cp["tiles"].value = shape.tiles
+            shape.vao.render()
+        program = cloth_vao.program
+        program["n"].value = self.n
+        program["checks"].value = float(CHECKS)
+        program["colour_a"].value, program["colour_b"].value = CLOTH_COLOURS
+        cloth_vao.render()
+        ctx.copy_framebuffer(self.resolved, self.fbo)  # resolve the multisampling
+        w, h = self.size
+        data = self.resolved.read(components=3, alignment=1)
+        return np.frombuffer(data, dtype=np.uint8).reshape(h, w, 3)[::-1].copy()  # GL's row 0 is the bottom
+
+    def close(self) -> None:
+        with self.gl:  # the context is shared: release only what this renderer made
+            for obj in reversed(self._owned):
+                obj.release()
+        self._owned, self._vaos = [], {}
+
+
+# --- the command ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    frames: int = 60
+    every: int = 50  # steps between frames
+    size: tuple[int, int] = (640, 480)
+    fps: float = 25.0  # GIF playback
+
+
+@dataclass
+class RenderReport:
+    files: list[Path]
+    frames: int
+    steps: int
+    simulate_s: float = 0.0
+    draw_s: float = 0.0
+    write_s: float = 0.0
+    merged: int = 0  # GIF frames identical to the one before, merged by Pillow into it
+    notes: list[str] = field(default_factory=list)
+
+
+def output_kind(out: str) -> str:
+    """'png', 'gif' or 'folder' for an --out value; ClothbenchError for anything else."""
+    suffix = Path(out).suffix.lower()
+    if out.endswith(("/", "\\")) or Path(out).is_dir() or not suffix:
+        return "folder"
+    if suffix in (".png", ".gif"):
+        return suffix[1:]
+    raise ClothbenchError(f"--out must be {OUTPUT_KINDS}, got {out!r}")
+
+
+def check_settings(settings: RenderSettings) -> None:
+    if settings.frames < 1:
+        raise ClothbenchError(f"--frames must be >= 1, got {settings.frames}")
+    if settings.every < 1:
+        raise ClothbenchError(f"--every (steps between frames) must be >= 1, got {settings.every}")
+    w, h = settings.size
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ClothbenchError(f"--size must be between 16x16 and 8192x8192, got {w}x{h}")
+    if not settings.fps > 0:
+        raise ClothbenchError(f"--fps must be > 0, got {settings.fps}")
+
+
+def render(
+    scene: Scene,
+    backend_name: str,
+    options: BackendOptions,
+    settings: RenderSettings,
+    out: str,
+    on_frame=None,
+) -> RenderReport:
+    """Simulate `settings.frames` x `settings.every` steps of `scene` on `backend_name`,
+    drawing a frame after every `every` steps, into `out` (see OUTPUT_KINDS)."""
+    kind = output_kind(out)
+    check_settings(settings)
+    path = Path(out)
+    _writable(path if kind == "folder" else path.parent)  # fail before simulating, not after
+    options = replace(options, normals=True)  # the GL backends compute them in the step
+    report = RenderReport([], settings.frames, settings.frames * settings.every)
+    images = []
+    with create_backend(backend_name, scene, options) as backend:
+        device = backend.gl if hasattr(backend, "drawable_state") else gl_context.get_device(options.gl)
+        renderer = Renderer(device, scene, settings.size)
+        try:
+            backend.upload(*scene.initial_state(options.dtype))
+            for frame in range(1, settings.frames + 1):
+                t0 = time.perf_counter()
+                backend.advance(settings.every)
+                backend.synchronize()
+                t1 = time.perf_counter()
+                report.simulate_s += t1 - t0
+                if kind != "png" or frame == settings.frames:  # a PNG is the last frame only
+                    images.append(renderer.draw_backend(backend))
+                    t2 = time.perf_counter()
+                    report.draw_s += t2 - t1
+                    if kind == "folder":  # written as they come: an interrupted render keeps them
+                        report.files.append(_save_png(images.pop(), path / f"frame_{frame:04d}.png"))
+                        report.write_s += time.perf_counter() - t2
+                if on_frame is not None:
+                    on_frame(frame)
+        finally:
+            renderer.close()
+    t2 = time.perf_counter()
+    if kind == "png":
+        report.files.append(_save_png(images[-1], path))
+    elif kind == "gif":
+        report.merged = _written(path, lambda: write_gif(images, path, settings.fps))
+        report.files.append(path)
+        if report.merged:
+            report.notes.append(
+                f"{report.merged} frames were identical to the one before and were merged into it "
+                "(their time added): the GIF plays the same, with fewer frames"
+            )
+    report.write_s += time.perf_counter() - t2
+    return report
+
+
+def _writable(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ClothbenchError(f"cannot write into {folder}: {e.strerror or e}") from None
+
+
+def _written(path: Path, write):
+    """write(), with an OSError as a one-line ClothbenchError naming `path`."""
+    try:
+        return write()
+    except OSError as e:
+        raise ClothbenchError(f"cannot write {path}: {e.strerror or e}") from None
+
+
+def _save_png(image: np.ndarray, path: Path) -> Path:
+    from PIL import Image
+
+    _written(path, lambda: Image.fromarray(image).save(path))
+    return path
+
+
+def write_gif(images: list[np.ndarray], out: Path, fps: float) -> int:
+    """An animated GIF, looping, every frame on one palette (no colour flicker from frame
+    to frame). Returns how many frames Pillow merged into the one before (identical)."""
+    from PIL import Image
+
+    # the palette of a few frames side by side: the colours of the whole animation
+    sample = [images[i] for i in sorted({0, len(images) // 3, 2 * len(images) // 3, len(images) - 1})]
+    palette = Image.fromarray(np.concatenate(sample, axis=1)).quantize(255, method=Image.Quantize.MEDIANCUT)
+    dither = Image.Dither.FLOYDSTEINBERG
+    frames = [Image.fromarray(im).quantize(palette=palette, dither=dither) for im in images]
+    frames[0].save(
+        out, save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0, optimize=False
+    )
+    with Image.open(out) as written:
+        return len(images) - written.n_frames
