@@ -344,6 +344,7 @@ class CudaBackend(Backend):
     name = "cuda"
     sweep_variants = ({"strict": True}, {"strict": False}, {"strict": False, "transfer": "copy"})
     has_local_size = True
+    has_generic = True  # --generic: one program for every scene
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)

@@ -70,6 +70,7 @@ def kernel_defines(scene: Scene, options: BackendOptions) -> dict[str, object]:
 class GLSLBackend(Backend):
     name = "glsl"
     sweep_variants = ({"strict": True}, {"strict": False})
+    has_generic = True  # --generic: one program for every scene
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)

@@ -49,6 +49,7 @@ class GLSLComputeBackend(Backend):
     name = "glsl-compute"
     sweep_variants = ({"strict": True}, {"strict": False})
     has_local_size = True
+    has_generic = True  # --generic: one program for every scene
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)
