@@ -8,27 +8,15 @@ The float64 run is the reference every accuracy figure is measured against.
 
 from __future__ import annotations
 
-import platform
-
 import numpy as np
 
+from ..harness.environment import cpu_model
 from ..scene import OFFSETS, Scene
 from .base import Availability, Backend, BackendOptions
 
 
 def probe() -> Availability:
-    return Availability(True, device=_cpu_name())
-
-
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "CPU"
+    return Availability(True, device=cpu_model())
 
 
 def _regions(n: int, dr: int, dc: int):
@@ -70,7 +58,7 @@ class NumpyBackend(Backend):
 
     @property
     def device(self) -> str:
-        return _cpu_name()
+        return cpu_model()
 
     @property
     def mode(self) -> str:
