@@ -290,6 +290,7 @@ def _validate(s: Scene) -> None:
         _vec3(plane.normal, "plane normal")
         if not any(plane.normal):
             raise SceneError("plane normal must not be zero")
+    _check_float32_range(s)
     n2 = s.grid * s.grid
     for i in s.pin_indices:
         if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < n2:
@@ -299,6 +300,25 @@ def _validate(s: Scene) -> None:
             raise SceneError(f"unknown pin corner {c!r} (known: {', '.join(CORNERS)})")
     if s.pin_edge is not None and s.pin_edge not in EDGES:
         raise SceneError(f"unknown pin edge {s.pin_edge!r} (known: {', '.join(EDGES)})")
+
+
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+def _check_float32_range(s: Scene) -> None:
+    """Every backend but the f64 reference works in float32: a value it cannot hold is
+    refused here rather than becoming inf inside a kernel."""
+    values = {
+        name: getattr(s, name) for name in ("dt", "size", "height", "mass", "stiffness", "damping")
+    }
+    values["gravity"] = max(map(abs, s.gravity))
+    for c in s.colliders:
+        for f in dataclasses.fields(c):
+            v = getattr(c, f.name)
+            values[f"{c.kind} {f.name}"] = max(map(abs, v)) if isinstance(v, tuple) else v
+    for name, value in values.items():
+        if abs(value) > FLOAT32_MAX:
+            raise SceneError(f"{name} {value!r} is too large for float32 (max {FLOAT32_MAX:.4g})")
 
 
 # --- TOML -------------------------------------------------------------------------

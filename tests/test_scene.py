@@ -98,3 +98,8 @@ def test_malformed_scene_files_are_refused(tmp_path, text, message):
 def test_unknown_scene_name_lists_the_builtins():
     with pytest.raises(SceneError, match="built in: .*sphere"):
         load_scene("spheer")
+
+
+def test_values_float32_cannot_hold_are_refused():
+    with pytest.raises(SceneError, match="sphere radius 1e\\+39 is too large for float32"):
+        Scene(spheres=(Sphere((0, 0, 0), 1e39),))
