@@ -1,50 +1,56 @@
 /* verlet_cloth.cl: one mass-spring cloth step in OpenCL C.
  *
- * The step is docs/semantics.md, which follows Listing 22.1 of the chapter (Fratarcangeli,
- * "GPGPU Cloth Simulation Using GLSL, OpenCL, and CUDA", Game Engine Gems 2); the numbered
- * comments below are the listing's steps. Host code: clothbench/backends/opencl.py.
+ * The step and the colliders are docs/semantics.md, which follows Listing 22.1 of the chapter
+ * (Fratarcangeli, "GPGPU Cloth Simulation Using GLSL, OpenCL, and CUDA", Game Engine Gems 2);
+ * the numbered comments below are the listing's steps. Host code: clothbench/backends/opencl.py.
  *
- * Two variants of the same step live in this file:
- *   strict (-DCLOTH_STRICT): kernel verlet_cloth. float4 positions (w = inverse mass), every
- *       operation in the order docs/semantics.md fixes, no FMA contraction, no dot()/length(),
- *       no fast math: the result equals the NumPy float32 reference bit for bit.
- *   fast (default): kernels verlet_cloth_interior + verlet_cloth_border. The same physics
- *       shaped for the CPU's SIMD units (../shared/DRIVERS.md, and the measurement in the
- *       fast section below): SoA planes, V particles per work item as explicit vectors, one
- *       reciprocal square root per spring, select() instead of if, an interior kernel with
- *       all 12 neighbours present (no bounds checks, unrolled) and a small bounds-checked
- *       border kernel. Contraction allowed (-cl-mad-enable) and damping summed once per
- *       particle instead of once per spring, so it is measured against float64 instead.
+ * Two builds of this file, chosen by the host:
+ *   generic (-DCLOTH_GENERIC): kernel verlet_cloth. The listing as written: float4 positions
+ *       (w = inverse mass), one work item per particle, every neighbour bounds-checked. One
+ *       program serves every scene: the grid side, the constants and every collider kind
+ *       with its count come in as kernel arguments. `--generic`.
+ *   specialised (the default): kernels verlet_cloth_interior + verlet_cloth_border, built
+ *       for one scene's shape: SoA planes, V particles per work item as explicit vectors,
+ *       the interior (all 12 neighbours present: no bounds checks, unrolled) apart from a
+ *       small bounds-checked border, grid side and collider counts as -D constants, and the
+ *       code of a collider kind compiled in only when the scene has one.
+ * and two arithmetics, for either build:
+ *   strict (-DCLOTH_STRICT): every operation in the order docs/semantics.md fixes, sqrt and
+ *       '/', damping once per spring, no FMA contraction, no dot()/length(): the result
+ *       equals the NumPy float32 reference bit for bit. Vectors do not change IEEE results,
+ *       so the specialised build is exact too and is what `--strict` runs by default.
+ *   fast (default): contraction allowed (-cl-mad-enable) in both builds; the specialised
+ *       springs also use one reciprocal square root each and sum the damping once per
+ *       particle. Measured against float64 instead.
  *
  * What comes in how, and why:
- *   -D build options: what changes the shape of the code, so the compiler can specialise it.
- *       CLOTH_N            grid side n: index arithmetic, neighbour strides and bounds fold
- *                          to constants.
- *       CLOTH_NUM_SPHERES  number of spheres: the collider loop unrolls into straight-line
- *                          code.
- *       CLOTH_STRICT       the strict variant (FP_CONTRACT OFF).
- *       CLOTH_VECTOR_WIDTH fast variant: particles per work item (1 for the border kernel).
- *   Kernel arguments: the numbers (k, b, dt, dt2, g, rest, sphere centres and radii), each
- *       rounded once to float32 on the host and passed with an explicit dtype, so one program
- *       serves every scene of the same shape (a dt or stiffness sweep does not rebuild), and a
- *       wrongly typed argument is refused by the host wrapper instead of being reinterpreted
- *       silently (the chapter's section 22.8 complaint).
+ *   -D build options: what changes the shape of the code, so the compiler can specialise it
+ *       (specialised build only).
+ *       CLOTH_N             grid side n: index arithmetic, neighbour strides and bounds fold
+ *                           to constants.
+ *       CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_PLANES
+ *                           collider counts: each kind's loop unrolls into straight-line
+ *                           code, and a kind the scene lacks is not compiled at all.
+ *       CLOTH_VECTOR_WIDTH  particles per work item (1 for the border kernel).
+ *   -DCLOTH_NORMALS (either build): also write each particle's normal (docs/normals.md) of
+ *       the state the step read, x(t), to one more buffer, normal_out; without it the
+ *       kernels neither compute nor take it.
+ *   Kernel arguments: the numbers (k, b, dt, dt2, g, rest, the collider table), each rounded
+ *       once to float32 on the host and passed with an explicit dtype, so a dt or stiffness
+ *       sweep does not rebuild, and a wrongly typed argument is refused by the host wrapper
+ *       instead of being reinterpreted silently (the chapter's section 22.8 complaint).
+ *       Passing them as exact hex literals instead (-D, c_float) was measured no faster at
+ *       n = 256 (the host code's header has the numbers).
+ *
+ * The collider table (one __constant float4 array, rows rounded once from float64): spheres
+ * (centre, radius); then cylinders, three rows each: (start, length), (unit axis, radius),
+ * (radial_r, 0); then planes, two rows each: (point, 0), (unit normal, 0).
  */
-
-#ifndef CLOTH_N
-#error "build with -DCLOTH_N=<grid side>"
-#endif
-#ifndef CLOTH_NUM_SPHERES
-#define CLOTH_NUM_SPHERES 0
-#endif
 
 #ifdef CLOTH_STRICT
 /* PoCL fuses a*b+c into an FMA unless told not to; strict rounds every operation. */
 #pragma OPENCL FP_CONTRACT OFF
 #endif
-
-#define N CLOTH_N
-#define N2 (CLOTH_N * CLOTH_N)
 
 /* The 12-spring stencil (d_row, d_col), in the order every backend sums it (scene.OFFSETS).
  * Offsets 0-3 are structural (rest.x), 4-7 shear (rest.y), 8-11 bend (rest.z). */
@@ -54,8 +60,18 @@ __constant int2 OFFSETS[12] = {
     (int2)(-2, -2), (int2)(-2, 2), (int2)(2, -2), (int2)(2, 2),
 };
 
+#ifdef CLOTH_NORMALS
+/* docs/normals.md: the six triangles around a particle (each grid quad split along its
+ * (r,c)-(r+1,c+1) diagonal) are (x, RING[e], RING[e+1]) for consecutive ring entries: up,
+ * up-left, left, down, down-right, right, (up). A face counts when both are in the grid. */
+__constant int2 RING[6] = {
+    (int2)(-1, 0), (int2)(-1, -1), (int2)(0, -1), (int2)(1, 0), (int2)(1, 1), (int2)(0, 1),
+};
+#endif
+
+#ifdef CLOTH_GENERIC
 /* ======================================================================================
- * Strict: Listing 22.1 as written, float4 positions, bit-exact with the NumPy reference.
+ * Generic: Listing 22.1 as written, float4 positions, one program for every scene.
  * ====================================================================================== */
 
 /* Steps 5.3-5.6 for one neighbour: the spring force pulling x toward x_neigh, minus damping. */
@@ -82,24 +98,95 @@ float3 collide_sphere(float3 x, float4 sphere)
     return x;
 }
 
-/* Every collider, in the order docs/semantics.md fixes: spheres (cylinders and planes, when
- * this kernel gets them, follow here). */
-float3 collide(float3 x, __constant float4 *spheres)
+/* Push a point inside a capped cylinder out the shortest way: the side or the nearer cap. */
+float3 collide_cylinder(float3 x, float4 start_len, float4 axis_r, float4 radial_r)
 {
-    for (int s = 0; s < CLOTH_NUM_SPHERES; ++s)
-        x = collide_sphere(x, spheres[s]);
+    float3 a = start_len.xyz, u = axis_r.xyz;
+    float len = start_len.w, r = axis_r.w;
+    float3 d = x - a;
+    float t = (d.x * u.x + d.y * u.y) + d.z * u.z; /* axial coordinate from the start cap */
+    float3 q = u * t;
+    float3 p = d - q; /* radial vector */
+    float rho2 = (p.x * p.x + p.y * p.y) + p.z * p.z;
+    float rho = sqrt(rho2);
+    if (t > 0.0f && t < len && rho < r) {
+        float side = r - rho, to_end = len - t;
+        if (side <= t && side <= to_end) /* through the curved side */
+            x = rho2 > 0.0f ? (a + q) + p * (r / rho)
+                            : (a + q) + radial_r.xyz; /* on the axis: a fixed direction */
+        else if (t <= to_end) /* through the start cap */
+            x = x - q;
+        else /* through the end cap */
+            x = x + u * to_end;
+    }
     return x;
 }
 
+/* Push a point below a one-sided plane (point, unit normal) back onto it. */
+float3 collide_plane(float3 x, float4 point, float4 normal)
+{
+    float3 d = x - point.xyz, nrm = normal.xyz;
+    float dist = (d.x * nrm.x + d.y * nrm.y) + d.z * nrm.z;
+    if (dist < 0.0f)
+        x = x - nrm * dist;
+    return x;
+}
+
+/* Every collider, in the order docs/semantics.md fixes: spheres, cylinders, planes. */
+float3 collide(float3 x, __constant float4 *colliders, int num_spheres, int num_cylinders,
+               int num_planes)
+{
+    for (int s = 0; s < num_spheres; ++s)
+        x = collide_sphere(x, colliders[s]);
+    __constant float4 *cylinders = colliders + num_spheres;
+    for (int c = 0; c < num_cylinders; ++c)
+        x = collide_cylinder(x, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
+    __constant float4 *planes = cylinders + 3 * num_cylinders;
+    for (int p = 0; p < num_planes; ++p)
+        x = collide_plane(x, planes[2 * p], planes[2 * p + 1]);
+    return x;
+}
+
+#ifdef CLOTH_NORMALS
+/* v / |v|, or 0 for a zero vector (a degenerate triangle has no direction) */
+float3 unit_or_zero(float3 v)
+{
+    float L2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
+    return L2 > 0.0f ? v / sqrt(L2) : (float3)(0.0f);
+}
+
+/* The normal of particle (row, col) at x: the unit sum of its faces' unit normals, each
+ * a x c written out (not cross(): its order is the driver's). */
+float3 normal_at(__global const float4 *pos, int n, int row, int col, float3 x)
+{
+    float3 sum = (float3)(0.0f);
+    for (int e = 0; e < 6; ++e) {
+        int ra = row + RING[e].x, ca = col + RING[e].y;
+        int rb = row + RING[(e + 1) % 6].x, cb = col + RING[(e + 1) % 6].y;
+        if (ra < 0 || ra >= n || ca < 0 || ca >= n || rb < 0 || rb >= n || cb < 0 || cb >= n)
+            continue;
+        float3 a = pos[ra * n + ca].xyz - x, c = pos[rb * n + cb].xyz - x;
+        float3 f = (float3)(a.y * c.z - a.z * c.y, a.z * c.x - a.x * c.z, a.x * c.y - a.y * c.x);
+        sum = sum + unit_or_zero(f);
+    }
+    return unit_or_zero(sum);
+}
+#define NORMALS_ARG , __global float4 *normal_out
+#else
+#define NORMALS_ARG
+#endif
+
 __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *pos_prev,
                            __global float4 *pos_out, __global float4 *pos_prev_out,
-                           __constant float4 *spheres, const float k, const float b,
-                           const float dt, const float dt2, const float4 g, const float4 rest)
+                           const int n, const float k, const float b, const float dt,
+                           const float dt2, const float4 g, const float4 rest,
+                           __constant float4 *colliders, const int num_spheres,
+                           const int num_cylinders, const int num_planes NORMALS_ARG)
 {
     int i = get_global_id(0);
-    if (i >= N2)
+    if (i >= n * n)
         return; /* the launch is padded when the work-group size does not divide n*n */
-    int row = i / N, col = i % N;
+    int row = i / n, col = i % n;
 
     float3 x = pos[i].xyz;       /* 1. */
     float3 xp = pos_prev[i].xyz; /* 2. */
@@ -111,34 +198,55 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
     for (int o = 0; o < 12; ++o) { /* 5. */
         /* (differs: the listing mixes x and y offsets; row and column stay paired here) */
         int r = row + OFFSETS[o].x, c = col + OFFSETS[o].y;
-        if (r < 0 || r >= N || c < 0 || c >= N)
+        if (r < 0 || r >= n || c < 0 || c >= n)
             continue; /* outside the grid: nothing added, not even zero */
         float rest_o = o < 4 ? rest.x : (o < 8 ? rest.y : rest.z);
-        force = force + spring_force(x, pos[r * N + c].xyz, rest_o, k, bv);
+        force = force + spring_force(x, pos[r * n + c].xyz, rest_o, k, bv);
     }
 
     float3 x_new = x; /* pinned particles are never integrated nor collided */
     if (w != 0.0f) {
         float3 acc = g.xyz + force * w;           /* (m*g + force) / m */
         x_new = (2.0f * x - xp) + acc * dt2;      /* 6. */
-        x_new = collide(x_new, spheres);
+        x_new = collide(x_new, colliders, num_spheres, num_cylinders, num_planes);
     }
     pos_out[i] = (float4)(x_new, w); /* 7. */
     pos_prev_out[i] = (float4)(x, w); /* 8. */
+#ifdef CLOTH_NORMALS
+    normal_out[i] = (float4)(normal_at(pos, n, row, col, x), 0.0f); /* of x(t), for rendering */
+#endif
 }
 
+#else
 /* ======================================================================================
- * Fast: the same step shaped for a CPU's SIMD units. State as SoA planes: x[0..n2),
+ * Specialised: the same step shaped for a CPU's SIMD units. State as SoA planes: x[0..n2),
  * y[n2..2n2), z[2n2..3n2) in one buffer per state; inverse mass in its own read-only buffer.
  *
  * The helpers below are written once over `floatv`, V = CLOTH_VECTOR_WIDTH lanes: the host
- * builds this file with V = the device's preferred float width for the interior kernel (V
+ * builds this part with V = the device's preferred float width for the interior kernel (V
  * consecutive particles of a row per work item) and with V = 1 for the border kernel (one
  * particle per work item). Explicit vectors because PoCL 3.1 (LLVM 15) did not vectorise the
  * scalar form across work items: its first optimisation pass packs four springs of one
  * particle into gathers, which then blocks the work-item loop vectoriser. Measured at
- * n = 256: the interior kernel took 2.6 ms per step in scalar form, 0.15 ms with float16.
+ * n = 256: the fast interior kernel took 2.6 ms per step in scalar form, 0.15 ms with
+ * float16. Whole strict steps: 2.8-5 ms with the float4 kernel (FP_CONTRACT OFF or not,
+ * PoCL vectorises it across work items no better), 0.3-0.6 ms in this form.
  * ====================================================================================== */
+
+#ifndef CLOTH_N
+#error "build with -DCLOTH_N=<grid side> (or -DCLOTH_GENERIC)"
+#endif
+#ifndef CLOTH_SPHERES
+#define CLOTH_SPHERES 0
+#endif
+#ifndef CLOTH_CYLINDERS
+#define CLOTH_CYLINDERS 0
+#endif
+#ifndef CLOTH_PLANES
+#define CLOTH_PLANES 0
+#endif
+#define N CLOTH_N
+#define N2 (CLOTH_N * CLOTH_N)
 
 #ifndef CLOTH_VECTOR_WIDTH
 #define CLOTH_VECTOR_WIDTH 1
@@ -158,38 +266,105 @@ typedef CAT(int, V) intv;
 #define STOREV(v, p, j) CAT(vstore, V)((v), 0, (p) + (j))
 #endif
 
-/* Step 5 for one neighbour j: adds the spring force k*(L - rest)*d/L = (k - k*rest/L)*d.
- * The damping term -b*vel of each spring is added by integrate_store, all at once. One
- * reciprocal square root per spring; select(), not if, keeps the lanes together. */
+/* Step 5 for one neighbour j. select(), not if, keeps the lanes together. */
 void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, float k,
-                float k_rest, floatv *fx, floatv *fy, floatv *fz)
+                float rest, floatv bx, floatv by, floatv bz, floatv *fx, floatv *fy, floatv *fz)
 {
     floatv dx = LOADV(pos, j) - x, dy = LOADV(pos, N2 + j) - y, dz = LOADV(pos, 2 * N2 + j) - z;
+#ifdef CLOTH_STRICT
+    /* docs/semantics.md to the letter: sqrt, '/', and the damping -b*vel of this spring */
+    floatv L2 = (dx * dx + dy * dy) + dz * dz;
+    floatv L = sqrt(L2);
+    floatv s = select((floatv)(0.0f), (k * (L - rest)) / L, L2 > 0.0f); /* coincident: 0 */
+    *fx = *fx + (s * dx - bx);
+    *fy = *fy + (s * dy - by);
+    *fz = *fz + (s * dz - bz);
+#else
+    /* k*(L - rest)*d/L = (k - k*rest/L)*d: one reciprocal square root; the damping of every
+     * spring is added at once by integrate_store, so bx, by, bz go unused (and uncomputed) */
     floatv L2 = dx * dx + dy * dy + dz * dz;
-    floatv s = select((floatv)(0.0f), k - k_rest * rsqrt(L2), L2 > 0.0f); /* coincident: 0 */
+    floatv s = select((floatv)(0.0f), k - (k * rest) * rsqrt(L2), L2 > 0.0f);
     *fx += s * dx;
     *fy += s * dy;
     *fz += s * dz;
+#endif
 }
 
-/* Push points inside a sphere (centre xyz, radius w) out to its surface. */
+/* The colliders, exactly as docs/semantics.md writes them (so in strict mode too), with
+ * select() for every branch. A kind's code exists only when the scene has that kind. */
+#if CLOTH_SPHERES > 0
 void collide_sphere_v(floatv *x, floatv *y, floatv *z, float4 sphere)
 {
     floatv dx = *x - sphere.x, dy = *y - sphere.y, dz = *z - sphere.z;
-    floatv L2 = dx * dx + dy * dy + dz * dz;
-    floatv s = sphere.w * rsqrt(L2);
-    intv inside = L2 < sphere.w * sphere.w;
-    intv at_centre = L2 == 0.0f; /* straight up, as in the strict variant */
+    floatv L2 = (dx * dx + dy * dy) + dz * dz;
+    floatv L = sqrt(L2);
+    floatv s = sphere.w / L;
+    intv inside = L < sphere.w;
+    intv at_centre = L2 == 0.0f; /* straight up */
     *x = select(*x, select(sphere.x + dx * s, (floatv)(sphere.x), at_centre), inside);
     *y = select(*y, select(sphere.y + dy * s, (floatv)(sphere.y + sphere.w), at_centre), inside);
     *z = select(*z, select(sphere.z + dz * s, (floatv)(sphere.z), at_centre), inside);
 }
+#endif
 
-/* Every collider, spheres first (cylinders and planes, when this kernel gets them, follow). */
-void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *spheres)
+#if CLOTH_CYLINDERS > 0
+void collide_cylinder_v(floatv *x, floatv *y, floatv *z, float4 start_len, float4 axis_r,
+                        float4 radial_r)
 {
-    for (int s = 0; s < CLOTH_NUM_SPHERES; ++s)
-        collide_sphere_v(x, y, z, spheres[s]);
+    float len = start_len.w, r = axis_r.w;
+    floatv dx = *x - start_len.x, dy = *y - start_len.y, dz = *z - start_len.z;
+    floatv t = (dx * axis_r.x + dy * axis_r.y) + dz * axis_r.z; /* axial, from the start cap */
+    floatv qx = axis_r.x * t, qy = axis_r.y * t, qz = axis_r.z * t;
+    floatv px = dx - qx, py = dy - qy, pz = dz - qz; /* radial vector */
+    floatv rho2 = (px * px + py * py) + pz * pz;
+    floatv rho = sqrt(rho2);
+    intv inside = (t > 0.0f) & (t < len) & (rho < r);
+    floatv side = r - rho, to_end = len - t;
+    intv through_side = (side <= t) & (side <= to_end);
+    intv through_start = t <= to_end;
+    intv on_axis = rho2 == 0.0f; /* a fixed radial direction */
+    floatv s = r / rho;
+    floatv ax = start_len.x + qx, ay = start_len.y + qy, az = start_len.z + qz;
+    floatv side_x = select(ax + px * s, ax + radial_r.x, on_axis);
+    floatv side_y = select(ay + py * s, ay + radial_r.y, on_axis);
+    floatv side_z = select(az + pz * s, az + radial_r.z, on_axis);
+    floatv cap_x = select(*x + axis_r.x * to_end, *x - qx, through_start);
+    floatv cap_y = select(*y + axis_r.y * to_end, *y - qy, through_start);
+    floatv cap_z = select(*z + axis_r.z * to_end, *z - qz, through_start);
+    *x = select(*x, select(cap_x, side_x, through_side), inside);
+    *y = select(*y, select(cap_y, side_y, through_side), inside);
+    *z = select(*z, select(cap_z, side_z, through_side), inside);
+}
+#endif
+
+#if CLOTH_PLANES > 0
+void collide_plane_v(floatv *x, floatv *y, floatv *z, float4 point, float4 normal)
+{
+    floatv dist = ((*x - point.x) * normal.x + (*y - point.y) * normal.y) + (*z - point.z) * normal.z;
+    intv inside = dist < 0.0f;
+    *x = select(*x, *x - normal.x * dist, inside);
+    *y = select(*y, *y - normal.y * dist, inside);
+    *z = select(*z, *z - normal.z * dist, inside);
+}
+#endif
+
+/* Every collider, in the order docs/semantics.md fixes: spheres, cylinders, planes. */
+void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *colliders)
+{
+#if CLOTH_SPHERES > 0
+    for (int s = 0; s < CLOTH_SPHERES; ++s)
+        collide_sphere_v(x, y, z, colliders[s]);
+#endif
+#if CLOTH_CYLINDERS > 0
+    __constant float4 *cylinders = colliders + CLOTH_SPHERES;
+    for (int c = 0; c < CLOTH_CYLINDERS; ++c)
+        collide_cylinder_v(x, y, z, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
+#endif
+#if CLOTH_PLANES > 0
+    __constant float4 *planes = colliders + CLOTH_SPHERES + 3 * CLOTH_CYLINDERS;
+    for (int p = 0; p < CLOTH_PLANES; ++p)
+        collide_plane_v(x, y, z, planes[2 * p], planes[2 * p + 1]);
+#endif
 }
 
 /* Store lanes first_lane .. V-1 of v at p[j..]: all of them, except in the last vector of
@@ -210,22 +385,67 @@ void store_lanes(floatv v, __global float *p, int j, int first_lane)
 #endif
 }
 
-/* Steps 6-8 for the particles at i: add the damping -b*vel of each of their `springs`,
- * integrate unless pinned, collide, write both outputs. */
-void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv fx, floatv fy,
-                     floatv fz, float springs, __global const float *pos_prev,
+#ifdef CLOTH_NORMALS
+/* v / |v|, or 0 for a zero vector (a degenerate triangle has no direction) */
+void unit_or_zero_v(floatv *x, floatv *y, floatv *z)
+{
+    floatv L2 = (*x * *x + *y * *y) + *z * *z;
+    floatv L = sqrt(L2);
+    intv some = L2 > 0.0f;
+    *x = select((floatv)(0.0f), *x / L, some);
+    *y = select((floatv)(0.0f), *y / L, some);
+    *z = select((floatv)(0.0f), *z / L, some);
+}
+
+/* Adds the unit normal of the face (x, ja, jb) to the sum: (a - x) x (c - x) written out. */
+void face_add(floatv x, floatv y, floatv z, __global const float *pos, int ja, int jb,
+              floatv *sx, floatv *sy, floatv *sz)
+{
+    floatv ax = LOADV(pos, ja) - x, ay = LOADV(pos, N2 + ja) - y, az = LOADV(pos, 2 * N2 + ja) - z;
+    floatv cx = LOADV(pos, jb) - x, cy = LOADV(pos, N2 + jb) - y, cz = LOADV(pos, 2 * N2 + jb) - z;
+    floatv fx = ay * cz - az * cy, fy = az * cx - ax * cz, fz = ax * cy - ay * cx;
+    unit_or_zero_v(&fx, &fy, &fz);
+    *sx = *sx + fx;
+    *sy = *sy + fy;
+    *sz = *sz + fz;
+}
+
+void store_normal(int i, int first_lane, floatv sx, floatv sy, floatv sz,
+                  __global float *normal_out)
+{
+    unit_or_zero_v(&sx, &sy, &sz);
+    store_lanes(sx, normal_out, i, first_lane);
+    store_lanes(sy, normal_out, N2 + i, first_lane);
+    store_lanes(sz, normal_out, 2 * N2 + i, first_lane);
+}
+#define NORMALS_ARG , __global float *normal_out
+#else
+#define NORMALS_ARG
+#endif
+
+/* Steps 6-8 for the particles at i, which have `springs` springs each: integrate unless
+ * pinned, collide, write both outputs. */
+void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv xp, floatv yp,
+                     floatv zp, floatv fx, floatv fy, floatv fz, float springs,
                      __global const float *inv_mass, __global float *pos_out,
-                     __global float *pos_prev_out, __constant float4 *spheres, float b,
+                     __global float *pos_prev_out, __constant float4 *colliders, float b,
                      float dt, float dt2, float4 g)
 {
-    floatv xp = LOADV(pos_prev, i), yp = LOADV(pos_prev, N2 + i), zp = LOADV(pos_prev, 2 * N2 + i);
     floatv w = LOADV(inv_mass, i);
+#ifdef CLOTH_STRICT
+    /* acc = g + force*w, then (2x - xp) + acc*dt2, each operation rounded (6.) */
+    floatv nx = (2.0f * x - xp) + (g.x + fx * w) * dt2;
+    floatv ny = (2.0f * y - yp) + (g.y + fy * w) * dt2;
+    floatv nz = (2.0f * z - zp) + (g.z + fz * w) * dt2;
+#else
+    /* the damping -b*vel of each of the particle's springs, added at once */
     float b_dt = springs * b / dt;
     floatv nx = (2.0f * x - xp) + (g.x + (fx - b_dt * (x - xp)) * w) * dt2;
     floatv ny = (2.0f * y - yp) + (g.y + (fy - b_dt * (y - yp)) * w) * dt2;
     floatv nz = (2.0f * z - zp) + (g.z + (fz - b_dt * (z - zp)) * w) * dt2;
-    collide_v(&nx, &ny, &nz, spheres);
-    intv pinned = w == 0.0f;
+#endif
+    collide_v(&nx, &ny, &nz, colliders);
+    intv pinned = w == 0.0f; /* never integrated nor collided */
     store_lanes(select(nx, x, pinned), pos_out, i, first_lane);
     store_lanes(select(ny, y, pinned), pos_out, N2 + i, first_lane);
     store_lanes(select(nz, z, pinned), pos_out, 2 * N2 + i, first_lane);
@@ -245,9 +465,9 @@ void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv
 
 __kernel void verlet_cloth_interior(__global const float *pos, __global const float *pos_prev,
                                     __global const float *inv_mass, __global float *pos_out,
-                                    __global float *pos_prev_out, __constant float4 *spheres,
-                                    const float k, const float b, const float dt,
-                                    const float dt2, const float4 g, const float4 rest)
+                                    __global float *pos_prev_out, const float k, const float b,
+                                    const float dt, const float dt2, const float4 g,
+                                    const float4 rest, __constant float4 *colliders NORMALS_ARG)
 {
     int item = get_global_id(0);
     if (item >= INTERIOR_ITEMS)
@@ -256,22 +476,33 @@ __kernel void verlet_cloth_interior(__global const float *pos, __global const fl
     int last = vector == VECTORS_PER_ROW - 1;
     int i = row * N + (last ? N - 2 - V : 2 + V * vector);
     floatv x = LOADV(pos, i), y = LOADV(pos, N2 + i), z = LOADV(pos, 2 * N2 + i);
+    floatv xp = LOADV(pos_prev, i), yp = LOADV(pos_prev, N2 + i), zp = LOADV(pos_prev, 2 * N2 + i);
+    floatv bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
     floatv fx = 0.0f, fy = 0.0f, fz = 0.0f;
-    float kr0 = k * rest.x, kr1 = k * rest.y, kr2 = k * rest.z;
-    spring_add(x, y, z, pos, i - 1, k, kr0, &fx, &fy, &fz); /* structural */
-    spring_add(x, y, z, pos, i + 1, k, kr0, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i - N, k, kr0, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + N, k, kr0, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i - N - 1, k, kr1, &fx, &fy, &fz); /* shear */
-    spring_add(x, y, z, pos, i - N + 1, k, kr1, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + N - 1, k, kr1, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + N + 1, k, kr1, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i - 2 * N - 2, k, kr2, &fx, &fy, &fz); /* bend */
-    spring_add(x, y, z, pos, i - 2 * N + 2, k, kr2, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + 2 * N - 2, k, kr2, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + 2 * N + 2, k, kr2, &fx, &fy, &fz);
-    integrate_store(i, last ? LAST_FIRST_LANE : 0, x, y, z, fx, fy, fz, 12.0f, pos_prev,
-                    inv_mass, pos_out, pos_prev_out, spheres, b, dt, dt2, g);
+    spring_add(x, y, z, pos, i - 1, k, rest.x, bx, by, bz, &fx, &fy, &fz); /* structural */
+    spring_add(x, y, z, pos, i + 1, k, rest.x, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i - N, k, rest.x, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i + N, k, rest.x, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i - N - 1, k, rest.y, bx, by, bz, &fx, &fy, &fz); /* shear */
+    spring_add(x, y, z, pos, i - N + 1, k, rest.y, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i + N - 1, k, rest.y, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i + N + 1, k, rest.y, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i - 2 * N - 2, k, rest.z, bx, by, bz, &fx, &fy, &fz); /* bend */
+    spring_add(x, y, z, pos, i - 2 * N + 2, k, rest.z, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i + 2 * N - 2, k, rest.z, bx, by, bz, &fx, &fy, &fz);
+    spring_add(x, y, z, pos, i + 2 * N + 2, k, rest.z, bx, by, bz, &fx, &fy, &fz);
+    integrate_store(i, last ? LAST_FIRST_LANE : 0, x, y, z, xp, yp, zp, fx, fy, fz, 12.0f,
+                    inv_mass, pos_out, pos_prev_out, colliders, b, dt, dt2, g);
+#ifdef CLOTH_NORMALS
+    floatv sx = 0.0f, sy = 0.0f, sz = 0.0f; /* the ring: up, up-left, left, down, down-right, right */
+    face_add(x, y, z, pos, i - N, i - N - 1, &sx, &sy, &sz);
+    face_add(x, y, z, pos, i - N - 1, i - 1, &sx, &sy, &sz);
+    face_add(x, y, z, pos, i - 1, i + N, &sx, &sy, &sz);
+    face_add(x, y, z, pos, i + N, i + N + 1, &sx, &sy, &sz);
+    face_add(x, y, z, pos, i + N + 1, i + 1, &sx, &sy, &sz);
+    face_add(x, y, z, pos, i + 1, i - N, &sx, &sy, &sz);
+    store_normal(i, last ? LAST_FIRST_LANE : 0, sx, sy, sz, normal_out);
+#endif
 }
 #endif
 
@@ -280,10 +511,10 @@ __kernel void verlet_cloth_interior(__global const float *pos, __global const fl
  * n - 4 < V), listed by the host: bounds checked, one particle per work item. */
 __kernel void verlet_cloth_border(__global const float *pos, __global const float *pos_prev,
                                   __global const float *inv_mass, __global float *pos_out,
-                                  __global float *pos_prev_out, __constant float4 *spheres,
-                                  const float k, const float b, const float dt,
-                                  const float dt2, const float4 g, const float4 rest,
-                                  __global const int *particles, const int count)
+                                  __global float *pos_prev_out, const float k, const float b,
+                                  const float dt, const float dt2, const float4 g,
+                                  const float4 rest, __constant float4 *colliders,
+                                  __global const int *particles, const int count NORMALS_ARG)
 {
     int item = get_global_id(0);
     if (item >= count)
@@ -291,17 +522,31 @@ __kernel void verlet_cloth_border(__global const float *pos, __global const floa
     int i = particles[item];
     int row = i / N, col = i % N;
     float x = pos[i], y = pos[N2 + i], z = pos[2 * N2 + i];
+    float xp = pos_prev[i], yp = pos_prev[N2 + i], zp = pos_prev[2 * N2 + i];
+    float bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
     float fx = 0.0f, fy = 0.0f, fz = 0.0f;
     float springs = 0.0f;
     for (int o = 0; o < 12; ++o) {
         int r = row + OFFSETS[o].x, c = col + OFFSETS[o].y;
         if (r < 0 || r >= N || c < 0 || c >= N)
-            continue;
+            continue; /* outside the grid: nothing added, not even zero */
         float rest_o = o < 4 ? rest.x : (o < 8 ? rest.y : rest.z);
-        spring_add(x, y, z, pos, r * N + c, k, k * rest_o, &fx, &fy, &fz);
+        spring_add(x, y, z, pos, r * N + c, k, rest_o, bx, by, bz, &fx, &fy, &fz);
         springs += 1.0f;
     }
-    integrate_store(i, 0, x, y, z, fx, fy, fz, springs, pos_prev, inv_mass, pos_out,
-                    pos_prev_out, spheres, b, dt, dt2, g);
+    integrate_store(i, 0, x, y, z, xp, yp, zp, fx, fy, fz, springs, inv_mass, pos_out,
+                    pos_prev_out, colliders, b, dt, dt2, g);
+#ifdef CLOTH_NORMALS
+    float sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    for (int e = 0; e < 6; ++e) {
+        int ra = row + RING[e].x, ca = col + RING[e].y;
+        int rb = row + RING[(e + 1) % 6].x, cb = col + RING[(e + 1) % 6].y;
+        if (ra < 0 || ra >= N || ca < 0 || ca >= N || rb < 0 || rb >= N || cb < 0 || cb >= N)
+            continue; /* a face needs both its ring neighbours */
+        face_add(x, y, z, pos, ra * N + ca, rb * N + cb, &sx, &sy, &sz);
+    }
+    store_normal(i, 0, sx, sy, sz, normal_out);
+#endif
 }
 #endif
+#endif /* CLOTH_GENERIC */

@@ -11,68 +11,334 @@ from clothbench.backends import BackendOptions, availability, create_backend
 from clothbench.backends import opencl
 from clothbench.cli import main
 from clothbench.errors import BackendUnavailable, ClothbenchError
-from clothbench.harness import position_error, reference, simulate
-from clothbench.scene import Plane, load_scene
+from clothbench.harness import max_penetration, position_error, reference, simulate
+from clothbench.harness.normals import grid_normals
+from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 from conftest import assert_bit_exact, require
 
 STRICT = BackendOptions(strict=True)
 FAST = BackendOptions()
+# The two builds of the kernel file: specialised for the scene (the default) and --generic.
+BUILDS = pytest.mark.parametrize("generic", [False, True], ids=["specialised", "generic"])
 
 
 def sphere(n: int):
     return load_scene("sphere").replace(grid=n)
 
 
+def every_collider_scene(n: int = 32) -> Scene:
+    """Two spheres, two capped cylinders (one skewed, one upright: its top cap is hit), a
+    tilted floor and a pinned corner; the sheet touches every one within 500 steps."""
+    return sphere(n).replace(
+        name="all-kinds",
+        spheres=(Sphere((0.5, 0.5, 0.5), 0.3), Sphere((0.2, 0.62, 0.3), 0.2)),
+        cylinders=(
+            Cylinder((0.1, 0.75, 0.2), (0.9, 0.78, 0.3), 0.06),
+            Cylinder((0.7, 0.0, 0.7), (0.7, 0.8, 0.7), 0.05),
+        ),
+        planes=(Plane((0.0, 0.78, 0.0), (0.1, 1.0, 0.05)),),
+        pin_corners=("top-left",),
+    )
+
+
+def collider_scene(name: str, n: int) -> Scene:
+    return every_collider_scene(n) if name == "all-kinds" else load_scene(name).replace(grid=n)
+
+
+def assert_matches_numpy_f32(scene: Scene, steps: int, **options) -> None:
+    pos, prev = simulate("opencl", scene, steps, BackendOptions(strict=True, **options))
+    ref_pos, ref_prev = reference(scene, steps, "f32")
+    what = f"{scene.name} n={scene.grid} steps={steps} {options}"
+    assert_bit_exact(pos, ref_pos, f"pos, {what}")
+    assert_bit_exact(prev, ref_prev, f"prev, {what}")
+
+
+# --- strict: bit for bit --------------------------------------------------------------------
+
+
+@BUILDS
 @pytest.mark.parametrize("n", [32, 64])
 @pytest.mark.parametrize("steps", [1, 500])
-def test_opencl_strict_matches_numpy_f32_bit_for_bit(n, steps):
-    # Same operations in the same order, no contraction: IEEE rounding leaves no room.
+def test_opencl_strict_matches_numpy_f32_bit_for_bit(n, steps, generic):
+    # Same operations in the same order, no contraction: IEEE rounding leaves no room, in
+    # the float4 kernel and in the vectorised one alike (16 lanes round as 16 scalars).
     # (Without the kernel's FP_CONTRACT OFF pragma, PoCL fuses and 16 values already differ
     # after one step at n = 32.) 500 steps include the contact with the sphere.
     require("opencl")
-    scene = sphere(n)
-    pos, prev = simulate("opencl", scene, steps, STRICT)
-    ref_pos, ref_prev = reference(scene, steps, "f32")
-    assert_bit_exact(pos, ref_pos, f"pos n={n} steps={steps}")
-    assert_bit_exact(prev, ref_prev, f"prev n={n} steps={steps}")
+    assert_matches_numpy_f32(sphere(n), steps, generic=generic)
 
 
-@pytest.mark.parametrize("scene_name", ["sphere", "drape"])
-@pytest.mark.parametrize("n", [32, 64])
-def test_opencl_fast_error_is_of_the_order_of_numpy_f32s_own(scene_name, n):
-    # Fast mode rounds differently from the reference: FMA contraction (fewer roundings),
-    # rsqrt instead of sqrt and a division (a few ulp), damping summed once per particle.
-    # Each is an O(float32 epsilon) perturbation per operation, like the reference's own
-    # roundings, so over a short horizon (100 steps: before the contact with the sphere,
-    # while the drape's pinned corners take the load) its distance to the float64 reference
-    # must be of the order of the NumPy float32 distance. Measured here: ratio 1.00. The
-    # bound 2x still catches a physics slip: an interior damping count of 11 instead of 12
-    # gives 5x, a wrong bend rest length 25x.
+@BUILDS
+@pytest.mark.parametrize("scene_name", ["cylinder", "curtain", "all-kinds"])
+@pytest.mark.parametrize("steps", [1, 500])
+def test_strict_is_exact_with_every_collider_kind(scene_name, steps, generic):
     require("opencl")
-    scene = load_scene(scene_name).replace(grid=n)
+    assert_matches_numpy_f32(collider_scene(scene_name, 32), steps, generic=generic)
+
+
+def test_the_all_kinds_scene_touches_every_kind_within_500_steps():
+    # what makes the exactness test above cover each collider's code on contact
+    scene = every_collider_scene()
+    touched = reference(scene, 500, "f32")[0]
+    for kind in ("spheres", "cylinders", "planes"):
+        without = reference(scene.replace(**{kind: ()}), 500, "f32")[0]
+        assert not np.array_equal(touched, without), f"no particle touched the {kind}"
+
+
+# Particles placed in every branch of every collider (docs/semantics.md, Collisions): no
+# springs, no gravity, no damping, so only the colliders move them, in one step.
+CASES_SCENE = Scene(
+    grid=20,
+    stiffness=0.0,
+    damping=0.0,
+    gravity=(0.0, 0.0, 0.0),
+    height=5.0,
+    spheres=(Sphere((0.0, 0.0, 0.0), 0.3), Sphere((0.0, 0.25, 0.0), 0.1)),
+    cylinders=(
+        Cylinder((1.0, 0.0, 0.0), (2.0, 0.0, 0.0), 0.2),
+        Cylinder((1.0, 1.0, 0.0), (1.3, 1.4, 0.5), 0.1),
+        Cylinder((3.0, 0.0, 0.0), (3.25, 0.0, 0.0), 0.5),  # short and fat: caps nearer than the side
+    ),
+    planes=(Plane((0.0, -1.0, 0.0), (0.0, 2.0, 0.0)), Plane((0.0, 0.0, 3.0), (0.3, -0.2, -1.0))),
+    pin_indices=(300,),
+)
+CASES = [
+    (0.1, 0.05, -0.12),  # inside sphere 0, then pushed into sphere 1 and out of it
+    (0.0, 0.0, 0.0),  # at the centre: straight up
+    (-0.2, -0.1, 0.05),  # inside sphere 0 only
+    (1.5, 0.15, 0.0),  # cylinder 0: through the side
+    (1.05, 0.0, 0.1),  # through the start cap
+    (1.97, -0.05, 0.0),  # through the end cap
+    (1.5, 0.0, 0.0),  # on the axis: along the fixed radial direction
+    (1.15, 1.2, 0.25),  # inside the skewed cylinder
+    (0.5, -1.2, 0.5),  # below floor 0
+    (0.5, 0.5, 3.1),  # behind the tilted plane 1
+    (3.125, 0.1, 0.0),  # cylinder 2, exactly midway between its caps: out through the start cap
+    (0.5, 0.5, 2.9),  # in front of it: untouched
+    (0.3, 0.2, 0.1),  # the pinned particle (index 300), inside sphere 0: never collided
+]
+CASE_INDEX = [0, 19, 21, 45, 50, 137, 155, 199, 222, 260, 246, 399, 300]  # border and interior
+
+
+def one_step_of_cases(name: str, options: BackendOptions) -> np.ndarray:
+    pos, prev = CASES_SCENE.initial_state(np.float32 if name == "opencl" else np.float64)
+    pos[:, :3] = np.linspace(5, 6, pos.shape[0])[:, None]  # everyone else far from every collider
+    pos[CASE_INDEX, :3] = CASES
+    prev[:, :3] = pos[:, :3]
+    with create_backend(name, CASES_SCENE, options) as b:
+        b.upload(pos, prev)
+        b.advance(1)
+        return b.read()[0]
+
+
+@BUILDS
+def test_every_collider_branch_is_exact_in_strict_and_within_ulps_in_fast(generic):
+    require("opencl")
+    expected = one_step_of_cases("numpy", BackendOptions(precision="f32"))
+    moved = expected[CASE_INDEX[:-2], :3] != np.array(CASES[:-2], np.float32)
+    assert moved.any(axis=1).all(), "every case but the last two is pushed somewhere"
+    strict = one_step_of_cases("opencl", BackendOptions(strict=True, generic=generic))
+    assert_bit_exact(strict, expected, "strict")
+    # fast: the same collider formulas, contracted where the compiler likes; ~1 ulp of 2 m
+    fast = one_step_of_cases("opencl", BackendOptions(generic=generic))
+    np.testing.assert_allclose(fast, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("scene_name", ["cylinder", "curtain", "all-kinds"])
+def test_specialised_equals_generic_bit_for_bit_in_strict(scene_name):
+    # ls=7 and n=37: both builds padded, the interior's last vector overlapping
+    require("opencl")
+    scene = collider_scene(scene_name, 37)
+    specialised = simulate("opencl", scene, 300, BackendOptions(strict=True, local_size=7))
+    generic = simulate("opencl", scene, 300, BackendOptions(strict=True, generic=True))
+    for a, b, what in zip(specialised, generic, ("pos", "prev")):
+        assert_bit_exact(a, b, f"{scene_name} {what}")
+
+
+@pytest.mark.parametrize(
+    "options",
+    [STRICT, FAST, BackendOptions(strict=True, generic=True), BackendOptions(generic=True)],
+    ids=["strict", "fast", "strict-generic", "fast-generic"],
+)
+@pytest.mark.parametrize("scene_name", ["cylinder", "curtain", "all-kinds"])
+def test_no_particle_ends_inside_any_collider(scene_name, options):
+    require("opencl")
+    scene = collider_scene(scene_name, 24)
+    steps = 1500  # the curtain reaches its sphere, the sheet its cylinder
+    pos, _ = simulate("opencl", scene, steps, options)
+    assert np.isfinite(pos).all()
+    untouched = scene.replace(spheres=(), cylinders=(), planes=())
+    assert not np.array_equal(pos, simulate("opencl", untouched, steps, options)[0]), "no contact"
+    # projections round: a few float32 ulps of the collider's size
+    assert max_penetration(pos, scene) <= 1e-6
+
+
+# --- fast: as accurate as float32 ------------------------------------------------------------
+
+
+@BUILDS
+@pytest.mark.parametrize("scene_name", ["sphere", "drape", "cylinder", "curtain", "all-kinds"])
+@pytest.mark.parametrize("n", [32, 64])
+def test_opencl_fast_error_is_of_the_order_of_numpy_f32s_own(scene_name, n, generic):
+    # Fast mode rounds differently from the reference: FMA contraction (fewer roundings),
+    # and in the specialised build rsqrt instead of sqrt and a division (a few ulp) and
+    # damping summed once per particle. Each is an O(float32 epsilon) perturbation per
+    # operation, like the reference's own roundings, so over a short horizon (100 steps:
+    # before contact, while the drape's and the curtain's pins take the load) its distance
+    # to the float64 reference must be of the order of the NumPy float32 distance. Measured
+    # here: ratio 0.99-1.00. The bound 2x still catches a physics slip: an interior damping
+    # count of 11 instead of 12 gives 5x, a wrong bend rest length 25x. (After contact the
+    # float32 reference itself drifts by centimetres; the colliders' fast arithmetic is
+    # held to ulps by the collider-branch test above instead.)
+    require("opencl")
+    scene = collider_scene(scene_name, n)
     steps = 100
     ref64 = reference(scene, steps, "f64")[0]
     _, f32_max = position_error(reference(scene, steps, "f32")[0], ref64)
-    pos, _ = simulate("opencl", scene, steps, FAST)
+    pos, _ = simulate("opencl", scene, steps, BackendOptions(generic=generic))
     _, fast_max = position_error(pos, ref64)
     assert fast_max <= 2 * f32_max, f"fast {fast_max:.3g} m vs numpy f32 {f32_max:.3g} m"
 
 
+@BUILDS
 @pytest.mark.parametrize("strict", [True, False])
-def test_per_step_transfer_equals_resident_bit_for_bit(strict):
+def test_per_step_transfer_equals_resident_bit_for_bit(strict, generic):
     # The chapter's upload-every-step variant moves the same bits; it only costs time.
     require("opencl")
-    scene = sphere(32)
-    resident = simulate("opencl", scene, 50, BackendOptions(strict=strict))
-    per_step = simulate("opencl", scene, 50, BackendOptions(strict=strict, transfer="per-step"))
+    scene = every_collider_scene(32)
+    resident = simulate("opencl", scene, 50, BackendOptions(strict=strict, generic=generic))
+    per_step = simulate("opencl", scene, 50, BackendOptions(strict=strict, generic=generic, transfer="per-step"))
     for a, b, what in zip(per_step, resident, ("pos", "prev")):
         assert_bit_exact(a, b, f"{what} strict={strict}")
 
 
+# --- normals (docs/normals.md) ---------------------------------------------------------------
+
+# Fast normals against the formula in float64 on the same float32 positions: the same
+# formula, contracted where the compiler likes, ~20 roundings of unit-length values.
+NORMAL_TOLERANCE = 1e-6
+
+
+def normals_after(scene: Scene, steps: int, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pos, prev, normals) after `steps` steps with normals on."""
+    with create_backend("opencl", scene, BackendOptions(normals=True, **options)) as b:
+        b.upload(*scene.initial_state(np.float32))
+        assert b.read_normals() is None, "no step since the upload: no normals yet"
+        b.advance(steps)
+        return (*b.read(), b.read_normals())
+
+
+@BUILDS
+@pytest.mark.parametrize("n", [3, 21, 37])
+def test_strict_normals_are_the_formula_in_float32_bit_for_bit(n, generic):
+    # 500 steps of the all-kinds scene: the sheet folds over spheres and cylinders
+    require("opencl")
+    pos, prev, normals = normals_after(every_collider_scene(n), 500, strict=True, generic=generic)
+    assert_bit_exact(normals[:, :3], grid_normals(prev, n, np.float32), "normals of read()[1]")
+    assert not np.array_equal(normals[:, :3], grid_normals(pos, n, np.float32)), "not of read()[0]"
+    assert (normals[:, 3] == 0).all()
+    if n > 3:  # a 3x3 sheet hardly bends
+        assert np.ptp(normals[:, 1]) > 0.5, "the sheet is folded: normals differ"
+
+
+@BUILDS
+def test_fast_normals_are_the_formula_within_float32_rounding(generic):
+    require("opencl")
+    _, prev, normals = normals_after(every_collider_scene(37), 500, generic=generic)
+    np.testing.assert_allclose(normals[:, :3], grid_normals(prev, 37, np.float64), rtol=0, atol=NORMAL_TOLERANCE)
+
+
+def test_a_flat_sheet_has_normals_straight_up():
+    require("opencl")
+    scene = sphere(20).replace(gravity=(0.0, 0.0, 0.0))
+    for generic in (False, True):
+        normals = normals_after(scene, 1, strict=True, generic=generic)[2]
+        assert_bit_exact(normals, np.tile(np.float32([0, 1, 0, 0]), (400, 1)), f"generic={generic}")
+
+
+@BUILDS
+def test_normals_cost_nothing_unless_asked_for_and_change_no_step(generic):
+    require("opencl")
+    scene = every_collider_scene(24)
+    with create_backend("opencl", scene, BackendOptions(strict=True, generic=generic)) as b:
+        b.upload(*scene.initial_state(np.float32))
+        b.advance(2)
+        assert b.read_normals() is None
+        assert "normals" not in b.mode and "NORMALS" not in str(b.key)
+    with create_backend("opencl", scene, BackendOptions(strict=True, generic=generic, normals=True)) as b:
+        assert "normals" in b.mode and "-DCLOTH_NORMALS" in str(b.key)
+    pos, prev, _ = normals_after(scene, 200, strict=True, generic=generic)
+    ref_pos, ref_prev = reference(scene, 200, "f32")
+    assert_bit_exact(pos, ref_pos, "pos with normals on")
+    assert_bit_exact(prev, ref_prev, "prev with normals on")
+
+
+def test_cli_saves_normals_when_asked(tmp_path):
+    require("opencl")
+    path = tmp_path / "s.npz"
+    args = ["run", "--backend", "opencl", "--strict", "--grid", "16", "--steps", "20", "--json", "--save-normals"]
+    assert main([*args, "--save", str(path)]) == 0
+    with np.load(path) as saved:
+        assert_bit_exact(saved["normals"][:, :3], grid_normals(saved["prev"], 16, np.float32), "saved normals")
+
+
+# --- specialisation and the program cache ----------------------------------------------------
+
+
+def test_a_sphere_only_build_has_no_cylinder_or_plane_code(monkeypatch):
+    # Break the cylinder and plane colliders of the specialised build: a scene without
+    # them still builds and runs exactly (their code never reaches the compiler); a scene
+    # with a cylinder does not build.
+    require("opencl")
+    source = opencl.read_kernel(opencl.KERNEL_FILE)
+    broken = source
+    for signature in ("void collide_cylinder_v(", "void collide_plane_v("):
+        assert signature in broken
+        broken = broken.replace(signature, "no_such_type " + signature.split()[1])
+    monkeypatch.setattr(opencl, "read_kernel", lambda name: broken)
+    scene = sphere(24)
+    with create_backend("opencl", scene, STRICT) as b:
+        options = " ".join(o for program_options in b.key for o in program_options)
+        assert "-DCLOTH_SPHERES=1" in options
+        assert "CYLINDER" not in options and "PLANE" not in options, options
+    assert_matches_numpy_f32(scene, 100)
+    with pytest.raises(ClothbenchError, match="no_such_type"):
+        create_backend("opencl", collider_scene("cylinder", 24), STRICT)
+
+
+def test_a_second_backend_of_the_same_key_builds_nothing(monkeypatch):
+    require("opencl")
+    built = []
+    real_program = opencl._cl().Program
+    monkeypatch.setattr(opencl._cl(), "Program", lambda *a: built.append(a) or real_program(*a))
+    scene = every_collider_scene(29)  # a grid no other test builds
+    with create_backend("opencl", scene, STRICT) as first:
+        assert len(built) == 2, "interior and border programs, built once each"
+    with create_backend("opencl", scene.replace(dt=4e-4, stiffness=800.0), STRICT) as second:
+        pass  # the numbers are arguments: same key, no build
+    assert len(built) == 2
+    assert second.programs == first.programs and second.key == first.key
+    # generic: one program for every scene, whatever its grid or colliders
+    generic = [create_backend("opencl", s, BackendOptions(strict=True, generic=True)) for s in (scene, sphere(31))]
+    assert generic[0].programs == generic[1].programs and len(built) <= 3
+    for b in generic:
+        b.close()
+
+
+def test_more_colliders_than_the_constant_buffer_holds_are_refused():
+    require("opencl")
+    with create_backend("opencl", sphere(8), FAST) as b:
+        rows = b._device.max_constant_buffer_size // 16 + 1
+    scene = sphere(8).replace(spheres=(Sphere((0.0, 0.0, 0.0), 0.1),) * rows)
+    with pytest.raises(ClothbenchError, match=rf"{rows} colliders take .* constant buffer; use fewer"):
+        create_backend("opencl", scene, BackendOptions(generic=True))
+
+
+@pytest.mark.parametrize("strict", [True, False])
 @pytest.mark.parametrize("n", [3, 5, 20, 21, 37])
-def test_fast_mode_writes_every_particle_once_per_step(n):
-    # The fast step splits the grid between an interior kernel (V particles per work item,
-    # the last vector of a row overlapping) and a border kernel; the previous position
+def test_specialised_step_writes_every_particle_once(n, strict):
+    # The specialised step splits the grid between an interior kernel (V particles per work
+    # item, the last vector of a row overlapping) and a border kernel; the previous position
     # written for every particle must be exactly the position it had, so none is missed.
     require("opencl")
     scene = sphere(n)
@@ -80,25 +346,26 @@ def test_fast_mode_writes_every_particle_once_per_step(n):
     pos = pos.copy()
     pos[:, :3] += np.random.default_rng(n).normal(0, 1e-3, (n * n, 3)).astype(np.float32)
     for ls in (None, 7):
-        with create_backend("opencl", scene, BackendOptions(local_size=ls)) as b:
+        with create_backend("opencl", scene, BackendOptions(strict=strict, local_size=ls)) as b:
             b.upload(pos, prev)
             b.advance(1)
             assert_bit_exact(b.read()[1], pos, f"prev after one step, n={n} ls={ls}")
 
 
-def test_work_group_size_changes_no_result():
+@BUILDS
+def test_work_group_size_changes_no_result(generic):
     # 7 divides neither n*n nor the interior: the launches are padded and the kernels return
     # early past their last item. Strict stays bit-exact; fast stays bit-identical to itself.
     require("opencl")
     scene = sphere(24)
     assert_bit_exact(
-        simulate("opencl", scene, 40, BackendOptions(strict=True, local_size=7))[0],
+        simulate("opencl", scene, 40, BackendOptions(strict=True, local_size=7, generic=generic))[0],
         reference(scene, 40, "f32")[0],
         "strict ls=7",
     )
     assert_bit_exact(
-        simulate("opencl", scene, 40, BackendOptions(local_size=7))[0],
-        simulate("opencl", scene, 40, FAST)[0],
+        simulate("opencl", scene, 40, BackendOptions(local_size=7, generic=generic))[0],
+        simulate("opencl", scene, 40, BackendOptions(generic=generic))[0],
         "fast ls=7",
     )
 
@@ -111,13 +378,13 @@ def test_kernel_rejects_a_wrongly_typed_argument():
         b.upload(*b.scene.initial_state(np.float32))
         border = b.kernels[-1]
         pos, prev, pos_out, prev_out = b._state
-        good = [pos, prev, b._inv_mass, pos_out, prev_out, b._spheres, *b._constants, b._border]
+        good = [pos, prev, b._inv_mass, pos_out, prev_out, *b._constants, b._colliders, b._border]
         count = np.int32(1)
         border(b.queue, (1,), None, *good, count).wait()  # well typed: runs
         with pytest.raises(Exception, match=r"arg#14 \(1-based\)"):
             border(b.queue, (1,), None, *good, 3.5)  # a float for `const int count`
-        with pytest.raises(Exception, match=r"arg#7 \(1-based\)"):
-            border(b.queue, (1,), None, *good[:6], b._border, *good[7:], count)  # a buffer for k
+        with pytest.raises(Exception, match=r"arg#6 \(1-based\)"):
+            border(b.queue, (1,), None, *good[:5], b._border, *good[6:], count)  # a buffer for k
         with pytest.raises(Exception, match=r"arg#1 \(1-based\)"):
             border(b.queue, (1,), None, np.float32(3.0), *good[1:], count)  # a float for a pointer
 
@@ -192,19 +459,17 @@ def test_bad_options_are_refused(options, message):
         create_backend("opencl", sphere(8), options)
 
 
-def test_colliders_other_than_spheres_are_refused_not_ignored():
-    require("opencl")
-    scene = sphere(8).replace(planes=(Plane(point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0)),))
-    with pytest.raises(ClothbenchError, match="spheres only so far"):
-        create_backend("opencl", scene, FAST)
-
-
 def test_mode_names_what_changes_speed_or_results():
     require("opencl")
     with create_backend("opencl", sphere(16), STRICT) as b:
         assert b.mode == "strict/resident/ls=auto"
     with create_backend("opencl", sphere(16), BackendOptions(transfer="per-step", local_size=4)) as b:
         assert b.mode == "fast/per-step/ls=4"
+    with create_backend("opencl", sphere(16), BackendOptions(strict=True, generic=True)) as b:
+        assert b.mode == "strict/generic/resident/ls=auto"
+    with create_backend("opencl", sphere(16), BackendOptions(normals=True, generic=True)) as b:
+        assert b.mode == "fast/normals/generic/resident/ls=auto"
+    assert opencl.OpenCLBackend.has_generic, "the sweep measures --generic beside the default"
 
 
 def test_profiling_events_time_the_last_advance():
