@@ -292,3 +292,20 @@ def test_solvers_add_pbd_rows_where_a_backend_has_that_solver(tmp_path, capsys):
     pbd = [r for r in rows if r["solver"] == "pbd"]
     assert all(r["pbd_method"] == "jacobi" and r["iterations"] == "10" and r["status"] == "ok" for r in pbd)
     assert len({row_key(r) for r in rows}) == len(rows)
+
+
+def test_pbd_methods_are_rows_of_their_own(tmp_path):
+    out = tmp_path / "m.csv"
+    argv = ["sweep", "--backends", "numpy", "--grids", "6", *TINY, "--scene", "curtain", "--out", str(out)]
+    assert main([*argv, "--solvers", "pbd-jacobi,pbd-coloured"]) == 0
+    rows = read_csv(out)
+    assert {r["pbd_method"] for r in rows} == {"jacobi", "coloured"}
+    assert len({row_key(r) for r in rows}) == len(rows) == 4
+    # jacobi and coloured are different computations: their errors against f64 differ
+    f32 = {r["pbd_method"]: r for r in rows if r["precision"] == "f32"}
+    assert f32["jacobi"]["ms_median"] and f32["coloured"]["ms_median"]
+
+
+def test_unknown_solver_is_one_line_exit_2(capsys):
+    assert main(["sweep", "--solvers", "rk4", "--out", "x.csv"]) == 2
+    assert "--solvers takes verlet, pbd, pbd-jacobi, pbd-coloured" in capsys.readouterr().err

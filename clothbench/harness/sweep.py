@@ -149,6 +149,14 @@ class Plan:
 
 
 GENERIC_CHOICES = ("no", "yes", "both")
+# What --solvers accepts: a solver, or pbd with its method ("pbd" alone: the scene's method).
+SOLVER_SPECS = ("verlet", "pbd", "pbd-jacobi", "pbd-coloured")
+
+
+def solver_changes(spec: str) -> dict:
+    """The scene changes a --solvers entry stands for."""
+    solver, _, method = spec.partition("-")
+    return {"solver": solver, **({"pbd_method": method} if method else {})}
 
 
 def plan_sweep(
@@ -176,7 +184,7 @@ def plan_sweep(
                     skipped.append((name, a.reason))
                 continue
             try:
-                cls = backend_class(name, solver)
+                cls = backend_class(name, solver_changes(solver)["solver"])
                 if cls is None:
                     skipped.append((f"{name} ({solver})", f"{name} has no {solver} solver"))
                     continue
@@ -494,7 +502,7 @@ class SweepSettings:
             raise ClothbenchError(f"--generic takes {', '.join(GENERIC_CHOICES)}, got {self.generic!r}")
         # every grid and solver is checked as a scene now, before anything is measured
         self.scenes = {
-            (solver, g): self.scene.replace(grid=g, steps=self.steps * self.repeats, solver=solver)
+            (solver, g): self.scene.replace(grid=g, steps=self.steps * self.repeats, **solver_changes(solver))
             for solver in self.solvers
             for g in self.grids
         }
@@ -578,7 +586,7 @@ def run_sweep(
         for i, row in enumerate(todo):
             scene = settings.scenes[(row.solver, row.grid)]
             size = f" local {row.options.local_size}" if row.options.local_size else ""
-            solver = " pbd" if row.solver == "pbd" else ""
+            solver = f" {row.solver}" if row.solver != "verlet" else ""
             description = f"{row.backend}{solver} {row.label}{size} n={row.grid} ({i + 1}/{len(todo)})"
             report = None
             if on_step:

@@ -88,7 +88,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--solvers",
         default="verlet",
-        help="comma-separated: verlet (mass-spring), pbd (docs/pbd.md), or both (default verlet)",
+        help="comma-separated: verlet (mass-spring), pbd (docs/pbd.md, the scene's method), "
+        "pbd-jacobi, pbd-coloured (default verlet)",
     )
     p.add_argument("--out", default="sweep.csv", help="the CSV to write (default sweep.csv)")
     p.add_argument("--resume", action="store_true", help="add only the rows --out lacks (after an interruption)")
@@ -176,12 +177,12 @@ def cmd_sweep(args) -> int:
 
 def _solvers(text: str) -> tuple[str, ...]:
     from ..errors import ClothbenchError
-    from ..scene import SOLVERS
+    from .sweep import SOLVER_SPECS
 
     solvers = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
-    bad = [s for s in solvers if s not in SOLVERS]
+    bad = [s for s in solvers if s not in SOLVER_SPECS]
     if bad or not solvers:
-        raise ClothbenchError(f"--solvers takes {', '.join(SOLVERS)} (comma-separated), got {text!r}")
+        raise ClothbenchError(f"--solvers takes {', '.join(SOLVER_SPECS)} (comma-separated), got {text!r}")
     return solvers
 
 
