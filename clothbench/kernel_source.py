@@ -1,4 +1,5 @@
-"""Finding the kernel sources in kernels/, from a checkout or from an installed wheel.
+"""Finding the kernel sources in kernels/, from a checkout or from an installed wheel, with
+their includes resolved, and writing exact float literals into them.
 
 The wheel carries kernels/ as clothbench/kernels (see pyproject.toml); a checkout or an
 editable install reads the top-level kernels/ folder beside the package.
@@ -6,8 +7,10 @@ editable install reads the top-level kernels/ folder beside the package.
 
 from __future__ import annotations
 
+import re
 from importlib import resources
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -29,6 +32,49 @@ def kernel_path(filename: str) -> Path:
 
 def read_kernel(filename: str) -> str:
     return kernel_path(filename).read_text()
+
+
+_INCLUDE = re.compile(r'^[ \t]*#include[ \t]+(?:"([^"]+)"|<([^>]+)>)[ \t]*(?://.*)?$', re.M)
+
+
+def resolve_includes(
+    filename: str,
+    text: str,
+    line_mark: Callable[[int, int, str], str],
+    generated: dict[str, Callable[[], str]] | None = None,
+) -> tuple[str, list[str]]:
+    """`text` (kernels/`filename`) with its includes resolved on the host: `#include "file"` is
+    kernels/file (itself resolved), `#include <name>` the source generated[name]() returns.
+    line_mark(line, file number, file name) is the `#line` directive put at the start of each
+    file and after each include, so that a compiler message gives the line of the file it is
+    in. Returns the source and the names of its files, numbered in order of appearance.
+
+    On the host, not by the compiler: GLSL has no #include, and the source handed to an
+    OpenCL driver is then all of the program, so a program cache keyed on the source text
+    (ours, PoCL's) sees an edit to an included file."""
+    files: list[str] = []
+    generated = generated or {}
+
+    def expand(name: str, text: str) -> str:
+        number = len(files)
+        files.append(name)
+        out, last = [line_mark(1, number, name) + "\n"], 0
+        for match in _INCLUDE.finditer(text):
+            out.append(text[last : match.start()])
+            included, special = match.groups()
+            if included:
+                out.append(expand(included, read_kernel(included)))
+            elif special in generated:
+                out.append(expand(f"<{special}>", generated[special]()))
+            else:
+                raise ClothbenchError(f"{name}: unknown #include <{special}>")
+            line = text.count("\n", 0, match.end()) + 2  # the line after the #include
+            out.append("\n" + line_mark(line, number, name))
+            last = match.end()
+        out.append(text[last:])
+        return "".join(out)
+
+    return expand(filename, text), files
 
 
 def c_float(x) -> str:

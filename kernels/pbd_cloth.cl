@@ -21,9 +21,9 @@
  *                 '/', no dot(): equal to the NumPy float32 reference bit for bit. Without
  *                 it (fast): one rsqrt per constraint, dot(), contraction (-cl-mad-enable).
  * Numbers (h, g*h, compliance/h^2, rest lengths, damping, relaxation) are kernel arguments,
- * rounded once to float32 on the host. The collider table is the one verlet_cloth.cl takes:
- * spheres (centre, radius); cylinders (start, length), (unit axis, radius), (radial_r, 0);
- * planes (point, 0), (unit normal, 0).
+ * rounded once to float32 on the host. The collider table and the colliders are collide.cl's
+ * (included by the host, as verlet_cloth.cl includes it): spheres (centre, radius); cylinders
+ * (start, length), (unit axis, radius), (radial_r, 0); planes (point, 0), (unit normal, 0).
  *
  * lambda: the Jacobi form keeps 12 per particle (lam[o * n2 + i], one for each end of a
  * constraint: both ends compute the same value), the coloured form one per constraint. A
@@ -67,6 +67,10 @@ float dot3(float3 a, float3 b)
     return dot(a, b);
 #endif
 }
+
+/* The colliders (docs/semantics.md, "Collisions") and collide(x, colliders, counts...),
+ * shared with verlet_cloth.cl. */
+#include "collide.cl"
 
 /* predict: v += g*h, xs = x + v*h; pinned particles stay and have no velocity */
 __kernel void pbd_predict(__global const float4 *x, __global float4 *v, __global float4 *xs,
@@ -318,53 +322,6 @@ __kernel void pbd_coloured(__global float4 *X, __global const int2 *ij, __global
     lam[offset + k] = lam_c + dlam;
 }
 
-/* ---- colliders: docs/semantics.md, "Collisions", operation for operation ---------------- */
-
-float3 collide_sphere(float3 x, float4 sphere)
-{
-    float3 c = sphere.xyz;
-    float r = sphere.w;
-    float3 d = x - c;
-    float L2 = dot3(d, d);
-    float L = sqrt(L2);
-    if (L < r)
-        x = L2 > 0.0f ? c + d * (r / L)
-                      : (float3)(c.x, c.y + r, c.z); /* exactly at the centre: straight up */
-    return x;
-}
-
-float3 collide_cylinder(float3 x, float4 start_len, float4 axis_r, float4 radial_r)
-{
-    float3 a = start_len.xyz, u = axis_r.xyz;
-    float len = start_len.w, r = axis_r.w;
-    float3 d = x - a;
-    float t = dot3(d, u); /* axial coordinate from the start cap */
-    float3 q = u * t;
-    float3 p = d - q; /* radial vector */
-    float rho2 = dot3(p, p);
-    float rho = sqrt(rho2);
-    if (t > 0.0f && t < len && rho < r) {
-        float side = r - rho, to_end = len - t;
-        if (side <= t && side <= to_end) /* through the curved side */
-            x = rho2 > 0.0f ? (a + q) + p * (r / rho)
-                            : (a + q) + radial_r.xyz; /* on the axis: a fixed direction */
-        else if (t <= to_end) /* through the start cap */
-            x = x - q;
-        else /* through the end cap */
-            x = x + u * to_end;
-    }
-    return x;
-}
-
-float3 collide_plane(float3 x, float4 point, float4 normal)
-{
-    float3 nrm = normal.xyz;
-    float dist = dot3(x - point.xyz, nrm);
-    if (dist < 0.0f)
-        x = x - nrm * dist;
-    return x;
-}
-
 /* collisions as position projections, free particles only: spheres, cylinders, planes */
 __kernel void pbd_collide(__global float4 *xs, __constant float4 *colliders)
 {
@@ -374,15 +331,7 @@ __kernel void pbd_collide(__global float4 *xs, __constant float4 *colliders)
     float4 p = xs[i];
     if (p.w == 0.0f)
         return; /* pinned particles are never collided */
-    float3 x = p.xyz;
-    for (int s = 0; s < CLOTH_SPHERES; ++s)
-        x = collide_sphere(x, colliders[s]);
-    __constant float4 *cylinders = colliders + CLOTH_SPHERES;
-    for (int c = 0; c < CLOTH_CYLINDERS; ++c)
-        x = collide_cylinder(x, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
-    __constant float4 *planes = cylinders + 3 * CLOTH_CYLINDERS;
-    for (int q = 0; q < CLOTH_PLANES; ++q)
-        x = collide_plane(x, planes[2 * q], planes[2 * q + 1]);
+    float3 x = collide(p.xyz, colliders, CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_PLANES);
     xs[i] = (float4)(x, p.w);
 }
 

@@ -44,7 +44,9 @@
  *
  * The collider table (one __constant float4 array, rows rounded once from float64): spheres
  * (centre, radius); then cylinders, three rows each: (start, length), (unit axis, radius),
- * (radial_r, 0); then planes, two rows each: (point, 0), (unit normal, 0).
+ * (radial_r, 0); then planes, two rows each: (point, 0), (unit normal, 0). The generic build
+ * takes its colliders from collide.cl (included by the host, as pbd_cloth.cl does); the
+ * specialised build has its own vectorised ones below, the same operations lane by lane.
  */
 
 #ifdef CLOTH_STRICT
@@ -84,68 +86,14 @@ float3 spring_force(float3 x, float3 x_neigh, float rest, float k, float3 bv)
     return s * d - bv;
 }
 
-/* Push a point inside a sphere (centre xyz, radius w) out to its surface. */
-float3 collide_sphere(float3 x, float4 sphere)
+/* (a.x*b.x + a.y*b.y) + a.z*b.z, strict or fast: not dot(), whose order is the driver's */
+float dot3(float3 a, float3 b)
 {
-    float3 c = sphere.xyz;
-    float r = sphere.w;
-    float3 d = x - c;
-    float L2 = (d.x * d.x + d.y * d.y) + d.z * d.z;
-    float L = sqrt(L2);
-    if (L < r)
-        x = L2 > 0.0f ? c + d * (r / L)
-                      : (float3)(c.x, c.y + r, c.z); /* exactly at the centre: straight up */
-    return x;
+    return (a.x * b.x + a.y * b.y) + a.z * b.z;
 }
 
-/* Push a point inside a capped cylinder out the shortest way: the side or the nearer cap. */
-float3 collide_cylinder(float3 x, float4 start_len, float4 axis_r, float4 radial_r)
-{
-    float3 a = start_len.xyz, u = axis_r.xyz;
-    float len = start_len.w, r = axis_r.w;
-    float3 d = x - a;
-    float t = (d.x * u.x + d.y * u.y) + d.z * u.z; /* axial coordinate from the start cap */
-    float3 q = u * t;
-    float3 p = d - q; /* radial vector */
-    float rho2 = (p.x * p.x + p.y * p.y) + p.z * p.z;
-    float rho = sqrt(rho2);
-    if (t > 0.0f && t < len && rho < r) {
-        float side = r - rho, to_end = len - t;
-        if (side <= t && side <= to_end) /* through the curved side */
-            x = rho2 > 0.0f ? (a + q) + p * (r / rho)
-                            : (a + q) + radial_r.xyz; /* on the axis: a fixed direction */
-        else if (t <= to_end) /* through the start cap */
-            x = x - q;
-        else /* through the end cap */
-            x = x + u * to_end;
-    }
-    return x;
-}
-
-/* Push a point below a one-sided plane (point, unit normal) back onto it. */
-float3 collide_plane(float3 x, float4 point, float4 normal)
-{
-    float3 d = x - point.xyz, nrm = normal.xyz;
-    float dist = (d.x * nrm.x + d.y * nrm.y) + d.z * nrm.z;
-    if (dist < 0.0f)
-        x = x - nrm * dist;
-    return x;
-}
-
-/* Every collider, in the order docs/semantics.md fixes: spheres, cylinders, planes. */
-float3 collide(float3 x, __constant float4 *colliders, int num_spheres, int num_cylinders,
-               int num_planes)
-{
-    for (int s = 0; s < num_spheres; ++s)
-        x = collide_sphere(x, colliders[s]);
-    __constant float4 *cylinders = colliders + num_spheres;
-    for (int c = 0; c < num_cylinders; ++c)
-        x = collide_cylinder(x, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
-    __constant float4 *planes = cylinders + 3 * num_cylinders;
-    for (int p = 0; p < num_planes; ++p)
-        x = collide_plane(x, planes[2 * p], planes[2 * p + 1]);
-    return x;
-}
+/* The colliders and collide(x, colliders, counts...), shared with pbd_cloth.cl. */
+#include "collide.cl"
 
 #ifdef CLOTH_NORMALS
 /* v / |v|, or 0 for a zero vector (a degenerate triangle has no direction) */

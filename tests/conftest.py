@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from clothbench.backends import availability
-from clothbench.scene import load_scene
+from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
 
 def require(backend: str) -> None:
@@ -14,6 +14,37 @@ def require(backend: str) -> None:
     a = availability(backend)
     if not a.usable:
         pytest.skip(f"{backend} unavailable: {a.reason}")
+
+
+def sphere(n: int) -> Scene:
+    """The built-in sphere scene on an n x n grid."""
+    return load_scene("sphere").replace(grid=n)
+
+
+def every_collider_scene(n: int) -> Scene:
+    """Two spheres, two capped cylinders (one skewed, one upright: its top cap is hit), a
+    tilted floor and a pinned corner; the sheet touches every one within 500 steps at n = 32
+    (test_opencl.py checks)."""
+    return sphere(n).replace(
+        name="all-kinds",
+        spheres=(Sphere((0.5, 0.5, 0.5), 0.3), Sphere((0.2, 0.62, 0.3), 0.2)),
+        cylinders=(
+            Cylinder((0.1, 0.75, 0.2), (0.9, 0.78, 0.3), 0.06),
+            Cylinder((0.7, 0.0, 0.7), (0.7, 0.8, 0.7), 0.05),
+        ),
+        planes=(Plane((0.0, 0.78, 0.0), (0.1, 1.0, 0.05)),),
+        pin_corners=("top-left",),
+    )
+
+
+def bent_state(n: int) -> tuple[Scene, np.ndarray]:
+    """A sheet with hills and noise: every face a different direction."""
+    scene = sphere(n)
+    pos, _ = scene.initial_state(np.float64)
+    rng = np.random.default_rng(10)
+    pos[:, 1] += 0.2 * np.sin(3 * pos[:, 0]) * np.cos(2 * pos[:, 2]) + 0.01 * rng.standard_normal(n * n)
+    pos[:, :3] += 0.002 * rng.standard_normal((n * n, 3))
+    return scene, pos.astype(np.float32)
 
 
 @pytest.fixture

@@ -39,7 +39,7 @@ from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import kernel_path
 from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
-from conftest import assert_bit_exact, require
+from conftest import assert_bit_exact, bent_state, require, sphere
 
 KERNEL = kernel_path(cuda.KERNEL_FILE)
 SHIM = Path(clothbench.__file__).parent / "cuda_shim"
@@ -60,10 +60,6 @@ def assert_as_accurate_as_float32(pos, scene: Scene, steps: int) -> None:
     rms, worst = position_error(pos, f64)
     assert worst <= FAST_ERROR_FACTOR * f32_max, f"max error {worst:.3g} m, float32's {f32_max:.3g} m"
     assert rms <= FAST_ERROR_FACTOR * f32_rms, f"RMS error {rms:.3g} m, float32's {f32_rms:.3g} m"
-
-
-def sphere(n: int) -> Scene:
-    return load_scene("sphere").replace(grid=n)
 
 
 def every_kind(n: int = 32) -> Scene:
@@ -580,16 +576,6 @@ def normals_on_cpu(cpu_pingpong, scene: Scene, pos: np.ndarray, strict=True, gen
     assert normals.shape == (scene.particles, 4) and normals.dtype == np.float32
     assert np.all(normals[:, 3] == 0)
     return normals
-
-
-def bent_state(n: int) -> tuple[Scene, np.ndarray]:
-    """A sheet with hills and noise: every face a different direction."""
-    scene = sphere(n)
-    pos, _ = scene.initial_state(np.float64)
-    rng = np.random.default_rng(10)
-    pos[:, 1] += 0.2 * np.sin(3 * pos[:, 0]) * np.cos(2 * pos[:, 2]) + 0.01 * rng.standard_normal(n * n)
-    pos[:, :3] += 0.002 * rng.standard_normal((n * n, 3))
-    return scene, pos.astype(np.float32)
 
 
 # Normals in fast mode vs the formula in float64 on the same float32 positions: each of the

@@ -22,7 +22,7 @@ from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import read_kernel
 from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
-from conftest import assert_bit_exact, require
+from conftest import assert_bit_exact, bent_state, every_collider_scene, require, sphere
 
 GL_BACKENDS = ["glsl", "glsl-compute"]
 
@@ -41,10 +41,6 @@ NORMAL_TOLERANCE = 1e-6
 def backend(request) -> str:
     require(request.param)
     return request.param
-
-
-def sphere(n: int) -> Scene:
-    return load_scene("sphere").replace(grid=n)
 
 
 def device_name(backend: str) -> str:
@@ -88,24 +84,9 @@ def test_the_other_read_path_is_exact_too(backend, monkeypatch):
     assert_matches_numpy_f32(backend, sphere(33), 100)
 
 
-def every_collider_scene(n: int = 24) -> Scene:
-    """Two spheres, two cylinders (one skewed), a tilted floor and a pinned corner, all
-    touched by the falling sheet within the first 150 steps."""
-    return load_scene("sphere").replace(
-        grid=n,
-        spheres=(Sphere((0.5, 0.5, 0.5), 0.3), Sphere((0.2, 0.62, 0.3), 0.2)),
-        cylinders=(
-            Cylinder((0.1, 0.75, 0.2), (0.9, 0.78, 0.3), 0.06),
-            Cylinder((0.7, 0.0, 0.7), (0.7, 0.8, 0.7), 0.05),
-        ),
-        planes=(Plane((0.0, 0.78, 0.0), (0.1, 1.0, 0.05)),),
-        pin_corners=("top-left",),
-    )
-
-
 @pytest.mark.parametrize("generic", [False, True], ids=["literals", "uniforms"])
 def test_strict_is_exact_with_every_collider_kind(backend, generic):
-    scene = every_collider_scene()
+    scene = every_collider_scene(24)
     free = scene.replace(spheres=(), cylinders=(), planes=())
     steps = 150
     # the colliders are actually hit: without them the state differs
@@ -181,7 +162,7 @@ def test_strict_is_exact_on_the_collider_scenes(backend, name):
 
 
 def test_specialised_and_generic_programs_agree_bit_for_bit(backend):
-    scene = every_collider_scene()
+    scene = every_collider_scene(24)
     specialised = run(backend, scene, 150, strict=True)
     generic = run(backend, scene, 150, strict=True, generic=True)
     for a, b, what in zip(specialised, generic, ("pos", "prev")):
@@ -298,15 +279,6 @@ def test_folded_sheet_normals_are_the_average_of_its_faces(backend, strict):
     np.testing.assert_allclose(normals, expected, rtol=0, atol=1e-5)
 
 
-def bent_state(n: int) -> tuple[Scene, np.ndarray]:
-    scene = sphere(n)
-    pos, _ = scene.initial_state(np.float64)
-    rng = np.random.default_rng(10)
-    pos[:, 1] += 0.2 * np.sin(3 * pos[:, 0]) * np.cos(2 * pos[:, 2]) + 0.01 * rng.standard_normal(n * n)
-    pos[:, :3] += 0.002 * rng.standard_normal((n * n, 3))
-    return scene, pos.astype(np.float32)
-
-
 def test_strict_normals_equal_the_formula_in_float32_bit_for_bit(backend):
     scene, pos = bent_state(29)
     normals = normals_of(backend, scene, pos, strict=True)
@@ -382,6 +354,25 @@ def test_programs_are_compiled_once_per_context(backend):
         assert device.programs_compiled == compiled
 
 
+def test_a_nested_with_device_leaves_the_context_current(backend):
+    # Every backend method enters `with device:` itself, so code already inside one (a
+    # profile, a renderer) enters it again: only the outermost exit may release the context,
+    # or the GL calls after an inner exit do nothing and a read fails or returns stale data.
+    scene = sphere(32)
+    with create_backend(backend, scene, BackendOptions(strict=True)) as b, b.gl:
+        b.upload(*scene.initial_state(np.float32))  # enters and leaves `with b.gl:` inside ours
+        scratch = b.gl.ctx.buffer(reserve=16)  # a GL call of our own after that inner exit
+        scratch.write(np.float32([1, 2, 3, 4]).tobytes())
+        written = np.frombuffer(scratch.read(), np.float32).copy()
+        scratch.release()
+        b.advance(100)
+        pos, prev = b.read()
+    assert written.tolist() == [1, 2, 3, 4]
+    ref_pos, ref_prev = reference(scene, 100, "f32")
+    assert_bit_exact(pos, ref_pos, f"{backend} inside a nested with: pos")
+    assert_bit_exact(prev, ref_prev, f"{backend} inside a nested with: prev")
+
+
 def test_f64_is_refused(backend):
     with pytest.raises(ClothbenchError, match="f32 only"):
         create_backend(backend, sphere(8), BackendOptions(precision="f64"))
@@ -415,7 +406,7 @@ def test_both_kernels_include_the_one_step():
 
 
 def test_each_program_holds_the_step_once(backend):
-    with create_backend(backend, every_collider_scene(), BackendOptions(normals=True)) as b:
+    with create_backend(backend, every_collider_scene(24), BackendOptions(normals=True)) as b:
         sources = [b.source] if backend == "glsl" else list(b.sources.values())
     for source in sources:
         assert not re.search(r"^\s*#include", source, re.M)  # every include resolved

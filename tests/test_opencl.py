@@ -2,43 +2,27 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
 import numpy as np
 import pytest
 
 from clothbench.backends import BackendOptions, availability, create_backend
+from clothbench import kernel_source
 from clothbench.backends import opencl
 from clothbench.cli import main
 from clothbench.errors import BackendUnavailable, ClothbenchError
 from clothbench.harness import max_penetration, position_error, reference, simulate
 from clothbench.harness.normals import grid_normals
+from clothbench.kernel_source import read_kernel
 from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
-from conftest import assert_bit_exact, require
+from conftest import assert_bit_exact, every_collider_scene, require, sphere
 
 STRICT = BackendOptions(strict=True)
 FAST = BackendOptions()
 # The two builds of the kernel file: specialised for the scene (the default) and --generic.
 BUILDS = pytest.mark.parametrize("generic", [False, True], ids=["specialised", "generic"])
-
-
-def sphere(n: int):
-    return load_scene("sphere").replace(grid=n)
-
-
-def every_collider_scene(n: int = 32) -> Scene:
-    """Two spheres, two capped cylinders (one skewed, one upright: its top cap is hit), a
-    tilted floor and a pinned corner; the sheet touches every one within 500 steps."""
-    return sphere(n).replace(
-        name="all-kinds",
-        spheres=(Sphere((0.5, 0.5, 0.5), 0.3), Sphere((0.2, 0.62, 0.3), 0.2)),
-        cylinders=(
-            Cylinder((0.1, 0.75, 0.2), (0.9, 0.78, 0.3), 0.06),
-            Cylinder((0.7, 0.0, 0.7), (0.7, 0.8, 0.7), 0.05),
-        ),
-        planes=(Plane((0.0, 0.78, 0.0), (0.1, 1.0, 0.05)),),
-        pin_corners=("top-left",),
-    )
 
 
 def collider_scene(name: str, n: int) -> Scene:
@@ -78,7 +62,7 @@ def test_strict_is_exact_with_every_collider_kind(scene_name, steps, generic):
 
 def test_the_all_kinds_scene_touches_every_kind_within_500_steps():
     # what makes the exactness test above cover each collider's code on contact
-    scene = every_collider_scene()
+    scene = every_collider_scene(32)
     touched = reference(scene, 500, "f32")[0]
     for kind in ("spheres", "cylinders", "planes"):
         without = reference(scene.replace(**{kind: ()}), 500, "f32")[0]
@@ -306,11 +290,34 @@ def test_a_sphere_only_build_has_no_cylinder_or_plane_code(monkeypatch):
         create_backend("opencl", collider_scene("cylinder", 24), STRICT)
 
 
+def test_both_kernel_files_take_the_colliders_from_collide_cl():
+    # the float4 colliders are written once (collide.cl); the host resolves the include, so
+    # the program's source is all of it
+    for filename in ("verlet_cloth.cl", "pbd_cloth.cl"):
+        text = read_kernel(filename)
+        assert text.count('#include "collide.cl"') == 1, filename
+        assert "float3 collide_sphere(" not in text, f"{filename} restates the colliders"
+        source = opencl.program_source(filename)
+        assert not re.search(r"^\s*#include", source, re.M), "every include resolved"
+        assert source.count("float3 collide_sphere(") == 1
+
+
+def test_an_edit_to_collide_cl_reaches_the_compiler(monkeypatch):
+    # the program caches (ours, PoCL's) are keyed on the source: an included file's edit
+    # must change it, and the build log names the file and line it is about
+    require("opencl")
+    real = kernel_source.read_kernel
+    edited = {"collide.cl": real("collide.cl") + "\nno_such_type broken;\n"}
+    monkeypatch.setattr(kernel_source, "read_kernel", lambda name: edited.get(name) or real(name))
+    with pytest.raises(ClothbenchError, match=r"collide\.cl:\d+:\d+: unknown type name 'no_such_type'"):
+        create_backend("opencl", sphere(8), BackendOptions(strict=True, generic=True))
+
+
 def test_a_second_backend_of_the_same_key_builds_nothing(monkeypatch):
     require("opencl")
     built = []
-    real_program = opencl._cl().Program
-    monkeypatch.setattr(opencl._cl(), "Program", lambda *a: built.append(a) or real_program(*a))
+    real_program = opencl.import_pyopencl().Program
+    monkeypatch.setattr(opencl.import_pyopencl(), "Program", lambda *a: built.append(a) or real_program(*a))
     scene = every_collider_scene(29)  # a grid no other test builds
     with create_backend("opencl", scene, STRICT) as first:
         assert len(built) == 2, "interior and border programs, built once each"

@@ -34,6 +34,7 @@ from ..errors import ClothbenchError
 from ..kernel_source import c_float, read_kernel
 from ..scene import Scene
 from .base import Availability, Backend, BackendOptions
+from .kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
 
 KERNEL_FILE = "verlet_cloth.cu"
 KERNEL_NAME = "verlet_step"
@@ -58,44 +59,15 @@ def compile_options(strict: bool) -> tuple[str, ...]:
     return ("--std=c++17", "--use_fast_math")
 
 
-ROWS_PER_COLLIDER = {"spheres": 1, "cylinders": 3, "planes": 2}  # float4 rows, as collider_rows
-
-
-def collider_rows(scene: Scene) -> dict[str, np.ndarray]:
-    """The colliders as the kernel reads them, float64 values rounded once to float32 rows of
-    float4: spheres (centre, radius); cylinders (start, length), (unit axis, radius),
-    (radial_r, 0); planes (point, 0), (unit normal, 0). docs/semantics.md, "Constants"."""
-
-    def rows(values) -> np.ndarray:
-        return np.array(values, dtype=np.float64).reshape(-1, 4).astype(np.float32)
-
-    def cylinder(c):
-        radial_r = (e * c.radius for e in c.radial)  # multiplied in float64, rounded once
-        return ((*c.start, c.length), (*c.axis, c.radius), (*radial_r, 0.0))
-
-    return {
-        "spheres": rows([(*s.center, s.radius) for s in scene.spheres]),
-        "cylinders": rows([row for c in scene.cylinders for row in cylinder(c)]),
-        "planes": rows([row for p in scene.planes for row in ((*p.point, 0.0), (*p.unit_normal, 0.0))]),
-    }
-
-
 def scene_constants(scene: Scene) -> dict[str, object]:
-    """The step's constants, rounded once from float64 (np.float32), in kernel parameter order."""
-    f32 = np.float32
-    rest = [f32(r) for r in scene.rest_lengths()]
-    kinds = (rest[0], rest[4], rest[8])  # structural, shear, bend: OFFSETS order
-    # the kernel takes one rest length per kind and indexes it as rest[o / 4]
-    assert all(r == kinds[o // 4] for o, r in enumerate(rest)), "stencil order changed"
-    gx, gy, gz = (f32(g) for g in scene.gravity)
+    """The step's constants (kernel_inputs.VerletConstants), in kernel parameter order."""
+    c = VerletConstants.of(scene)
+    (gx, gy, gz), (structural, shear, bend) = c.g, c.rest
     return {
         "n": np.int32(scene.grid),
-        "dt": f32(scene.dt),
-        "dt2": f32(scene.dt * scene.dt),  # rounded once from float64
-        "k": f32(scene.stiffness),
-        "b": f32(scene.damping),
+        "dt": c.dt, "dt2": c.dt2, "k": c.k, "b": c.b,
         "gx": gx, "gy": gy, "gz": gz,
-        "rest_structural": kinds[0], "rest_shear": kinds[1], "rest_bend": kinds[2],
+        "rest_structural": structural, "rest_shear": shear, "rest_bend": bend,
     }  # fmt: skip
 
 

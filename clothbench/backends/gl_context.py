@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import re
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import ClothbenchError
-from ..kernel_source import glsl_float, read_kernel
+from ..kernel_source import glsl_float, read_kernel, resolve_includes
 from ..scene import Scene
+from .kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
 
 INSTALL_HINT = "install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for OSMesa"
 MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs
@@ -57,13 +57,20 @@ class GLDevice:
         self._get_proc_address = get_proc_address  # GL entry point by name, for what moderngl lacks
         self._gl: dict = {}
         self._keepalive = keepalive  # the OSMesa handle and its buffer must outlive ctx
+        self._depth = 0  # how many `with device:` blocks are open
 
     def __enter__(self):
-        self.ctx.__enter__()  # make this context current (EGL, or the OSMesa loader's)
+        # Re-entrant: only the outermost `with` makes the context current and releases it, so
+        # code already inside `with device:` may call code that enters it again.
+        if self._depth == 0:
+            self.ctx.__enter__()  # make this context current (EGL, or the OSMesa loader's)
+        self._depth += 1
         return self
 
     def __exit__(self, *exc):
-        self.ctx.__exit__(*exc)
+        self._depth -= 1
+        if self._depth == 0:
+            self.ctx.__exit__(*exc)
 
     def program(self, key, build):
         """The program for `key`, compiled by `build()` the first time it is asked for."""
@@ -111,6 +118,23 @@ class GLDevice:
 
 
 _GL_TEXTURE_BUFFER, _GL_RGBA32F, _GL_READ_ONLY = 0x8C2A, 0x8814, 0x88B8
+
+
+class GLDeviceMixin:
+    """What every GL backend (glsl, glsl-compute and its PBD solver) does the same way with its
+    context `self.gl`: the device is the GL renderer, and synchronising is glFinish.
+    Timing is perf_counter around synchronize() (the harness); device_elapsed_ms stays None:
+    llvmpipe's timer queries report 1 ns for 17 ms of work (/work/shared/DRIVERS.md)."""
+
+    gl: GLDevice
+
+    @property
+    def device(self) -> str:
+        return self.gl.renderer
+
+    def synchronize(self) -> None:
+        with self.gl:  # re-entrant: also called inside a backend's own `with self.gl`
+            self.gl.ctx.finish()
 
 
 _devices: dict[str, GLDevice] = {}
@@ -231,7 +255,6 @@ def _create_osmesa() -> GLDevice:
 
 # The collider kinds, in the order the step applies them (kernels/collide_KIND.glsl).
 COLLIDER_KINDS = ("sphere", "cylinder", "plane")
-_INCLUDE = re.compile(r'^[ \t]*#include[ \t]+(?:"([^"]+)"|<([^>]+)>)[ \t]*(?://.*)?$', re.M)
 
 
 def collider_kinds(scene: Scene, generic: bool) -> tuple[str, ...]:
@@ -260,58 +283,15 @@ def shader_source(
     `colliders` (collider_source). GLSL has no #include; `#line 1 S` at each file start (and
     after each include) keeps a compiler message's line number the line of that file, with
     S its number in the list on the source's second line (Mesa prints every source as 0)."""
-    files: list[str] = []
-
-    def expand(name: str, text: str) -> str:
-        number = len(files)
-        files.append(name)
-        out, last = [f"#line 1 {number}\n"], 0
-        for match in _INCLUDE.finditer(text):
-            out.append(text[last : match.start()])
-            if match.group(1):
-                out.append(expand(match.group(1), read_kernel(match.group(1))))
-            elif match.group(2) == "colliders":
-                out.append(expand("<colliders>", collider_source(colliders)))
-            else:
-                raise ClothbenchError(f"{name}: unknown #include <{match.group(2)}>")
-            line = text.count("\n", 0, match.end()) + 2  # the line after the #include
-            out.append(f"\n#line {line} {number}")
-            last = match.end()
-        out.append(text[last:])
-        return "".join(out)
-
-    body = expand(filename, read_kernel(filename))
+    body, files = resolve_includes(
+        filename,
+        read_kernel(filename),
+        lambda line, number, name: f"#line {line} {number}",
+        {"colliders": lambda: collider_source(colliders)},
+    )
     lines = [f"#version {version} core", f"// sources: {', '.join(f'{i} {f}' for i, f in enumerate(files))}"]
     lines += [f"#define {k} {v}".rstrip() for k, v in defines.items()]
     return "\n".join(lines) + "\n" + body
-
-
-ROWS_PER_COLLIDER = {"sphere": 1, "cylinder": 3, "plane": 2}  # vec4 rows, as collider_rows
-
-
-def collider_rows(scene: Scene) -> dict[str, np.ndarray]:
-    """The colliders as the kernels take them, float64 values rounded once to float32 rows of
-    vec4: spheres (centre, radius); cylinders (start, length), (unit axis, radius),
-    (radial_r, 0); planes (point, 0), (unit normal, 0)."""
-
-    def rows(values) -> np.ndarray:
-        return np.array(values, dtype=np.float64).reshape(-1, 4).astype(np.float32)
-
-    return {
-        "spheres": rows([(*s.center, s.radius) for s in scene.spheres]),
-        "cylinders": rows(
-            [
-                v
-                for c in scene.cylinders
-                for v in (
-                    (*c.start, c.length),
-                    (*c.axis, c.radius),
-                    (*(e * c.radius for e in c.radial), 0.0),  # radial_r, rounded once
-                )
-            ]
-        ),
-        "planes": rows([v for p in scene.planes for v in ((*p.point, 0.0), (*p.unit_normal, 0.0))]),
-    }
 
 
 def constant_defines(scene: Scene, generic: bool) -> dict[str, object]:
@@ -337,37 +317,35 @@ def constant_defines(scene: Scene, generic: bool) -> dict[str, object]:
         items = ", ".join("vec4({})".format(", ".join(map(glsl_float, row))) for row in rows)
         return f"vec4[{len(rows)}]({items})"
 
-    rest = scene.rest_lengths()
+    c = VerletConstants.of(scene)
     defines: dict[str, object] = {
         "N_VALUE": scene.grid,
-        "DT_VALUE": glsl_float(scene.dt),
-        "DT2_VALUE": glsl_float(scene.dt * scene.dt),  # dt*dt in float64, rounded once
-        "K_VALUE": glsl_float(scene.stiffness),
-        "B_VALUE": glsl_float(scene.damping),
-        "G_VALUE": "vec3({})".format(", ".join(glsl_float(c) for c in scene.gravity)),
-        # the three distinct rest lengths: structural h, shear sqrt(2) h, bend 2 sqrt(2) h
-        "REST_VALUE": "float[3]({}, {}, {})".format(*(glsl_float(rest[o]) for o in (0, 4, 8))),
+        "DT_VALUE": glsl_float(c.dt),
+        "DT2_VALUE": glsl_float(c.dt2),
+        "K_VALUE": glsl_float(c.k),
+        "B_VALUE": glsl_float(c.b),
+        "G_VALUE": "vec3({})".format(", ".join(map(glsl_float, c.g))),
+        "REST_VALUE": "float[3]({})".format(", ".join(map(glsl_float, c.rest))),
     }
     # only the kinds the scene has: SPHERE_COUNT and SPHERES_VALUE, ... (collider_kinds)
-    for kind, rows in zip(COLLIDER_KINDS, collider_rows(scene).values()):
+    for kind, rows in collider_rows(scene).items():
         if len(rows):
-            defines[f"{kind.upper()}_COUNT"] = len(rows) // ROWS_PER_COLLIDER[kind]
-            defines[f"{kind.upper()}S_VALUE"] = vec4s(rows)
+            defines[f"{kind[:-1].upper()}_COUNT"] = len(rows) // ROWS_PER_COLLIDER[kind]
+            defines[f"{kind.upper()}_VALUE"] = vec4s(rows)
     return defines
 
 
 def set_constant_uniforms(program, scene: Scene) -> None:
     """Fill a generic program's uniforms with the scene's constants, rounded once to float32."""
-    f32 = np.float32
-    rest = scene.rest_lengths()
+    c = VerletConstants.of(scene)
     values = {
         "n": scene.grid,
-        "dt": f32(scene.dt),
-        "dt2": f32(scene.dt * scene.dt),
-        "k": f32(scene.stiffness),
-        "b": f32(scene.damping),
-        "g": tuple(f32(c) for c in scene.gravity),
-        "rest": [f32(rest[0]), f32(rest[4]), f32(rest[8])],
+        "dt": c.dt,
+        "dt2": c.dt2,
+        "k": c.k,
+        "b": c.b,
+        "g": c.g,
+        "rest": list(c.rest),
         "num_spheres": len(scene.spheres),
         "num_cylinders": len(scene.cylinders),
         "num_planes": len(scene.planes),

@@ -67,7 +67,7 @@ def kernel_defines(scene: Scene, options: BackendOptions) -> dict[str, object]:
     return defines
 
 
-class GLSLBackend(Backend):
+class GLSLBackend(gl_context.GLDeviceMixin, Backend):
     name = "glsl"
     sweep_variants = ({"strict": True}, {"strict": False})
     has_generic = True  # --generic: one program for every scene
@@ -120,10 +120,6 @@ class GLSLBackend(Backend):
         return program
 
     @property
-    def device(self) -> str:
-        return self.gl.renderer
-
-    @property
     def mode(self) -> str:
         return base_mode(self.options, self.gl)
 
@@ -155,12 +151,6 @@ class GLSLBackend(Backend):
                 self.vao.render(mode=ctx.TRIANGLES, vertices=3)
                 self.current = target  # ping-pong: the output is the next step's input
         self.has_normals = self.options.normals
-
-    # Timing is perf_counter around finish() (the harness); device_elapsed_ms stays None:
-    # llvmpipe's timer queries report 1 ns for 17 ms of work (/work/shared/DRIVERS.md).
-    def synchronize(self) -> None:
-        with self.gl:
-            self.gl.ctx.finish()
 
     def _read_attachment(self, i: int) -> np.ndarray:
         n2 = self.scene.particles

@@ -39,13 +39,26 @@ def probe() -> Availability:
     return Availability(True, device=device.renderer)
 
 
-def _groups(count: int) -> tuple[int, int]:
-    """`count` work groups as (x, y), within the per-dimension limit."""
+def open_compute_device(backend: str, options: BackendOptions) -> tuple[gl_context.GLDevice, int]:
+    """The GL 4.3 context for `options.gl` (glsl.open_device) and the work-group size to use on
+    it: options.local_size, else DEFAULT_LOCAL_SIZE, refused past what the driver allows."""
+    device = open_device(backend, options, 430)
+    local_size = options.local_size or DEFAULT_LOCAL_SIZE
+    limit = device.ctx.info["GL_MAX_COMPUTE_WORK_GROUP_INVOCATIONS"]
+    if local_size > limit:
+        raise ClothbenchError(f"--local-size {local_size} is more than {device.renderer} allows ({limit})")
+    return device, local_size
+
+
+def work_groups(items: int, local_size: int) -> tuple[int, int]:
+    """Work groups of `local_size` invocations for `items` items, as (x, y) within the
+    per-dimension limit."""
+    count = -(-items // local_size)
     x = min(count, MAX_GROUPS_X)
     return x, -(-count // x)
 
 
-class GLSLComputeBackend(Backend):
+class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
     name = "glsl-compute"
     sweep_variants = ({"strict": True}, {"strict": False})
     has_local_size = True
@@ -53,13 +66,7 @@ class GLSLComputeBackend(Backend):
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)
-        self.gl = open_device(self.name, options, 430)
-        self.local_size = options.local_size or DEFAULT_LOCAL_SIZE
-        limit = self.gl.ctx.info["GL_MAX_COMPUTE_WORK_GROUP_INVOCATIONS"]
-        if self.local_size > limit:
-            raise ClothbenchError(
-                f"--local-size {self.local_size} is more than {self.gl.renderer} allows ({limit})"
-            )
+        self.gl, self.local_size = open_compute_device(self.name, options)
         n = scene.grid
         self.image_reads = PREFER_IMAGE_READS and self.gl.max_texture_buffer_size >= scene.particles
         self.sources: dict[int, str] = {}  # the compiled source of each pass
@@ -73,7 +80,7 @@ class GLSLComputeBackend(Backend):
             ctx = self.gl.ctx
             # (program, work groups) for each dispatch of a step
             self.passes = [
-                (self._program(p), _groups(-(-count // self.local_size))) for p, count in counts.items()
+                (self._program(p), work_groups(count, self.local_size)) for p, count in counts.items()
             ]
             self.pairs = [(ctx.buffer(reserve=size), ctx.buffer(reserve=size)) for _ in range(2)]
             self.normals = ctx.buffer(reserve=size) if options.normals else None
@@ -97,10 +104,6 @@ class GLSLComputeBackend(Backend):
         if self.options.generic:
             gl_context.set_constant_uniforms(program, self.scene)
         return program
-
-    @property
-    def device(self) -> str:
-        return self.gl.renderer
 
     @property
     def mode(self) -> str:
@@ -138,12 +141,6 @@ class GLSLComputeBackend(Backend):
                 self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
                 self.current = target  # ping-pong: swap the pairs' roles
         self.has_normals = self.options.normals
-
-    # Timing is perf_counter around finish() (the harness); device_elapsed_ms stays None:
-    # llvmpipe's timer queries report 1 ns for 17 ms of work (/work/shared/DRIVERS.md).
-    def synchronize(self) -> None:
-        with self.gl:
-            self.gl.ctx.finish()
 
     def _read_buffer(self, buf) -> np.ndarray:
         return np.frombuffer(buf.read(), dtype=np.float32).reshape(self.scene.particles, 4).copy()

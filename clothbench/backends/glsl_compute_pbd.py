@@ -1,11 +1,12 @@
 """The PBD solver (docs/pbd.md) as GL 4.3 compute shaders: kernels/pbd_cloth.comp.
 
 Host code only; the stages, the substep plan, the state conversion and the profiling are
-shared with the OpenCL solver (opencl_pbd.PbdDeviceBackend). One program per stage (the
+shared with the OpenCL solver (pbd_device.PbdDeviceBackend). One program per stage (the
 kernel file's STAGE), the scene's constants compiled in as exact float32 literals; every
 dispatch is followed by a memory barrier, since the next one reads what it wrote. The state
 (x, v, two predicted-position buffers, lambda) stays in SSBOs; the coloured batches' (i, j)
-pairs are uploaded once. The context and its program cache are gl_context's.
+pairs are uploaded once. The context and its program cache are gl_context's; the work-group
+size and the dispatch geometry glsl_compute's.
 """
 
 from __future__ import annotations
@@ -14,18 +15,15 @@ import time
 
 import numpy as np
 
-from ..errors import ClothbenchError
 from ..kernel_source import glsl_float
 from ..scene import Scene
 from . import gl_context
 from .base import BackendOptions
-from .glsl import open_device
+from .glsl_compute import open_compute_device, work_groups
 from .glsl_compute import probe  # noqa: F401  (compute shaders need OpenGL 4.3)
-from .opencl_pbd import PbdDeviceBackend
+from .pbd_device import PbdDeviceBackend
 
 KERNEL_FILE = "pbd_cloth.comp"
-DEFAULT_LOCAL_SIZE = 64
-MAX_GROUPS_X = 65535  # GL guarantees this many work groups per dimension, no more
 STAGES = {"predict": 0, "jacobi": 1, "coloured": 2, "collide": 3, "update": 4}  # as the kernel's
 PARTS = {"all": 0, "interior": 1, "border": 2}  # of a Jacobi pass, as the kernel's
 # The constraint passes read positions through imageBuffer views of their buffers where the
@@ -44,23 +42,12 @@ def jacobi_parts(n: int) -> list[tuple[str, int]]:
     return [("interior", (n - 4) ** 2), ("border", 8 * n - 16)]
 
 
-def _groups(items: int, local_size: int) -> tuple[int, int]:
-    """Work groups for `items` invocations as (x, y), within the per-dimension limit."""
-    count = -(-items // local_size)
-    x = min(count, MAX_GROUPS_X)
-    return x, -(-count // x)
-
-
-class GLSLComputePbdBackend(PbdDeviceBackend):
+class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
     name = "glsl-compute"
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)
-        self.gl = open_device(self.name, options, 430)
-        self.local_size = options.local_size or DEFAULT_LOCAL_SIZE
-        limit = self.gl.ctx.info["GL_MAX_COMPUTE_WORK_GROUP_INVOCATIONS"]
-        if self.local_size > limit:
-            raise ClothbenchError(f"--local-size {self.local_size} is more than {self.gl.renderer} allows ({limit})")
+        self.gl, self.local_size = open_compute_device(self.name, options)
         size = self.n2 * 16  # one vec4 per particle
         self.sources: dict[str, str] = {}
         with self.gl:
@@ -68,13 +55,8 @@ class GLSLComputePbdBackend(PbdDeviceBackend):
             self.x = ctx.buffer(reserve=size)
             self.v = ctx.buffer(reserve=size)
             self.xs = [ctx.buffer(reserve=size) for _ in range(2)]  # Jacobi ping-pong
-            lam_count = 12 * self.n2 if self.jacobi else sum(len(b.i) for b in self.batches)
-            self.lam = ctx.buffer(reserve=4 * lam_count)
-            self.ij = None
-            if not self.jacobi:  # every batch's (i, j) pairs, concatenated, uploaded once
-                pairs = np.concatenate([np.stack([b.i, b.j], axis=1) for b in self.batches]).astype(np.int32)
-                self.ij = ctx.buffer(np.ascontiguousarray(pairs).tobytes())
-                self.batch_offsets = np.cumsum([0] + [len(b.i) for b in self.batches])[:-1]
+            self.lam = ctx.buffer(reserve=4 * self.lambda_count)
+            self.ij = None if self.jacobi else ctx.buffer(self.batch_pairs.tobytes())
             # imageBuffer views of the two predicted-position buffers (no copy), for the reads
             # of the constraint passes (PREFER_IMAGE_READS)
             self.image_reads = PREFER_IMAGE_READS and self.gl.max_texture_buffer_size >= self.n2
@@ -127,7 +109,7 @@ class GLSLComputePbdBackend(PbdDeviceBackend):
             for part, items in jacobi_parts(self.n):
                 program = self._program(kind, "all" if self.n < 5 else part)
                 uniforms = ((program["first_pass"], int(it == 0)),)
-                launches.append((program, _groups(items, self.local_size), ssbos, images, uniforms))
+                launches.append((program, work_groups(items, self.local_size), ssbos, images, uniforms))
             return launches
         program, items = self._program(kind), self.n2
         uniforms: tuple = ()
@@ -151,7 +133,7 @@ class GLSLComputePbdBackend(PbdDeviceBackend):
         else:
             bindings = (self.x, self.v, self.xs[step[1]])
         uniforms = tuple((program[u], v) for u, v in uniforms)
-        return [(program, _groups(items, self.local_size), tuple(enumerate(bindings)), images, uniforms)]
+        return [(program, work_groups(items, self.local_size), tuple(enumerate(bindings)), images, uniforms)]
 
     # --- PbdDeviceBackend ----------------------------------------------------------------
     def _enqueue(self, launch) -> None:
@@ -173,9 +155,6 @@ class GLSLComputePbdBackend(PbdDeviceBackend):
         self.gl.ctx.finish()
         return time.perf_counter() - t0
 
-    def _finish(self) -> None:
-        self.gl.ctx.finish()  # called inside `with self.gl`: a nested `with` would release it
-
     def _write_state(self, x: np.ndarray, v: np.ndarray) -> None:
         with self.gl:
             self.x.write(np.ascontiguousarray(x, dtype=np.float32))
@@ -189,10 +168,6 @@ class GLSLComputePbdBackend(PbdDeviceBackend):
 
     # --- Backend interface -----------------------------------------------------------------
     @property
-    def device(self) -> str:
-        return self.gl.renderer
-
-    @property
     def mode(self) -> str:
         return super().mode + ("" if self.image_reads else "/ssbo-reads")
 
@@ -203,11 +178,6 @@ class GLSLComputePbdBackend(PbdDeviceBackend):
     def profile_stages(self, steps: int) -> dict[str, float]:
         with self.gl:
             return super().profile_stages(steps)
-
-    # Timing is perf_counter around finish() (the harness); device_elapsed_ms stays None.
-    def synchronize(self) -> None:
-        with self.gl:
-            self._finish()
 
     def close(self) -> None:
         if self.x is None:

@@ -19,7 +19,7 @@ def probe() -> Availability:
     return Availability(True, device=cpu_model())
 
 
-def _regions(n: int, dr: int, dc: int):
+def neighbour_regions(n: int, dr: int, dc: int):
     """Slices (rows, cols) of the particles i that have neighbour i + (dr, dc), and of those
     neighbours, so that a neighbour outside the grid is skipped rather than added as zero."""
     i_rows = slice(max(0, -dr), n - max(0, dr))
@@ -46,9 +46,9 @@ class NumpyBackend(Backend):
         self.b = t(scene.damping)
         self.gravity = np.array(scene.gravity, dtype=t).reshape(3, 1, 1)
         self.springs = [
-            (*_regions(n, dr, dc), t(rest)) for (dr, dc), rest in zip(OFFSETS, scene.rest_lengths())
+            (*neighbour_regions(n, dr, dc), t(rest)) for (dr, dc), rest in zip(OFFSETS, scene.rest_lengths())
         ]
-        self.colliders = [_collider_constants(c, t) for c in scene.colliders]
+        self.colliders = [collider_constants(c, t) for c in scene.colliders]
         # state as (3, n, n) component planes: same arithmetic, faster slicing than (n*n, 4)
         self.pos = np.zeros((3, n, n), dtype=t)
         self.prev = np.zeros((3, n, n), dtype=t)
@@ -95,7 +95,7 @@ class NumpyBackend(Backend):
         force = np.zeros_like(pos)
         for i, j, rest in self.springs:  # step 5: the 12 neighbours, in OFFSETS order
             d = pos[j] - pos[i]
-            length2 = _dot(d, d)
+            length2 = dot3(d, d)
             length = np.sqrt(length2)
             s = (self.k * (length - rest)) / length
             s[length2 == 0] = 0  # coincident particles: no direction, no spring force
@@ -113,7 +113,7 @@ class NumpyBackend(Backend):
         return new
 
 
-def _collider_constants(collider, t) -> tuple[str, dict]:
+def collider_constants(collider, t) -> tuple[str, dict]:
     """A collider's constants, rounded once to the working precision (docs/semantics.md)."""
 
     def vec(v):
@@ -133,7 +133,7 @@ def _collider_constants(collider, t) -> tuple[str, dict]:
     return "plane", {"p0": vec(collider.point), "nrm": vec(collider.unit_normal)}
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(a.x*b.x + a.y*b.y) + a.z*b.z, the association every kernel uses."""
     out = a[0] * b[0]
     out += a[1] * b[1]
@@ -143,7 +143,7 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _collide_sphere(x, free, c, r) -> None:
     d = x - c
-    length2 = _dot(d, d)
+    length2 = dot3(d, d)
     length = np.sqrt(length2)
     inside = (length < r) & free
     if not inside.any():
@@ -159,10 +159,10 @@ def _collide_sphere(x, free, c, r) -> None:
 
 def _collide_cylinder(x, free, a, u, length, r, radial_r) -> None:
     d = x - a
-    t = _dot(d, u)  # axial coordinate (m) from the start cap
+    t = dot3(d, u)  # axial coordinate (m) from the start cap
     q = u * t
     p = d - q  # radial vector
-    rho2 = _dot(p, p)
+    rho2 = dot3(p, p)
     rho = np.sqrt(rho2)
     inside = (t > 0) & (t < length) & (rho < r) & free
     if not inside.any():
@@ -180,7 +180,7 @@ def _collide_cylinder(x, free, a, u, length, r, radial_r) -> None:
 
 
 def _collide_plane(x, free, p0, nrm) -> None:
-    dist = _dot(x - p0, nrm)
+    dist = dot3(x - p0, nrm)
     inside = (dist < 0) & free
     if inside.any():
         np.copyto(x, x - nrm * dist, where=inside)

@@ -12,7 +12,8 @@ import numpy as np
 from ..constraints import coloured_batches
 from ..scene import OFFSETS, Scene
 from .base import Backend, BackendOptions
-from .numpy import COLLIDE, NumpyBackend, _collider_constants, _dot, _regions
+from ..harness.environment import cpu_model
+from .numpy import COLLIDE, collider_constants, dot3, neighbour_regions
 from .numpy import probe  # noqa: F401  (same availability as the Verlet reference)
 
 KIND_OF_OFFSET = (0,) * 4 + (1,) * 4 + (2,) * 4  # structural, shear, bend (OFFSETS order)
@@ -36,7 +37,7 @@ class NumpyPbdBackend(Backend):
         self.relax = t(scene.relaxation)
         rest = [t(r) for r in scene.rest_lengths()]
         self.stencil = [
-            (*_regions(n, dr, dc), rest[o], self.at[KIND_OF_OFFSET[o]])
+            (*neighbour_regions(n, dr, dc), rest[o], self.at[KIND_OF_OFFSET[o]])
             for o, (dr, dc) in enumerate(OFFSETS)
         ]
         counts = np.zeros((n, n), dtype=t)
@@ -45,7 +46,7 @@ class NumpyPbdBackend(Backend):
         self.jacobi_scale = self.relax / counts  # relax / cnt, one division per particle
         self.batches = coloured_batches(n)
         self.batch_rest = [t(scene.rest_lengths()[[0, 4, 8][b.kind]]) for b in self.batches]
-        self.colliders = [_collider_constants(c, t) for c in scene.colliders]
+        self.colliders = [collider_constants(c, t) for c in scene.colliders]
         self.pos = np.zeros((3, n, n), dtype=t)
         self.vel = np.zeros((3, n, n), dtype=t)
         self.w = np.zeros((n, n), dtype=t)
@@ -53,7 +54,7 @@ class NumpyPbdBackend(Backend):
 
     @property
     def device(self) -> str:
-        return NumpyBackend.device.fget(self)
+        return cpu_model()
 
     @property
     def mode(self) -> str:
@@ -106,7 +107,7 @@ class NumpyPbdBackend(Backend):
             corr = np.zeros_like(x)
             for (i, j, rest, at), lam_o in zip(self.stencil, lam):
                 d = x[i] - x[j]
-                length2 = _dot(d, d)
+                length2 = dot3(d, d)
                 length = np.sqrt(length2)
                 denom = (w[i[1:]] + w[j[1:]]) + at
                 valid = (length2 > 0) & (denom > 0)
@@ -128,7 +129,7 @@ class NumpyPbdBackend(Backend):
             for batch, rest, lam_b in zip(self.batches, self.batch_rest, lam):
                 i, j, at = batch.i, batch.j, self.at[batch.kind]
                 d = flat[:, i] - flat[:, j]
-                length2 = _dot(d, d)
+                length2 = dot3(d, d)
                 length = np.sqrt(length2)
                 denom = (w[i] + w[j]) + at
                 valid = (length2 > 0) & (denom > 0)

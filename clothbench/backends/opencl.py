@@ -53,10 +53,10 @@ import os
 import numpy as np
 
 from ..errors import ClothbenchError
-from ..kernel_source import read_kernel
+from ..kernel_source import read_kernel, resolve_includes
 from ..scene import Scene
 from .base import Availability, Backend, BackendOptions
-from .gl_context import collider_rows  # the collider table every backend's kernels take
+from .kernel_inputs import VerletConstants, collider_rows
 
 KERNEL_FILE = "verlet_cloth.cl"
 TRANSFERS = ("resident", "per-step")
@@ -70,7 +70,7 @@ _contexts: dict = {}  # device int_ptr -> Context
 _programs: dict = {}  # (context int_ptr, source, build options) -> built Program
 
 
-def _cl():
+def import_pyopencl():
     import pyopencl
     import pyopencl.cltypes  # noqa: F401  (float4 argument dtypes)
 
@@ -79,18 +79,18 @@ def _cl():
 
 def probe() -> Availability:
     try:
-        _cl()
+        import_pyopencl()
     except ImportError:
         return Availability(False, f"pyopencl not installed ({INSTALL_HINT})")
     try:
-        device = _choose_device(os.environ.get("PYOPENCL_CTX"))
+        device = choose_device(os.environ.get("PYOPENCL_CTX"))
     except ClothbenchError as e:
         return Availability(False, str(e))
     return Availability(True, device=device.name)
 
 
 def _platforms() -> list:
-    cl = _cl()
+    cl = import_pyopencl()
     try:
         platforms = cl.get_platforms()
     except cl.Error:  # the ICD loader reports "no platform" as PLATFORM_NOT_FOUND_KHR
@@ -110,11 +110,11 @@ def _devices_listing() -> str:
     )
 
 
-def _choose_device(spec: str | None):
+def choose_device(spec: str | None):
     """The device `spec` names ('platform:device' indices or names, as PYOPENCL_CTX), else
     the first device that can compile a kernel. Listed is not enough: PoCL 3.0's LLVM 14
     lists CPUs it cannot compile for ("unknown target CPU 'generic'")."""
-    cl = _cl()
+    cl = import_pyopencl()
     platforms = _platforms()
     if spec:
         try:
@@ -127,7 +127,7 @@ def _choose_device(spec: str | None):
     for platform in platforms:
         for device in platform.get_devices():
             try:
-                _build(_context(device), _PROBE_SOURCE, ())
+                build_program(device_context(device), _PROBE_SOURCE, ())
                 return device
             except ClothbenchError as e:
                 failures[f"{device.name}: {_first_error_line(str(e))}"] = None
@@ -145,17 +145,27 @@ def _first_error_line(message: str) -> str:
     return message.splitlines()[-1].strip() if message else "?"
 
 
-def _context(device):
+def device_context(device):
+    """The process's one context for `device`, shared by every backend on it."""
     key = device.int_ptr
     if key not in _contexts:
-        _contexts[key] = _cl().Context([device])
+        _contexts[key] = import_pyopencl().Context([device])
     return _contexts[key]
 
 
-def _build(context, source: str, options: tuple[str, ...]):
+def program_source(filename: str) -> str:
+    """kernels/`filename` with its includes resolved (collide.cl) and `#line` directives
+    naming each file, so that a build log points into the file it is about. Resolved here
+    rather than by the compiler (-I): the source is then all of the program, and the
+    program caches keyed on it (build_program's, PoCL's own) see an edit to an included
+    file, and no include path has to survive being passed as a build option."""
+    return resolve_includes(filename, read_kernel(filename), lambda line, _, name: f'#line {line} "{name}"')[0]
+
+
+def build_program(context, source: str, options: tuple[str, ...]):
     """A built program, from the module cache when this source and options were built before.
     A build error becomes one ClothbenchError carrying the compiler's log."""
-    cl = _cl()
+    cl = import_pyopencl()
     key = (context.int_ptr, source, options)
     if key not in _programs:
         program = cl.Program(context, source)
@@ -174,7 +184,87 @@ def _build(context, source: str, options: tuple[str, ...]):
     return _programs[key]
 
 
-class OpenCLBackend(Backend):
+class OpenCLDeviceMixin:
+    """What both OpenCL backends (OpenCLBackend below, opencl_pbd.OpenCLPbdBackend) do the same
+    way: one in-order profiling queue on the device the options name, read-only buffers, the
+    collider table, padded launch sizes, the kernel time of the last advance() from its events,
+    and releasing their buffers. A backend lists its buffers in _buffers()."""
+
+    local_size: int | None = None
+
+    def _open_queue(self, options: BackendOptions) -> None:
+        cl = self._cl = import_pyopencl()
+        self._device = choose_device(options.device or os.environ.get("PYOPENCL_CTX"))
+        self._context = device_context(self._device)
+        self.queue = cl.CommandQueue(
+            self._context, self._device, properties=cl.command_queue_properties.PROFILING_ENABLE
+        )
+        self._events: list = []
+
+    def _read_only_buffer(self, array: np.ndarray):
+        flags = self._cl.mem_flags.READ_ONLY | self._cl.mem_flags.COPY_HOST_PTR
+        return self._cl.Buffer(self._context, flags, hostbuf=np.ascontiguousarray(array))
+
+    def _collider_buffer(self):
+        """Every collider as rows of float4 in one constant buffer (kernels/collide.cl has the
+        layout), rounded once from float64 as the other backends round them."""
+        rows = collider_rows(self.scene)
+        table = np.concatenate([rows["spheres"], rows["cylinders"], rows["planes"]])
+        limit = self._device.max_constant_buffer_size
+        if table.nbytes > limit:
+            raise ClothbenchError(
+                f"the scene's {len(self.scene.colliders)} colliders take {table.nbytes} bytes, more "
+                f"than this device's {limit}-byte constant buffer; use fewer colliders"
+            )
+        if not len(table):
+            table = np.zeros((1, 4), np.float32)  # OpenCL has no empty buffers; never read
+        return self._read_only_buffer(table)
+
+    def _check_local_size(self, kernel, name: str) -> None:
+        if self.local_size is None:
+            return
+        limit = kernel.get_work_group_info(self._cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
+        if self.local_size > limit:
+            raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit} for {name}")
+
+    def _launch_size(self, items: int) -> tuple[tuple[int], tuple[int] | None]:
+        """(global, local) size of a launch of `items` work items. OpenCL 1.2 wants the global
+        size a multiple of the work-group size: pad; the kernels return early past their last
+        work item."""
+        ls = self.local_size or 1
+        local = None if self.local_size is None else (self.local_size,)
+        return (-(-items // ls) * ls,), local
+
+    def _buffers(self) -> tuple:
+        """Every device buffer the backend made (None where it has none), for close()."""
+        raise NotImplementedError
+
+    @property
+    def device(self) -> str:
+        return self._device.name
+
+    def synchronize(self) -> None:
+        self.queue.finish()
+
+    def device_elapsed_ms(self) -> float | None:
+        """Kernel time of the last advance() from profiling events (transfers not included)."""
+        if not self._events:
+            return None
+        self._cl.wait_for_events(self._events)
+        return 1e-6 * sum(e.profile.end - e.profile.start for e in self._events)
+
+    def close(self) -> None:
+        if getattr(self, "queue", None) is None:
+            return
+        self.queue.finish()
+        self._events = []
+        for buf in self._buffers():
+            if buf is not None:
+                buf.release()
+        self.queue = None
+
+
+class OpenCLBackend(OpenCLDeviceMixin, Backend):
     name = "opencl"
     has_local_size = True
     has_generic = True  # --generic: the float4 kernel, one program for every scene
@@ -182,7 +272,6 @@ class OpenCLBackend(Backend):
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)
-        cl = self._cl = _cl()
         if options.precision != "f32":
             raise ClothbenchError(f"opencl runs in f32 only (got {options.precision}); f64 is the numpy reference")
         self.transfer = options.transfer or "resident"
@@ -195,25 +284,14 @@ class OpenCLBackend(Backend):
         n = self.n = scene.grid
         self.n2 = n * n
 
-        self._device = _choose_device(options.device or os.environ.get("PYOPENCL_CTX"))
-        context = self._context = _context(self._device)
-        self.queue = cl.CommandQueue(
-            context, self._device, properties=cl.command_queue_properties.PROFILING_ENABLE
-        )
+        self._open_queue(options)
+        cl, context = self._cl, self._context
 
         # The numbers, rounded once from float64 (docs/semantics.md, Constants), typed below.
-        f32, float4 = np.float32, cl.cltypes.make_float4
-        rest = scene.rest_lengths()
-        self._constants = (
-            f32(scene.stiffness),  # k
-            f32(scene.damping),  # b
-            f32(scene.dt),  # dt
-            f32(scene.dt * scene.dt),  # dt2, rounded once
-            float4(*scene.gravity, 0.0),  # g
-            float4(rest[0], rest[4], rest[8], 0.0),  # rest: structural, shear, bend
-        )
+        c, float4 = VerletConstants.of(scene), cl.cltypes.make_float4
+        self._constants = (c.k, c.b, c.dt, c.dt2, float4(*c.g, 0.0), float4(*c.rest, 0.0))
         self._constant_dtypes = [np.float32] * 4 + [cl.cltypes.float4] * 2
-        self._colliders = self._collider_table()
+        self._colliders = self._collider_buffer()
 
         # State buffers, twice over: float4 per particle (generic) or x, y, z planes.
         mf = cl.mem_flags
@@ -235,34 +313,10 @@ class OpenCLBackend(Backend):
         self.key: tuple[tuple[str, ...], ...] = ()
         launches = self._generic_launches() if self.generic else self._specialised_launches()
         self.kernels = [k for k, _, _ in launches]
-        if self.local_size is not None:
-            for k in self.kernels:
-                limit = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
-                if self.local_size > limit:
-                    raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit}")
-        # OpenCL 1.2 wants the global size a multiple of the work-group size: pad, the kernels
-        # return early past their last work item.
-        ls = self.local_size or 1
-        local = None if self.local_size is None else (self.local_size,)
+        for k in self.kernels:
+            self._check_local_size(k, k.function_name)
         normals = (self._normals,) if self.normals else ()
-        self._launches = [(k, (-(-items // ls) * ls,), local, (*args, *normals)) for k, items, args in launches]
-        self._events: list = []
-
-    def _collider_table(self):
-        """Every collider as rows of float4 in one constant buffer (the kernel file's header
-        has the layout), rounded once from float64 as the other backends round them."""
-        rows = collider_rows(self.scene)
-        table = np.concatenate([rows["spheres"], rows["cylinders"], rows["planes"]])
-        limit = self._device.max_constant_buffer_size
-        if table.nbytes > limit:
-            raise ClothbenchError(
-                f"the scene's {len(self.scene.colliders)} colliders take {table.nbytes} bytes, more "
-                f"than this device's {limit}-byte constant buffer; use fewer colliders"
-            )
-        if not len(table):
-            table = np.zeros((1, 4), np.float32)  # OpenCL has no empty buffers; never read
-        flags = self._cl.mem_flags.READ_ONLY | self._cl.mem_flags.COPY_HOST_PTR
-        return self._cl.Buffer(self._context, flags, hostbuf=np.ascontiguousarray(table))
+        self._launches = [(k, *self._launch_size(items), (*args, *normals)) for k, items, args in launches]
 
     def build_options(self, vector_width: int = 1) -> tuple[str, ...]:
         """The specialisation key: what this scene's program is built with (the module's
@@ -281,11 +335,11 @@ class OpenCLBackend(Backend):
         return (*shape, *arithmetic, f"-DCLOTH_VECTOR_WIDTH={vector_width}")
 
     def _kernel(self, name: str, dtypes, vector_width: int = 1):
-        """Kernel `name` of this scene's program (built once per key, see _build), created
-        once, with every argument's type declared: a wrongly typed argument raises instead of
-        being reinterpreted."""
+        """Kernel `name` of this scene's program (built once per key, see build_program),
+        created once, with every argument's type declared: a wrongly typed argument raises
+        instead of being reinterpreted."""
         options = self.build_options(vector_width)
-        program = _build(self._context, read_kernel(KERNEL_FILE), options)
+        program = build_program(self._context, program_source(KERNEL_FILE), options)
         self.programs.append(program)
         self.key += (options,)
         k = self._cl.Kernel(program, name)
@@ -303,14 +357,13 @@ class OpenCLBackend(Backend):
     def _specialised_launches(self):
         """The interior (rows and columns 2..n-3) in vectors of V particles, V the device's
         preferred float width, then every other particle through the border kernel."""
-        cl, n = self._cl, self.n
+        n = self.n
         v = max(1, self._device.preferred_vector_width_float)
         vectors_per_row = -(-(n - 4) // v) if n - 4 >= v else 0
         covered = np.zeros((n, n), bool)
         covered[2 : n - 2, 2 : n - 2] = vectors_per_row > 0
         particles = np.flatnonzero(~covered).astype(np.int32)
-        flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        self._border = cl.Buffer(self._context, flags, hostbuf=particles)
+        self._border = self._read_only_buffer(particles)
         dtypes = [None] * 5 + self._constant_dtypes + [None]
         args = (*self._constants, self._colliders)
         launches = []
@@ -321,11 +374,10 @@ class OpenCLBackend(Backend):
         launches.append((border, particles.size, (*args, self._border, np.int32(particles.size))))
         return launches
 
-    # --- Backend interface -------------------------------------------------------------
-    @property
-    def device(self) -> str:
-        return self._device.name
+    def _buffers(self) -> tuple:
+        return (*self._state, self._colliders, self._inv_mass, self._border, self._normals)
 
+    # --- Backend interface -------------------------------------------------------------
     @property
     def mode(self) -> str:
         parts = ["strict" if self.strict else "fast"]
@@ -368,9 +420,6 @@ class OpenCLBackend(Backend):
             self._w_prev = self._w  # prev_out carries pos's inverse mass
             self._normals_of_prev = self.normals
 
-    def synchronize(self) -> None:
-        self.queue.finish()
-
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         out = []
         for buf, w in zip(self._state[:2], (self._w, self._w_prev)):
@@ -387,23 +436,6 @@ class OpenCLBackend(Backend):
         flat = np.empty(self._host[0].size, np.float32)
         self._cl.enqueue_copy(self.queue, flat, self._normals)  # blocking: waits for the steps
         return self._unpack(flat, np.zeros(self.n2, np.float32))
-
-    def device_elapsed_ms(self) -> float | None:
-        """Kernel time of the last advance() from profiling events (transfers not included)."""
-        if not self._events:
-            return None
-        self._cl.wait_for_events(self._events)
-        return 1e-6 * sum(e.profile.end - e.profile.start for e in self._events)
-
-    def close(self) -> None:
-        if getattr(self, "queue", None) is None:
-            return
-        self.queue.finish()
-        self._events = []
-        for buf in (*self._state, self._colliders, self._inv_mass, self._border, self._normals):
-            if buf is not None:
-                buf.release()
-        self.queue = None
 
     # --- layouts -----------------------------------------------------------------------
     def _pack(self, state: np.ndarray) -> np.ndarray:

@@ -1,220 +1,52 @@
 """The PBD solver (docs/pbd.md) on OpenCL: kernels/pbd_cloth.cl through pyopencl.
 
-Host code only. Also home of what the two GPU PBD backends share (PbdDeviceBackend: the
-constants, the state's conversion to and from velocity, the substep as a list of stage
-launches, per-stage profiling); glsl_compute_pbd.py supplies the GL side of the same.
+Host code only: the substep plan, the state conversion and the profiling are
+pbd_device.PbdDeviceBackend's (shared with glsl_compute_pbd.py); the device, its queue, its
+probe, the program cache and the build-error report are opencl.py's (OpenCLDeviceMixin).
 
 One substep is a fixed list of launches on an in-order queue (each sees the previous one's
-writes): predict, then `iterations` Jacobi passes ping-ponging two buffers (or 12 coloured
-batches per iteration), collide, update. Every launch is a kernel object whose arguments are
-set once at construction, so advance() only enqueues. The device, its probe, the program
-cache and the build-error report are opencl.py's.
+writes). Every launch is a kernel object whose arguments are set once at construction, so
+advance() only enqueues.
 """
 
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass
-
 import numpy as np
 
-from ..constraints import coloured_batches
-from ..errors import ClothbenchError
-from ..kernel_source import read_kernel
 from ..scene import Scene
-from .base import Backend, BackendOptions
-from .gl_context import collider_rows
-from .opencl import _build, _choose_device, _cl, _context
+from .base import BackendOptions
+from .opencl import OpenCLDeviceMixin, build_program, program_source
 from .opencl import probe  # noqa: F401  (the same device as the Verlet kernels)
+from .pbd_device import PbdDeviceBackend
 
 KERNEL_FILE = "pbd_cloth.cl"
 
 
-@dataclass(frozen=True)
-class PbdConstants:
-    """docs/pbd.md, "Constants": computed in float64 from the scene, rounded once to float32,
-    exactly as the NumPy reference (numpy_pbd.py) rounds them."""
-
-    dt: np.float32
-    h: np.float32  # dt / substeps
-    gh: tuple  # g * h, three components
-    at: tuple  # compliance / h^2: structural, shear, bend
-    rest: tuple  # rest lengths: structural, shear, bend
-    damp: np.float32  # 1 - 12 b h / m, clamped at 0
-    relax: np.float32  # Jacobi over-relaxation
-
-    @classmethod
-    def of(cls, scene: Scene) -> "PbdConstants":
-        f32 = np.float32
-        h = scene.dt / scene.substeps
-        rest = scene.rest_lengths()
-        return cls(
-            dt=f32(scene.dt),
-            h=f32(h),
-            gh=tuple(f32(g * h) for g in scene.gravity),
-            at=tuple(f32(c / (h * h)) for c in scene.pbd_compliance()),
-            rest=(f32(rest[0]), f32(rest[4]), f32(rest[8])),
-            damp=f32(max(0.0, 1.0 - 12.0 * scene.damping * h / scene.mass)),
-            relax=f32(scene.relaxation),
-        )
-
-
-def batch_stage_name(batch) -> str:
-    """The profile's name of a coloured batch: its direction and parity."""
-    dr, dc = batch.direction
-    return f"batch ({dr},{dc:+d}) parity {batch.parity}"
-
-
-class PbdDeviceBackend(Backend):
-    """What the GPU PBD backends share. A subclass builds `self.launches`, one substep as
-    [(stage name, launch)], and says how to enqueue a launch, time one on its own, and move
-    the (x, v) state to and from the device."""
-
-    sweep_variants = ({"strict": True}, {"strict": False})
-    has_local_size = True
-
-    def __init__(self, scene: Scene, options: BackendOptions):
-        super().__init__(scene, options)
-        if options.precision != "f32":
-            raise ClothbenchError(f"{self.name} runs in f32 only (got {options.precision}); f64 is the numpy reference")
-        if options.generic:
-            raise ClothbenchError(f"the {self.name} PBD kernels are always specialised to the scene; drop --generic")
-        if options.transfer is not None:
-            raise ClothbenchError(f"the {self.name} PBD solver keeps its state on the device; drop --transfer")
-        if options.normals:
-            raise ClothbenchError(f"the {self.name} PBD solver does not compute normals; drop --save-normals")
-        if options.local_size is not None and options.local_size < 1:
-            raise ClothbenchError(f"local size must be >= 1, got {options.local_size}")
-        self.strict = options.strict
-        self.n = scene.grid
-        self.n2 = scene.particles
-        self.constants = PbdConstants.of(scene)
-        self.jacobi = scene.pbd_method == "jacobi"
-        self.batches = [] if self.jacobi else coloured_batches(self.n)
-        self.launches: list[tuple[str, object]] = []  # one substep: (stage, launch)
-
-    # --- what a subclass supplies ------------------------------------------------------
-    local_size: int | None = None
-
-    def _write_state(self, x: np.ndarray, v: np.ndarray) -> None:
-        raise NotImplementedError
-
-    def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
-    def _enqueue(self, launch) -> None:
-        raise NotImplementedError
-
-    def _timed(self, launch) -> float:
-        """Run one launch on its own, synchronised; its time in seconds."""
-        raise NotImplementedError
-
-    def _finish(self) -> None:
-        """Wait for every enqueued launch (inside whatever the device needs around calls)."""
-        raise NotImplementedError
-
-    # --- the substep as launches -------------------------------------------------------
-    def _substep_plan(self):
-        """One substep as (stage, what, ...) in launch order: ("predict",), ("jacobi",
-        iteration, source index, target index), ("coloured", iteration, batch index),
-        ("collide", buffer index), ("update", buffer index), where a buffer index names one
-        of the two predicted-position buffers (predict writes 0)."""
-        plan = [("predict",)]
-        for it in range(self.scene.iterations):
-            if self.jacobi:
-                plan.append(("jacobi", it, it % 2, 1 - it % 2))
-            else:
-                plan += [("coloured", it, b) for b in range(len(self.batches))]
-        final = self.scene.iterations % 2 if self.jacobi else 0
-        if self.scene.colliders:
-            plan.append(("collide", final))
-        plan.append(("update", final))
-        return plan
-
-    def _launches_of(self, step) -> list:
-        """The launches (one or more) of one step of the plan."""
-        raise NotImplementedError
-
-    def _plan_launches(self) -> list[tuple[str, object]]:
-        return [(self.stage_of(step), launch) for step in self._substep_plan() for launch in self._launches_of(step)]
-
-    def stage_of(self, step) -> str:
-        if step[0] == "jacobi":
-            return "project (jacobi)"
-        if step[0] == "coloured":
-            return batch_stage_name(self.batches[step[2]])
-        return step[0]
-
-    # --- Backend interface ---------------------------------------------------------------
-    @property
-    def mode(self) -> str:
-        arithmetic = "strict" if self.strict else "fast"
-        return f"{arithmetic}/pbd-{self.scene.pbd_method}/wg={self.local_size or 'auto'}"
-
-    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
-        expected = (self.n2, 4)
-        if pos.shape != expected or prev.shape != expected:
-            raise ClothbenchError(f"state must be two {expected} arrays, got {pos.shape} and {prev.shape}")
-        x = np.array(pos, dtype=np.float32)
-        v = np.zeros_like(x)
-        # docs/pbd.md: v = (x - xp) / dt, once, in float32 as the reference does it
-        v[:, :3] = (x[:, :3] - np.asarray(prev, dtype=np.float32)[:, :3]) / self.constants.dt
-        self._write_state(x, v)
-
-    def read(self) -> tuple[np.ndarray, np.ndarray]:
-        x, v = self._read_state()
-        prev = x.copy()
-        prev[:, :3] = x[:, :3] - v[:, :3] * self.constants.dt  # docs/pbd.md: prev = x - v dt
-        return x, prev
-
-    def advance(self, steps: int) -> None:
-        enqueue = self._enqueue
-        for _ in range(steps * self.scene.substeps):
-            for _, launch in self.launches:
-                enqueue(launch)
-
-    def profile_stages(self, steps: int) -> dict[str, float]:
-        """Advance `steps` steps with a synchronisation after every launch; ms per step of
-        each stage (a stage's launches summed over iterations and substeps)."""
-        self._finish()
-        totals: dict[str, float] = {}
-        for _ in range(steps * self.scene.substeps):
-            for stage, launch in self.launches:
-                totals[stage] = totals.get(stage, 0.0) + self._timed(launch)
-        return {stage: 1e3 * seconds / max(steps, 1) for stage, seconds in totals.items()}
-
-
-class OpenCLPbdBackend(PbdDeviceBackend):
+class OpenCLPbdBackend(OpenCLDeviceMixin, PbdDeviceBackend):
     name = "opencl"
 
     def __init__(self, scene: Scene, options: BackendOptions):
         super().__init__(scene, options)
-        cl = self._cl = _cl()
         self.local_size = options.local_size
-        self._device = _choose_device(options.device or os.environ.get("PYOPENCL_CTX"))
-        context = self._context = _context(self._device)
-        self.queue = cl.CommandQueue(context, self._device, properties=cl.command_queue_properties.PROFILING_ENABLE)
-        self.program = _build(context, read_kernel(KERNEL_FILE), self.build_options())
+        self._open_queue(options)
+        cl, context = self._cl, self._context
+        self.program = build_program(context, program_source(KERNEL_FILE), self.build_options())
 
         mf = cl.mem_flags
         size = self.n2 * 16  # one float4 per particle
         self.x = cl.Buffer(context, mf.READ_WRITE, size)
         self.v = cl.Buffer(context, mf.READ_WRITE, size)
         self.xs = [cl.Buffer(context, mf.READ_WRITE, size) for _ in range(2)]  # Jacobi ping-pong
-        # lambda: 12 per particle (Jacobi) or one per constraint (coloured)
-        lam_count = 12 * self.n2 if self.jacobi else sum(len(b.i) for b in self.batches)
-        self.lam = cl.Buffer(context, mf.READ_WRITE, 4 * lam_count)
-        self.colliders = self._read_only_buffer(self._collider_table())
+        self.lam = cl.Buffer(context, mf.READ_WRITE, 4 * self.lambda_count)
+        self.colliders = self._collider_buffer()
+        self.ij = self.border = None
         if self.jacobi:
             self._split_jacobi()
-        else:  # every batch's (i, j) pairs, concatenated, uploaded once
-            pairs = np.concatenate([np.stack([b.i, b.j], axis=1) for b in self.batches]).astype(np.int32)
-            self.ij = self._read_only_buffer(pairs)
-            self.batch_offsets = np.cumsum([0] + [len(b.i) for b in self.batches])[:-1]
+        else:
+            self.ij = self._read_only_buffer(self.batch_pairs)
 
         self._kernels: dict = {}
         self.launches = self._plan_launches()
-        self._events: list = []
 
     def _split_jacobi(self) -> None:
         """The Jacobi pass's two launches: the interior (rows and columns 2 .. n-3) in vectors
@@ -242,21 +74,6 @@ class OpenCLPbdBackend(PbdDeviceBackend):
             return (*shape, "-DCLOTH_STRICT", "-cl-fp32-correctly-rounded-divide-sqrt")
         return (*shape, "-cl-mad-enable")
 
-    def _collider_table(self) -> np.ndarray:
-        rows = collider_rows(self.scene)
-        table = np.concatenate([rows["spheres"], rows["cylinders"], rows["planes"]])
-        limit = self._device.max_constant_buffer_size
-        if table.nbytes > limit:
-            raise ClothbenchError(
-                f"the scene's {len(self.scene.colliders)} colliders take {table.nbytes} bytes, more "
-                f"than this device's {limit}-byte constant buffer; use fewer colliders"
-            )
-        return table if len(table) else np.zeros((1, 4), np.float32)  # OpenCL has no empty buffers
-
-    def _read_only_buffer(self, array: np.ndarray):
-        flags = self._cl.mem_flags.READ_ONLY | self._cl.mem_flags.COPY_HOST_PTR
-        return self._cl.Buffer(self._context, flags, hostbuf=np.ascontiguousarray(array))
-
     def _kernel(self, key, name: str, dtypes, args):
         """A kernel object with its typed arguments set once (a wrongly typed one raises);
         launches with the same arguments share it."""
@@ -264,9 +81,7 @@ class OpenCLPbdBackend(PbdDeviceBackend):
             k = self._cl.Kernel(self.program, name)
             k.set_scalar_arg_dtypes(list(dtypes))
             k.set_args(*args)
-            limit = k.get_work_group_info(self._cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
-            if self.local_size is not None and self.local_size > limit:
-                raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit} for {name}")
+            self._check_local_size(k, name)
             self._kernels[key] = k
         return self._kernels[key]
 
@@ -305,11 +120,7 @@ class OpenCLPbdBackend(PbdDeviceBackend):
             k = self._kernel((kind, step[1]), "pbd_update", [None] * 3 + [f32, f32],
                              (self.x, self.v, self.xs[step[1]], c.h, c.damp))
             kernels = [(k, self.n2)]
-        # OpenCL 1.2 wants the global size a multiple of the work-group size: pad; the
-        # kernels return early past their last item
-        ls = self.local_size or 1
-        local = None if self.local_size is None else (self.local_size,)
-        return [(k, (-(-items // ls) * ls,), local) for k, items in kernels]
+        return [(k, *self._launch_size(items)) for k, items in kernels]
 
     # --- PbdDeviceBackend ----------------------------------------------------------------
     def _enqueue(self, launch) -> None:
@@ -335,38 +146,13 @@ class OpenCLPbdBackend(PbdDeviceBackend):
         self._cl.enqueue_copy(self.queue, v, self.v)  # blocking: waits for the steps
         return x, v
 
-    # --- Backend interface -----------------------------------------------------------------
-    @property
-    def device(self) -> str:
-        return self._device.name
+    def _buffers(self) -> tuple:
+        return (self.x, self.v, *self.xs, self.lam, self.colliders, self.ij, self.border)
 
+    # --- Backend interface -----------------------------------------------------------------
     def advance(self, steps: int) -> None:
         self._events = []
         super().advance(steps)
 
-    def _finish(self) -> None:
-        self.queue.finish()
 
-    def synchronize(self) -> None:
-        self.queue.finish()
-
-    def device_elapsed_ms(self) -> float | None:
-        """Kernel time of the last advance() from profiling events."""
-        if not self._events:
-            return None
-        self._cl.wait_for_events(self._events)
-        return 1e-6 * sum(e.profile.end - e.profile.start for e in self._events)
-
-    def close(self) -> None:
-        if getattr(self, "queue", None) is None:
-            return
-        self.queue.finish()
-        self._events = []
-        extra = (getattr(self, name, None) for name in ("ij", "border"))  # one method has each
-        for buf in (self.x, self.v, *self.xs, self.lam, self.colliders, *extra):
-            if buf is not None:
-                buf.release()
-        self.queue = None
-
-
-__all__ = ["OpenCLPbdBackend", "PbdDeviceBackend", "PbdConstants", "probe"]
+__all__ = ["OpenCLPbdBackend", "probe"]

@@ -1,0 +1,147 @@
+"""What the two GPU PBD backends (opencl_pbd.py, glsl_compute_pbd.py) share: PbdDeviceBackend,
+the host side of the solver (docs/pbd.md) apart from the device calls.
+
+One substep is a fixed list of launches, each seeing the previous one's writes: predict,
+then `iterations` Jacobi passes ping-ponging two buffers (or 12 coloured batches per
+iteration), collide, update. This module plans that list, converts the state to and from
+velocity, advances and profiles by stage; a subclass makes each launch for its device.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..constraints import coloured_batches
+from ..errors import ClothbenchError
+from ..scene import Scene
+from .base import Backend, BackendOptions
+from .kernel_inputs import PbdConstants
+
+
+def batch_stage_name(batch) -> str:
+    """The profile's name of a coloured batch: its direction and parity."""
+    dr, dc = batch.direction
+    return f"batch ({dr},{dc:+d}) parity {batch.parity}"
+
+
+class PbdDeviceBackend(Backend):
+    """What the GPU PBD backends share. A subclass builds `self.launches`, one substep as
+    [(stage name, launch)], and says how to enqueue a launch, time one on its own, wait for
+    them all (synchronize), and move the (x, v) state to and from the device."""
+
+    sweep_variants = ({"strict": True}, {"strict": False})
+    has_local_size = True
+
+    def __init__(self, scene: Scene, options: BackendOptions):
+        super().__init__(scene, options)
+        if options.precision != "f32":
+            raise ClothbenchError(f"{self.name} runs in f32 only (got {options.precision}); f64 is the numpy reference")
+        if options.generic:
+            raise ClothbenchError(f"the {self.name} PBD kernels are always specialised to the scene; drop --generic")
+        if options.transfer is not None:
+            raise ClothbenchError(f"the {self.name} PBD solver keeps its state on the device; drop --transfer")
+        if options.normals:
+            raise ClothbenchError(f"the {self.name} PBD solver does not compute normals; drop --save-normals")
+        if options.local_size is not None and options.local_size < 1:
+            raise ClothbenchError(f"local size must be >= 1, got {options.local_size}")
+        self.strict = options.strict
+        self.n = scene.grid
+        self.n2 = scene.particles
+        self.constants = PbdConstants.of(scene)
+        self.jacobi = scene.pbd_method == "jacobi"
+        self.batches = [] if self.jacobi else coloured_batches(self.n)
+        # lambda: 12 per particle (Jacobi) or one per constraint (coloured)
+        self.lambda_count = 12 * self.n2 if self.jacobi else sum(len(b.i) for b in self.batches)
+        # coloured: every batch's (i, j) pairs, concatenated (uploaded once), and where each starts
+        self.batch_pairs = self.batch_offsets = None
+        if not self.jacobi:
+            pairs = np.concatenate([np.stack([b.i, b.j], axis=1) for b in self.batches])
+            self.batch_pairs = np.ascontiguousarray(pairs.astype(np.int32))
+            self.batch_offsets = np.cumsum([0] + [len(b.i) for b in self.batches])[:-1]
+        self.launches: list[tuple[str, object]] = []  # one substep: (stage, launch)
+
+    # --- what a subclass supplies ------------------------------------------------------
+    local_size: int | None = None
+
+    def _write_state(self, x: np.ndarray, v: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def _enqueue(self, launch) -> None:
+        raise NotImplementedError
+
+    def _timed(self, launch) -> float:
+        """Run one launch on its own, synchronised; its time in seconds."""
+        raise NotImplementedError
+
+    # --- the substep as launches -------------------------------------------------------
+    def _substep_plan(self):
+        """One substep as (stage, what, ...) in launch order: ("predict",), ("jacobi",
+        iteration, source index, target index), ("coloured", iteration, batch index),
+        ("collide", buffer index), ("update", buffer index), where a buffer index names one
+        of the two predicted-position buffers (predict writes 0)."""
+        plan = [("predict",)]
+        for it in range(self.scene.iterations):
+            if self.jacobi:
+                plan.append(("jacobi", it, it % 2, 1 - it % 2))
+            else:
+                plan += [("coloured", it, b) for b in range(len(self.batches))]
+        final = self.scene.iterations % 2 if self.jacobi else 0
+        if self.scene.colliders:
+            plan.append(("collide", final))
+        plan.append(("update", final))
+        return plan
+
+    def _launches_of(self, step) -> list:
+        """The launches (one or more) of one step of the plan."""
+        raise NotImplementedError
+
+    def _plan_launches(self) -> list[tuple[str, object]]:
+        return [(self.stage_of(step), launch) for step in self._substep_plan() for launch in self._launches_of(step)]
+
+    def stage_of(self, step) -> str:
+        if step[0] == "jacobi":
+            return "project (jacobi)"
+        if step[0] == "coloured":
+            return batch_stage_name(self.batches[step[2]])
+        return step[0]
+
+    # --- Backend interface ---------------------------------------------------------------
+    @property
+    def mode(self) -> str:
+        arithmetic = "strict" if self.strict else "fast"
+        return f"{arithmetic}/pbd-{self.scene.pbd_method}/wg={self.local_size or 'auto'}"
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        expected = (self.n2, 4)
+        if pos.shape != expected or prev.shape != expected:
+            raise ClothbenchError(f"state must be two {expected} arrays, got {pos.shape} and {prev.shape}")
+        x = np.array(pos, dtype=np.float32)
+        v = np.zeros_like(x)
+        # docs/pbd.md: v = (x - xp) / dt, once, in float32 as the reference does it
+        v[:, :3] = (x[:, :3] - np.asarray(prev, dtype=np.float32)[:, :3]) / self.constants.dt
+        self._write_state(x, v)
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        x, v = self._read_state()
+        prev = x.copy()
+        prev[:, :3] = x[:, :3] - v[:, :3] * self.constants.dt  # docs/pbd.md: prev = x - v dt
+        return x, prev
+
+    def advance(self, steps: int) -> None:
+        enqueue = self._enqueue
+        for _ in range(steps * self.scene.substeps):
+            for _, launch in self.launches:
+                enqueue(launch)
+
+    def profile_stages(self, steps: int) -> dict[str, float]:
+        """Advance `steps` steps with a synchronisation after every launch; ms per step of
+        each stage (a stage's launches summed over iterations and substeps)."""
+        self.synchronize()
+        totals: dict[str, float] = {}
+        for _ in range(steps * self.scene.substeps):
+            for stage, launch in self.launches:
+                totals[stage] = totals.get(stage, 0.0) + self._timed(launch)
+        return {stage: 1e3 * seconds / max(steps, 1) for stage, seconds in totals.items()}
