@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from clothbench.accuracy import (
+    DT_60HZ,
     Variant,
     backend_variants,
     converged_reference,
@@ -15,8 +16,12 @@ from clothbench.accuracy import (
     finite_grid_omega2,
     fit_order,
     lattice_omega2,
+    is_stable,
     measure_stability_limit,
+    run_accuracy,
+    stability_problem,
     stability_scene,
+    stability_state,
 )
 from clothbench.backends import BackendOptions
 from clothbench.cli import main
@@ -25,6 +30,8 @@ from clothbench.harness.energy import energy_problem, total_energy
 from clothbench.scene import Scene, load_scene
 
 F64 = Variant("numpy", BackendOptions(precision="f64"), (("precision", "f64"),))
+PBD_F32 = Variant("numpy", BackendOptions(precision="f32"), (("precision", "f32"),), "pbd", "jacobi")
+PBD_F64 = Variant("numpy", BackendOptions(precision="f64"), (("precision", "f64"),), "pbd", "coloured")
 
 
 @pytest.mark.parametrize("order", [1.0, 2.0, 4.0])
@@ -148,9 +155,143 @@ def test_stability_cli_prints_measured_beside_predicted(tmp_path, capsys):
         (["accuracy", "--backends", "numpy", "--dts", "1e-3,x"], "--dts must be comma-separated"),
         (["stability", "--backends", "numpy", "--stiffness", "-5"], "--stiffness must be positive"),
         (["stability", "--backends", "numpy", "--scenes", "wavy"], "unknown stability scene 'wavy'"),
+        (["accuracy", "--backends", "numpy", "--solvers", "verlet,xpbd"], "--solvers takes verlet, pbd"),
+        (["stability", "--backends", "numpy", "--solvers", "pbd", "--pbd-methods", "sor"], "--pbd-methods takes"),
+        (["stability", "--backends", "numpy", "--solvers", "pbd", "--pbd-iterations", "0"], "--pbd-iterations must"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+# --- the solver dimension: Verlet against PBD (docs/accuracy.md, "Verlet or PBD") --------
+
+
+def test_pbd_variants_come_from_each_backends_pbd_class():
+    variants, skipped = backend_variants(["numpy"], ("verlet", "pbd"), ("jacobi", "coloured"), (None, 4))
+    pbd = [v for v in variants if v.pbd]
+    assert len(variants) == 2 + 2 * 2 * 2 and len(pbd) == 8 and not skipped
+    assert {(v.pbd_method, v.iterations) for v in pbd} == {
+        ("jacobi", None), ("jacobi", 4), ("coloured", None), ("coloured", 4)
+    }
+    scene = Scene()
+    assert pbd[0].scene(scene).solver == "pbd" and variants[0].scene(scene).solver == "verlet"
+    assert pbd[0].label("f32/pbd-jacobi", scene) == "numpy f32/pbd-jacobi/10it"
+    assert variants[0].label("f32", scene) == "numpy f32"  # Verlet labels are as before
+
+
+def test_a_backend_without_a_pbd_class_is_skipped_and_said(monkeypatch):
+    import clothbench.accuracy as acc
+
+    monkeypatch.setattr(acc, "backend_class", lambda name, solver="verlet": None if solver == "pbd" else object)
+    monkeypatch.setattr(acc, "availability", lambda name: type("A", (), {"usable": True, "reason": ""})())
+    variants, skipped = acc.backend_variants(["numpy"], ("pbd",))
+    assert variants == [] and skipped == [("numpy (pbd)", "numpy has no pbd solver")]
+
+
+def test_pbd_stays_stable_where_verlet_explodes_at_the_same_stiffness():
+    verlet = measure_stability_limit(F64, "flat", 1000.0, steps=300, grid=10, rtol=0.02, check_60hz=True)
+    pbd = measure_stability_limit(PBD_F32, "flat", 1000.0, steps=300, grid=10, check_60hz=True)
+    assert verlet.dt_stable < 2.2e-3 and not verlet.capped  # the explicit limit, ~2/omega
+    assert pbd.dt_stable > verlet.dt_unstable
+    assert pbd.dt_stable >= DT_60HZ and pbd.capped and pbd.cap == pytest.approx(0.1)
+    assert pbd.solver == "pbd" and pbd.predicted is None and "stable up to the cap" in pbd.note
+    assert verlet.stable_at_60hz is False and verlet.at_60hz.startswith("unstable (step <=")
+    assert pbd.stable_at_60hz is True
+
+
+def test_pbd_from_a_strained_start_is_not_called_a_blow_up_but_an_explosion_is():
+    # the crumpled sheet springs open: motion from the strain energy it held, not a blow-up.
+    # The harness's PBD check (kinetic + gravity against a scale without strain energy)
+    # would call this unstable at step 10.
+    scene = stability_scene("crumpled", 1e5, grid=8).replace(solver="pbd", dt=1e-3)
+    start = stability_state(scene, "crumpled")
+    assert energy_problem(*_run(scene, start, 10), scene, 10, start=start) is not None
+    assert is_stable(PBD_F64, scene, start, 100, chunk=10)[0]
+    pos, prev = start[0].copy(), start[1].copy()
+    assert stability_problem(pos, prev, scene, 1, start) is None
+    pos[3, :3] += 5.0  # 5 m in one 1 ms step: 5 km/s
+    assert "grew" in stability_problem(pos, prev, scene, 1, start)
+
+
+def _run(scene, start, steps):
+    from clothbench.backends import create_backend
+
+    with create_backend("numpy", scene, PBD_F64.options) as b:
+        b.upload(*start)
+        b.advance(steps)
+        return b.read()
+
+
+def test_a_cap_stops_the_bisection_and_a_cap_above_the_limit_does_not_move_it():
+    flat = measure_stability_limit(F64, "flat", 1000.0, steps=200, grid=10, rtol=0.02)
+    low = measure_stability_limit(F64, "flat", 1000.0, steps=200, grid=10, rtol=0.02, cap=1e-3)
+    assert low.capped and low.dt_stable == 1e-3 and low.probes == 1
+    high = measure_stability_limit(F64, "flat", 1000.0, steps=200, grid=10, rtol=0.02, cap=5e-3)
+    assert not high.capped and high.dt_stable == pytest.approx(flat.dt_stable, rel=0.03)
+
+
+def test_undamped_xpbd_converges_to_the_mass_spring_answer():
+    # XPBD with compliance 1/k is implicit in the same springs: as dt -> 0 (at fixed
+    # iterations) its answer tends to Verlet's. With b = 0 the damping forms cannot differ.
+    scene = load_scene("drape").replace(grid=8, damping=0.0)
+    result = run_accuracy(scene, [PBD_F64], [5e-4, 2.5e-4], 0.08, pbd_dts=[2e-3, 1e-3])
+    (diff,) = result.differences
+    assert diff.a == "verlet" and diff.b == "pbd-coloured/10it" and diff.converged
+    coarse = max(r.disc_rms for r in result.rows)
+    assert math.isfinite(diff.rms) and diff.rms < coarse / 20  # the models agree far below PBD's dt error
+    assert all(r.solver == "pbd" and r.ref_model == "pbd-coloured/10it" for r in result.rows)
+
+
+def test_accuracy_cli_puts_both_solvers_in_one_csv_and_states_the_model_difference(tmp_path, capsys):
+    out = tmp_path / "both.csv"
+    argv = ["accuracy", "--backends", "numpy", "--solvers", "verlet,pbd", "--pbd-methods", "jacobi",
+            "--grid", "8", "--time", "0.02", "--levels", "2", "--pbd-dts", "0.004,0.002", "--out", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    rows = list(csv.DictReader(open(out)))
+    assert {r["solver"] for r in rows} == {"verlet", "pbd"}
+    pbd = [r for r in rows if r["solver"] == "pbd"]
+    assert len(pbd) == 2 * 2 and {r["pbd_method"] for r in pbd} == {"jacobi"}
+    assert {r["iterations"] for r in pbd} == {"10"}
+    assert {float(r["dt"]) for r in pbd} == {0.004, 0.002}
+    assert all(r["ref_model"].startswith("pbd-jacobi/10it") for r in pbd)
+    assert all(r["ref_model"] == "verlet" and r["pbd_method"] == "" for r in rows if r["solver"] == "verlet")
+    # PBD's error is against its own converged model, and also written against Verlet's
+    assert all(float(r["disc_rms"]) > 0 and float(r["vs_verlet_rms"]) > 0 for r in pbd)
+    assert len({r["label"] for r in rows}) == 4  # numpy f32, f64 and their two PBD lines
+    line = next(t for t in text.splitlines() if t.startswith("converged models differ"))
+    assert "verlet vs pbd-jacobi/10it" in line
+    assert math.isfinite(float(line.split("RMS ")[1].split(" m")[0]))
+    assert "fitted convergence order: numpy f64/pbd-jacobi/10it: 1.0" in text  # first order, as Verlet's rest start
+    assert (tmp_path / "both-speed.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_stability_cli_shows_both_solvers_side_by_side_and_marks_60hz(tmp_path, capsys):
+    out = tmp_path / "stab.csv"
+    argv = ["stability", "--backends", "numpy", "--solvers", "verlet,pbd-jacobi",  # the sweep's spelling
+            "--stiffness", "1000", "--scenes", "flat", "--grid", "8", "--steps", "150", "--out", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    rows = list(csv.DictReader(open(out)))
+    by_solver = {s: [r for r in rows if r["solver"] == s] for s in ("verlet", "pbd")}
+    assert len(by_solver["verlet"]) == 2 and len(by_solver["pbd"]) == 2
+    assert {r["pbd_method"] for r in by_solver["pbd"]} == {"jacobi"}
+    assert all(r["stable_at_60hz"] == "False" for r in by_solver["verlet"])
+    assert all(r["stable_at_60hz"] == "True" and r["capped"] == "True" for r in by_solver["pbd"])
+    verlet_worst = max(float(r["dt_unstable"]) for r in by_solver["verlet"])
+    assert min(float(r["dt_stable"]) for r in by_solver["pbd"]) > verlet_worst
+    assert "side by side" in text and ">=0.1" in text
+    assert "Verlet explodes in 2 of 2 runs and PBD stays stable in 2 of 2" in text
+
+
+def test_pbd_is_softer_at_few_iterations_and_damps_at_a_large_step():
+    from clothbench.accuracy import solver_artefacts
+
+    verlet, few, many = solver_artefacts(load_scene("drape").replace(grid=6), ("coloured",), (2, 30), (DT_60HZ,))
+    assert verlet.model == "verlet" and abs(verlet.energy_change) < 1e-3  # symplectic: keeps its energy
+    assert few.strain_ratio > 5 and many.strain_ratio < 1.5  # unresolved constraints stretch
+    assert few.settle_speed < 0.05 and verlet.settle_speed < 0.05  # at rest when the strain is read
+    assert many.energy_change < -0.1  # resolved constraints, still damped by the 1/60 s step
