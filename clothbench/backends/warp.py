@@ -1,0 +1,185 @@
+"""NVIDIA Warp (peer): the step as one `@wp.kernel` over `wp.array(dtype=wp.vec4)`.
+
+docs/semantics.md, written as Warp users write it: one thread per particle, vec3
+arithmetic, `wp.length_sq`, the stencil unrolled with `wp.static`, spheres in a small
+array. Ping-pong without copies: particle i reads prev[i] only itself, so it writes x_new
+there, and the two arrays swap roles (prev_out = pos, as the semantics ask).
+
+Warp's defaults are IEEE on the CPU: no fast math, and although `fuse_fp` is on, its
+generated C++ calls one inline function per operation, so clang never sees `a*b + c` in
+one expression and emits no FMA. The result is bit-exact with the NumPy float32
+reference (tests/test_peers.py asserts it), so `--strict` needs no other kernel.
+Warp compiles the kernel on the first launch (the harness's warm-up) and keeps it in its
+kernel cache (~/.cache/warp). On the CPU a launch runs on one thread.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ClothbenchError
+from ..scene import OFFSETS, Scene
+from .base import Availability, Backend, BackendOptions
+
+_INSTALL = "pip install -e '.[peers]'"
+_KERNEL = None  # the step, defined on first use so clothbench imports without warp
+
+
+def _import_warp():
+    import warp as wp
+
+    # no banner or per-module load lines on stdout (they would corrupt --json)
+    if hasattr(wp.config, "log_level"):
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    else:  # Warp before log levels
+        wp.config.quiet = True
+    return wp
+
+
+def probe() -> Availability:
+    try:
+        wp = _import_warp()
+        wp.init()
+    except ModuleNotFoundError as e:
+        if e.name == "warp":
+            return Availability(False, f"warp not installed ({_INSTALL})")
+        return Availability(False, f"warp does not import: {e}")
+    except Exception as e:  # e.g. a warp build that does not load here
+        return Availability(False, f"warp does not initialise: {type(e).__name__}: {e}")
+    return Availability(True, device=f"warp {wp.__version__} ({_default_device(wp)})")
+
+
+def _default_device(wp) -> str:
+    return "cuda" if wp.is_cuda_available() else "cpu"
+
+
+def _kernel(wp):
+    global _KERNEL
+    if _KERNEL is not None:
+        return _KERNEL
+
+    @wp.kernel(enable_backward=False)
+    def step(
+        pos: wp.array(dtype=wp.vec4),
+        prev: wp.array(dtype=wp.vec4),
+        n: int,
+        dt: float,
+        dt2: float,
+        k: float,
+        b: float,
+        g: wp.vec3,
+        rest: wp.array(dtype=float),
+        spheres: wp.array(dtype=wp.vec4),
+    ):
+        """pos[i] is x(t), prev[i] is x(t - dt) and receives x(t + dt)."""
+        i = wp.tid()
+        row = i // n
+        col = i - row * n
+        p = pos[i]
+        q = prev[i]
+        x = wp.vec3(p[0], p[1], p[2])
+        w = p[3]
+        xp = wp.vec3(q[0], q[1], q[2])
+        # Listing 22.1 step 3: velocity from the two positions; damping uses it per spring
+        vel = (x - xp) / dt
+        bv = b * vel
+        force = wp.vec3(0.0)
+        for o in range(12):  # step 5: the 12 neighbours, in order (unrolled)
+            r = row + wp.static(OFFSETS[o][0])
+            c = col + wp.static(OFFSETS[o][1])
+            if r >= 0 and r < n and c >= 0 and c < n:  # outside the grid: no spring
+                pj = pos[r * n + c]
+                d = wp.vec3(pj[0], pj[1], pj[2]) - x
+                l2 = wp.length_sq(d)
+                s = float(0.0)
+                if l2 > 0.0:  # coincident particles: no direction, no spring force
+                    length = wp.sqrt(l2)
+                    s = (k * (length - rest[o])) / length
+                force = force + (s * d - bv)
+        x_new = x
+        if w != 0.0:  # pinned particles do not move
+            # step 6: Verlet, acceleration = gravity + force * inverse mass
+            acc = g + force * w
+            x_new = (2.0 * x - xp) + acc * dt2
+            for m in range(spheres.shape[0]):  # colliders, in scene order
+                sphere = spheres[m]
+                center = wp.vec3(sphere[0], sphere[1], sphere[2])
+                radius = sphere[3]
+                e = x_new - center
+                l2 = wp.length_sq(e)
+                length = wp.sqrt(l2)
+                if length < radius:
+                    if l2 > 0.0:
+                        x_new = center + e * (radius / length)
+                    else:  # exactly at the centre: straight up
+                        x_new = center + wp.vec3(0.0, radius, 0.0)
+        prev[i] = wp.vec4(x_new[0], x_new[1], x_new[2], w)
+
+    _KERNEL = step
+    return step
+
+
+class WarpBackend(Backend):
+    name = "warp"
+    # one variant: Warp's CPU default is already IEEE (see the module docstring)
+
+    def __init__(self, scene: Scene, options: BackendOptions):
+        super().__init__(scene, options)
+        if options.precision != "f32":
+            raise ClothbenchError(
+                f"warp runs in f32 only, got {options.precision!r}; f64 is the numpy reference"
+            )
+        wp = self._wp = _import_warp()
+        wp.init()
+        name = options.device or _default_device(wp)
+        try:
+            self._device = wp.get_device(name)
+        except Exception as e:
+            raise ClothbenchError(f"warp has no device {name!r} here ({e}); try cpu") from None
+        self._step = _kernel(wp)
+        f32 = np.float32
+        n2 = scene.particles
+        self.pos = wp.zeros(n2, dtype=wp.vec4, device=self._device)
+        self.prev = wp.zeros(n2, dtype=wp.vec4, device=self._device)
+        spheres = np.array([(*s.center, s.radius) for s in scene.spheres], dtype=f32).reshape(-1, 4)
+        # constants rounded once from float64 (docs/semantics.md, Constants)
+        self._consts = [
+            scene.grid,
+            f32(scene.dt),
+            f32(scene.dt * scene.dt),
+            f32(scene.stiffness),
+            f32(scene.damping),
+            wp.vec3(*np.array(scene.gravity, dtype=f32)),
+            wp.array(np.array(scene.rest_lengths(), dtype=f32), dtype=float, device=self._device),
+            wp.array(spheres, dtype=wp.vec4, device=self._device),
+        ]
+
+    @property
+    def mode(self) -> str:
+        return "strict" if self.options.strict else "default"
+
+    @property
+    def device(self) -> str:
+        d = self._device
+        return f"warp {d.alias} (1 thread)" if d.is_cpu else f"warp {d.alias} ({d.name})"
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        self.pos.assign(np.ascontiguousarray(pos, dtype=np.float32))
+        self.prev.assign(np.ascontiguousarray(prev, dtype=np.float32))
+
+    def advance(self, steps: int) -> None:
+        wp = self._wp
+        for _ in range(steps):
+            inputs = [self.pos, self.prev, *self._consts]
+            wp.launch(self._step, dim=self.scene.particles, inputs=inputs, device=self._device)
+            self.pos, self.prev = self.prev, self.pos  # x_new was written over prev
+
+    def synchronize(self) -> None:
+        self._wp.synchronize_device(self._device)
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.pos.numpy().copy(), self.prev.numpy().copy()
+
+    def close(self) -> None:
+        self.pos = self.prev = None
+        self._consts = []
