@@ -9,7 +9,11 @@ only itself, so it writes x_new over it, and the roles swap.
 
 Fast mode is Taichi's default, `fast_math=True`: every operation is marked `reassoc ninf
 nsz` for LLVM, which may then re-associate. Strict mode is `fast_math=False`, which is
-bit-exact with the NumPy float32 reference (tests/test_peers.py asserts it).
+bit-exact with the NumPy float32 reference except for subnormals: Taichi sets flush-to-zero
+for its threads, so a result below 1.2e-38 becomes 0 where NumPy keeps it (values of
+~1e-37 m near an axis; tests/test_peers.py asserts both). ti.init sets it on the calling
+thread too; this module puts that thread's floating-point environment back, so that NumPy
+in the same process (the reference included) keeps its subnormals.
 
 Taichi's runtime is process-wide (one `ti.init`, which fixes arch and fast_math), so every
 instance shares it and a different mode can only start once the others are closed. Each
