@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 import sys
 
 import pytest
@@ -119,3 +120,27 @@ def test_compare_of_unrelated_files_fails_in_one_line(tmp_path, capsys):
     assert main(["compare", str(a), str(b)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no row in common" in err
+
+
+def test_the_committed_sweep_plots_every_figure(tmp_path):
+    # the machine's own sweep: local sizes at some grids only, generic rows, peers
+    committed = Path(__file__).resolve().parent.parent / "results" / "cpu-llvmpipe-pocl.csv"
+    if not committed.exists():
+        pytest.skip("no committed sweep in this checkout")
+    assert main(["plot", str(committed), "--out", str(tmp_path)]) == 0
+    for name in ("time_vs_grid", "throughput", "speed_vs_error", "local_size"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 10_000, name
+
+
+def test_readme_peer_table_matches_the_committed_sweep():
+    import csv
+
+    from clothbench.reports.tables import peer_ratio_markdown
+
+    root = Path(__file__).resolve().parent.parent
+    committed = root / "results" / "cpu-llvmpipe-pocl.csv"
+    if not committed.exists():
+        pytest.skip("no committed sweep in this checkout")
+    table = peer_ratio_markdown(list(csv.DictReader(committed.open())))
+    assert table.count("\n") >= 3, "the committed sweep has no grid with both kinds"
+    assert table in (root / "README.md").read_text()

@@ -402,10 +402,13 @@ def plot_local_size(rows: list[Row], out: Path, report: PlotReport) -> None:
         return
     backends = list(dict.fromkeys(r.backend for r in sized))
     variants = {r[:-1] for r in map(_by_variant_grid, sized)}
-    defaults = [r for r in rows if r.local_size is None and _by_variant_grid(r)[:-1] in variants]
+    grids = sorted({r.grid for r in sized})
+    # the runtime's own choice, at the grids the local sizes were swept at
+    defaults = [
+        r for r in rows if r.local_size is None and r.grid in grids and _by_variant_grid(r)[:-1] in variants
+    ]
     sizes = sorted({r.local_size for r in sized})
     auto_x = sizes[0] / 2  # where the runtime's own choice is drawn
-    grids = sorted({r.grid for r in sized})
     cmap = matplotlib.colormaps["viridis"]
     shade = {n: cmap(0.85 * i / max(1, len(grids) - 1)) for i, n in enumerate(grids)}
 

@@ -45,3 +45,41 @@ def print_backends(rows: list[dict]) -> None:
         usable = "[green]yes[/green]" if r["usable"] else "[red]no[/red]"
         table.add_row(r["backend"], r["kind"], usable, r["device"] if r["usable"] else r["reason"])
     Console().print(table)
+
+
+def peer_ratios(rows: list[dict]) -> list[dict]:
+    """Per grid: clothbench's fastest backend (any mode, default local size) against the
+    fastest peer, from sweep rows with status ok. The README's performance table."""
+    out = []
+    for grid in sorted({int(r["grid"]) for r in rows}):
+        mine = [r for r in rows if int(r["grid"]) == grid and r["peer"] == "false" and not r["local_size"]
+                and r["status"] == "ok" and r["precision"] == "f32"]  # fmt: skip
+        peers = [r for r in rows if int(r["grid"]) == grid and r["peer"] == "true" and r["status"] == "ok"]
+        if not mine or not peers:
+            continue
+        best = min(mine, key=lambda r: float(r["ms_median"]))
+        peer = min(peers, key=lambda r: float(r["ms_median"]))
+        out.append(
+            {
+                "grid": grid,
+                "ours": f"{best['backend']} {best['mode']}",
+                "ours_ms": float(best["ms_median"]),
+                "peer": f"{peer['backend']} {peer['mode']}",
+                "peer_ms": float(peer["ms_median"]),
+                "ratio": float(peer["ms_median"]) / float(best["ms_median"]),
+            }
+        )
+    return out
+
+
+def peer_ratio_markdown(rows: list[dict]) -> str:
+    lines = [
+        "| grid | fastest clothbench backend | ms/step | fastest peer | ms/step | peer / clothbench |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in peer_ratios(rows):
+        lines.append(
+            f"| {r['grid']}×{r['grid']} | {r['ours']} | {r['ours_ms']:.3f} | {r['peer']} | "
+            f"{r['peer_ms']:.3f} | {r['ratio']:.1f}× |"
+        )
+    return "\n".join(lines)
