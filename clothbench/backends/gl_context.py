@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import ClothbenchError
 from ..kernel_source import glsl_float, read_kernel, resolve_includes
 from ..scene import Scene
+from .base import Availability
 from .kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
 
 INSTALL_HINT = "install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for OSMesa"
@@ -155,6 +156,18 @@ def get_device(gl: str = "egl") -> GLDevice:
     raise GLUnavailable(
         f"no EGL display ({_failures['egl']}) and no OSMesa ({_failures['osmesa']}) ({INSTALL_HINT})"
     )
+
+
+def probe(min_version: int = 330) -> Availability:
+    """Can a GL backend needing OpenGL `min_version` (e.g. 430 for compute) run here?"""
+    try:
+        device = get_device("egl")
+    except GLUnavailable as e:
+        return Availability(False, str(e))
+    if device.version_code < min_version:
+        offers = f"{device.version_code / 100:.1f}"
+        return Availability(False, f"needs OpenGL {min_version / 100:.1f}; {device.renderer} offers {offers}")
+    return Availability(True, device=device.renderer)
 
 
 def _provider(provider: str) -> GLDevice | None:

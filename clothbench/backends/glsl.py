@@ -24,11 +24,7 @@ PREFER_IMAGE_READS = True
 
 
 def probe() -> Availability:
-    try:
-        device = gl_context.get_device("egl")
-    except gl_context.GLUnavailable as e:
-        return Availability(False, str(e))
-    return Availability(True, device=device.renderer)
+    return gl_context.probe(330)
 
 
 def open_device(backend: str, options: BackendOptions, min_version: int) -> gl_context.GLDevice:

@@ -29,14 +29,7 @@ PREFER_IMAGE_READS = True
 
 
 def probe() -> Availability:
-    try:
-        device = gl_context.get_device("egl")
-    except gl_context.GLUnavailable as e:
-        return Availability(False, str(e))
-    if device.version_code < 430:
-        offers = f"{device.version_code / 100:.1f}"
-        return Availability(False, f"compute shaders need OpenGL 4.3; {device.renderer} offers {offers}")
-    return Availability(True, device=device.renderer)
+    return gl_context.probe(430)  # compute shaders
 
 
 def open_compute_device(backend: str, options: BackendOptions) -> tuple[gl_context.GLDevice, int]:
