@@ -31,7 +31,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
 from clothbench.harness.health import max_penetration
-from clothbench.scene import Sphere, load_scene
+from clothbench.scene import Cylinder, Plane, Sphere, load_scene
 
 from conftest import assert_bit_exact, require
 
@@ -39,6 +39,8 @@ PEERS = ("taichi", "warp", "numba")
 FAST_ROUNDS_DIFFERENTLY = ("taichi", "numba")  # warp's default is already IEEE
 SHORT = 100  # steps: 0.05 s, before the sheet reaches the sphere (about 200 steps)
 CONTACT = 300  # steps: the sphere scene's own horizon, well into contact
+SMALL = 24  # grid for the cylinder/curtain/plane checks
+SMALL_CONTACT = 600  # steps: at n = 24 the sheet reaches the cylinder (~400), the curtain its sphere (~600)
 STRICT = BackendOptions(strict=True)
 
 
@@ -208,3 +210,75 @@ def test_missing_package_is_reported_with_the_install_command(name):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == f"{name} not installed (pip install -e '.[peers]')"
+
+
+def _small(scene_name):
+    return load_scene(scene_name).replace(grid=SMALL)
+
+
+def _tilted():
+    # a tilted cylinder and a raised, tilted floor: the sheet reaches both within SMALL_CONTACT
+    # steps, so the side, the caps' arithmetic and the plane all run
+    return _small("cylinder").replace(
+        cylinders=(Cylinder((0.2, 0.45, 0.45), (0.8, 0.55, 0.6), 0.15),),
+        planes=(Plane((0.0, 0.55, 0.0), (0.1, 1.0, 0.05)),),
+    )
+
+
+def _assert_contact(scene, steps, kinds, what):
+    """Each of these kinds of collider changes the numpy result: contact really happens."""
+    want = reference(scene, steps, "f32")[0]
+    for kind in kinds:
+        other = reference(scene.replace(**{kind: ()}), steps, "f32")[0]
+        assert not np.array_equal(want, other), f"{what}: the cloth never touches the {kind}"
+
+
+# scene, and the colliders it reaches in SMALL_CONTACT steps (the built-in floor is not reached)
+SCENES_WITH_CONTACT = {
+    "cylinder": (lambda: _small("cylinder"), ("cylinders",)),
+    "curtain": (lambda: _small("curtain"), ("spheres",)),
+    "tilted": (_tilted, ("cylinders", "planes")),
+}
+
+
+@pytest.mark.parametrize("scene_name", list(SCENES_WITH_CONTACT))
+@pytest.mark.parametrize("strict", [False, True])
+@pytest.mark.parametrize("name", PEERS)
+def test_no_particle_ends_inside_a_cylinder_plane_or_sphere(name, strict, scene_name):
+    require(name)
+    make, kinds = SCENES_WITH_CONTACT[scene_name]
+    scene = make()
+    _assert_contact(scene, SMALL_CONTACT, kinds, scene_name)
+    pos = simulate(name, scene, SMALL_CONTACT, BackendOptions(strict=strict))[0]
+    assert np.isfinite(pos).all(), f"{name}: non-finite positions on {scene_name}"
+    assert max_penetration(pos, scene) <= 1e-6, (
+        f"{name} strict={strict}: a particle is inside a collider ({scene_name})"
+    )
+
+
+@pytest.mark.parametrize("scene_name", ["cylinder", "tilted"])
+@pytest.mark.parametrize("name", PEERS)
+def test_strict_peer_matches_numpy_bit_for_bit_with_cylinders_and_planes(name, scene_name):
+    require(name)
+    scene = SCENES_WITH_CONTACT[scene_name][0]()
+    got = simulate(name, scene, SMALL_CONTACT, STRICT)
+    want = reference(scene, SMALL_CONTACT, "f32")
+    _assert_state_bit_exact(got, want, f"{name} --strict, {scene_name}")
+
+
+@pytest.mark.parametrize("scene_name", ["cylinder", "tilted"])
+def test_warp_default_matches_numpy_bit_for_bit_with_cylinders_and_planes(scene_name):
+    require("warp")
+    scene = SCENES_WITH_CONTACT[scene_name][0]()
+    got = simulate("warp", scene, SMALL_CONTACT)
+    _assert_state_bit_exact(got, reference(scene, SMALL_CONTACT, "f32"), f"warp default, {scene_name}")
+
+
+@pytest.mark.parametrize("name", FAST_ROUNDS_DIFFERENTLY)
+def test_fast_peer_matches_numpy_within_float32_rounding_on_cylinder(name):
+    require(name)
+    scene = load_scene("cylinder")
+    f32, f64 = reference(scene, SHORT, "f32")[0], reference(scene, SHORT)[0]
+    budget = position_error(f32, f64)[1]
+    worst = position_error(simulate(name, scene, SHORT)[0], f32)[1]
+    assert worst <= budget, f"{name} fast, cylinder: {worst:.3g} m from numpy f32, budget {budget:.3g} m"

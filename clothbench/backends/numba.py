@@ -1,7 +1,8 @@
 """Numba (peer): the step as one `@njit(parallel=True)` prange loop, as Numba users write it.
 
 docs/semantics.md, scalar float32 code over (n*n, 4) arrays: a prange over rows, the 12
-neighbours in the documented order, spheres from the scene. Fast mode compiles with
+neighbours in the documented order, the scene's colliders (spheres, then cylinders, then
+planes) as float4 rows (kernel_inputs.collider_rows). Fast mode compiles with
 `fastmath=True` (LLVM may contract, reorder and vectorise); strict mode with Numba's
 default IEEE arithmetic, which does neither and is bit-exact with the NumPy float32
 reference (tests/test_peers.py asserts it).
@@ -17,6 +18,7 @@ import numpy as np
 from ..errors import ClothbenchError
 from ..scene import OFFSETS, Scene
 from .base import Availability, Backend, BackendOptions
+from .kernel_inputs import collider_rows
 
 _INSTALL = "pip install -e '.[peers]'"
 _KERNELS: dict[bool, object] = {}  # fastmath -> the jitted step, built on first use
@@ -48,7 +50,7 @@ def _kernel(fastmath: bool):
     # no cache=True: both variants come from this one closure and numba's on-disk cache
     # does not tell them apart, so the JIT runs once per process (in the warm-up)
     @njit(parallel=True, fastmath=fastmath)
-    def step(pos, prev, n, dt, dt2, k, b, g, rest, spheres):
+    def step(pos, prev, n, dt, dt2, k, b, g, rest, spheres, cylinders, planes):
         """One step; writes x_new into prev (see the module docstring)."""
         for row in prange(n):
             for col in range(n):
@@ -95,6 +97,42 @@ def _kernel(fastmath: bool):
                             n0, n1, n2 = c0 + e0 * s, c1 + e1 * s, c2 + e2 * s
                         else:  # exactly at the centre: straight up
                             n0, n1, n2 = c0, c1 + radius, c2
+                for m in range(cylinders.shape[0] // 3):  # then cylinders, in scene order
+                    j = 3 * m  # rows: (start, length), (unit axis, radius), (radial_r, 0)
+                    a0, a1, a2 = cylinders[j, 0], cylinders[j, 1], cylinders[j, 2]
+                    u0, u1, u2 = cylinders[j + 1, 0], cylinders[j + 1, 1], cylinders[j + 1, 2]
+                    cyl_len, radius = cylinders[j, 3], cylinders[j + 1, 3]
+                    e0, e1, e2 = n0 - a0, n1 - a1, n2 - a2
+                    t = (e0 * u0 + e1 * u1) + e2 * u2  # axial coordinate (m) from the start cap
+                    q0, q1, q2 = u0 * t, u1 * t, u2 * t
+                    p0, p1, p2 = e0 - q0, e1 - q1, e2 - q2  # radial vector
+                    rho2 = (p0 * p0 + p1 * p1) + p2 * p2
+                    rho = np.sqrt(rho2)
+                    if t > zero and t < cyl_len and rho < radius:
+                        # push out the shortest way: through the side, or the nearer cap
+                        side = radius - rho
+                        to_end = cyl_len - t
+                        if side <= t and side <= to_end:
+                            if rho2 > zero:
+                                s = radius / rho
+                                n0 = (a0 + q0) + p0 * s
+                                n1 = (a1 + q1) + p1 * s
+                                n2 = (a2 + q2) + p2 * s
+                            else:  # on the axis
+                                n0 = (a0 + q0) + cylinders[j + 2, 0]
+                                n1 = (a1 + q1) + cylinders[j + 2, 1]
+                                n2 = (a2 + q2) + cylinders[j + 2, 2]
+                        elif t <= to_end:
+                            n0, n1, n2 = n0 - q0, n1 - q1, n2 - q2
+                        else:
+                            n0, n1, n2 = n0 + u0 * to_end, n1 + u1 * to_end, n2 + u2 * to_end
+                for m in range(planes.shape[0] // 2):  # then planes, in scene order
+                    j = 2 * m  # rows: (point, 0), (unit normal, 0)
+                    v0, v1, v2 = planes[j + 1, 0], planes[j + 1, 1], planes[j + 1, 2]
+                    e0, e1, e2 = n0 - planes[j, 0], n1 - planes[j, 1], n2 - planes[j, 2]
+                    dist = (e0 * v0 + e1 * v1) + e2 * v2
+                    if dist < zero:
+                        n0, n1, n2 = n0 - v0 * dist, n1 - v1 * dist, n2 - v2 * dist
                 prev[i, 0], prev[i, 1], prev[i, 2], prev[i, 3] = n0, n1, n2, w
 
     _KERNELS[fastmath] = step
@@ -117,6 +155,7 @@ class NumbaBackend(Backend):
         self._threads = numba.get_num_threads()
         # fast: fastmath=True, as Numba's performance tips suggest; strict: Numba's default
         self._step = _kernel(fastmath=not options.strict)
+        colliders = collider_rows(scene)
         # constants rounded once from float64 (docs/semantics.md, Constants)
         self._args = (
             scene.grid,
@@ -126,7 +165,8 @@ class NumbaBackend(Backend):
             f32(scene.damping),
             np.array(scene.gravity, dtype=f32),
             np.array(scene.rest_lengths(), dtype=f32),
-            np.array([(*s.center, s.radius) for s in scene.spheres], dtype=f32).reshape(-1, 4),
+            # spheres, cylinders, planes as float4 rows rounded once from float64
+            *(colliders[kind] for kind in ("spheres", "cylinders", "planes")),
         )
         n2 = scene.particles
         self.pos = np.zeros((n2, 4), dtype=f32)

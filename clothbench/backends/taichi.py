@@ -2,7 +2,7 @@
 
 docs/semantics.md, written as Taichi users write it: a parallel loop over `ti.ndrange(n, n)`,
 vector arithmetic, the scene's constants as Python values compiled into the kernel, the
-stencil and the scene's spheres unrolled with `ti.static`.
+stencil and the scene's colliders (spheres, cylinders, planes) unrolled with `ti.static`.
 Ping-pong without copies: both states live in one field of shape (2, n, n) and the kernel
 takes the index of the current one; particle (row, col) reads its own previous position
 only itself, so it writes x_new over it, and the roles swap.
@@ -134,6 +134,17 @@ def _step_kernel(ti, state, scene: Scene):
     gx, gy, gz = scene.gravity
     rest = scene.rest_lengths()
     spheres = [(*s.center, s.radius) for s in scene.spheres]
+    # cylinders: start a, unit axis u, length, radius, radial_r = radial * radius (float64)
+    cylinders = [
+        (tuple(c.start), tuple(c.axis), c.length, c.radius, tuple(e * c.radius for e in c.radial))
+        for c in scene.cylinders
+    ]
+    planes = [(tuple(p.point), tuple(p.unit_normal)) for p in scene.planes]
+
+    @ti.func
+    def dot3(a, b):
+        """(a.x*b.x + a.y*b.y) + a.z*b.z, the association every kernel uses."""
+        return (a.x * b.x + a.y * b.y) + a.z * b.z
 
     @ti.kernel
     def step(cur: ti.i32):
@@ -174,6 +185,37 @@ def _step_kernel(ti, state, scene: Scene):
                             x_new = center + e * (radius / length)
                         else:  # exactly at the centre: straight up
                             x_new = center + vec3(0.0, radius, 0.0)
+                for m in ti.static(range(len(cylinders))):  # then cylinders, in scene order
+                    a = vec3(cylinders[m][0][0], cylinders[m][0][1], cylinders[m][0][2])
+                    u = vec3(cylinders[m][1][0], cylinders[m][1][1], cylinders[m][1][2])
+                    cyl_len = ti.static(cylinders[m][2])
+                    radius = ti.static(cylinders[m][3])
+                    radial_r = vec3(cylinders[m][4][0], cylinders[m][4][1], cylinders[m][4][2])
+                    e = x_new - a
+                    t = dot3(e, u)  # axial coordinate (m) from the start cap
+                    q = u * t
+                    rv = e - q  # radial vector
+                    rho2 = dot3(rv, rv)
+                    rho = ti.sqrt(rho2)
+                    if t > 0 and t < cyl_len and rho < radius:
+                        # push out the shortest way: through the side, or the nearer cap
+                        side = radius - rho
+                        to_end = cyl_len - t
+                        if side <= t and side <= to_end:
+                            if rho2 > 0:
+                                x_new = (a + q) + rv * (radius / rho)
+                            else:  # on the axis
+                                x_new = (a + q) + radial_r
+                        elif t <= to_end:
+                            x_new = x_new - q
+                        else:
+                            x_new = x_new + u * to_end
+                for m in ti.static(range(len(planes))):  # then planes, in scene order
+                    p0 = vec3(planes[m][0][0], planes[m][0][1], planes[m][0][2])
+                    nrm = vec3(planes[m][1][0], planes[m][1][1], planes[m][1][2])
+                    dist = dot3(x_new - p0, nrm)
+                    if dist < 0:
+                        x_new = x_new - nrm * dist
             state[old, row, col] = ti.Vector([x_new.x, x_new.y, x_new.z, w])
 
     return step

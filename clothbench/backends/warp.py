@@ -1,8 +1,9 @@
 """NVIDIA Warp (peer): the step as one `@wp.kernel` over `wp.array(dtype=wp.vec4)`.
 
 docs/semantics.md, written as Warp users write it: one thread per particle, vec3
-arithmetic, `wp.length_sq`, the stencil unrolled with `wp.static`, spheres in a small
-array. Ping-pong without copies: particle i reads prev[i] only itself, so it writes x_new
+arithmetic, `wp.length_sq`, the stencil unrolled with `wp.static`, the colliders
+(spheres, then cylinders, then planes) in small float4 arrays (kernel_inputs.collider_rows).
+Ping-pong without copies: particle i reads prev[i] only itself, so it writes x_new
 there, and the two arrays swap roles (prev_out = pos, as the semantics ask).
 
 Warp's defaults are IEEE on the CPU: no fast math, and although `fuse_fp` is on, its
@@ -20,6 +21,7 @@ import numpy as np
 from ..errors import ClothbenchError
 from ..scene import OFFSETS, Scene
 from .base import Availability, Backend, BackendOptions
+from .kernel_inputs import collider_rows
 
 _INSTALL = "pip install -e '.[peers]'"
 _KERNEL = None  # the step, defined on first use so clothbench imports without warp
@@ -70,6 +72,8 @@ def _kernel(wp):
         g: wp.vec3,
         rest: wp.array(dtype=float),
         spheres: wp.array(dtype=wp.vec4),
+        cylinders: wp.array(dtype=wp.vec4),
+        planes: wp.array(dtype=wp.vec4),
     ):
         """pos[i] is x(t), prev[i] is x(t - dt) and receives x(t + dt)."""
         i = wp.tid()
@@ -113,6 +117,42 @@ def _kernel(wp):
                         x_new = center + e * (radius / length)
                     else:  # exactly at the centre: straight up
                         x_new = center + wp.vec3(0.0, radius, 0.0)
+            for m in range(cylinders.shape[0] // 3):  # then cylinders, in scene order
+                row0 = cylinders[3 * m]  # (start, length)
+                row1 = cylinders[3 * m + 1]  # (unit axis, radius)
+                row2 = cylinders[3 * m + 2]  # (radial_r, 0)
+                a = wp.vec3(row0[0], row0[1], row0[2])
+                cyl_len = row0[3]
+                u = wp.vec3(row1[0], row1[1], row1[2])
+                radius = row1[3]
+                radial_r = wp.vec3(row2[0], row2[1], row2[2])
+                e = x_new - a
+                t = (e[0] * u[0] + e[1] * u[1]) + e[2] * u[2]  # axial coordinate (m) from the start cap
+                qa = u * t
+                rv = e - qa  # radial vector
+                rho2 = (rv[0] * rv[0] + rv[1] * rv[1]) + rv[2] * rv[2]
+                rho = wp.sqrt(rho2)
+                if t > 0.0 and t < cyl_len and rho < radius:
+                    # push out the shortest way: through the side, or the nearer cap
+                    side = radius - rho
+                    to_end = cyl_len - t
+                    if side <= t and side <= to_end:
+                        if rho2 > 0.0:
+                            x_new = (a + qa) + rv * (radius / rho)
+                        else:  # on the axis
+                            x_new = (a + qa) + radial_r
+                    elif t <= to_end:
+                        x_new = x_new - qa
+                    else:
+                        x_new = x_new + u * to_end
+            for m in range(planes.shape[0] // 2):  # then planes, in scene order
+                pr = planes[2 * m]  # (point, 0)
+                nr = planes[2 * m + 1]  # (unit normal, 0)
+                e = x_new - wp.vec3(pr[0], pr[1], pr[2])
+                nrm = wp.vec3(nr[0], nr[1], nr[2])
+                dist = (e[0] * nrm[0] + e[1] * nrm[1]) + e[2] * nrm[2]
+                if dist < 0.0:
+                    x_new = x_new - nrm * dist
         prev[i] = wp.vec4(x_new[0], x_new[1], x_new[2], w)
 
     _KERNEL = step
@@ -141,7 +181,8 @@ class WarpBackend(Backend):
         n2 = scene.particles
         self.pos = wp.zeros(n2, dtype=wp.vec4, device=self._device)
         self.prev = wp.zeros(n2, dtype=wp.vec4, device=self._device)
-        spheres = np.array([(*s.center, s.radius) for s in scene.spheres], dtype=f32).reshape(-1, 4)
+        # spheres, cylinders, planes as float4 rows rounded once from float64
+        colliders = collider_rows(scene)
         # constants rounded once from float64 (docs/semantics.md, Constants)
         self._consts = [
             scene.grid,
@@ -151,7 +192,10 @@ class WarpBackend(Backend):
             f32(scene.damping),
             wp.vec3(*np.array(scene.gravity, dtype=f32)),
             wp.array(np.array(scene.rest_lengths(), dtype=f32), dtype=float, device=self._device),
-            wp.array(spheres, dtype=wp.vec4, device=self._device),
+            *(
+                wp.array(colliders[kind], dtype=wp.vec4, device=self._device)
+                for kind in ("spheres", "cylinders", "planes")
+            ),
         ]
 
     @property
