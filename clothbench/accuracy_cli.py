@@ -381,11 +381,18 @@ def plot_speed_vs_error(result, path: Path) -> None:
     )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    _save(fig, path)
+
+
+
+def _save(fig, path: Path) -> None:
+    """Write a finished figure (its folder made if missing) and free it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
 
 def plot_convergence(result, path: Path) -> None:
     """Error against dt per backend/mode with its fitted order, and slopes 1 and 2 to read by."""
@@ -425,9 +432,7 @@ def plot_convergence(result, path: Path) -> None:
     )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 # --- stability ------------------------------------------------------------------------
@@ -634,7 +639,4 @@ def plot_stability_map(rows, path: Path) -> None:
     ax.set_title(f"stability map: {rows[0].grid}x{rows[0].grid}, {rows[0].steps} steps, b = {rows[0].damping:g}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
