@@ -20,11 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clothbench.scene import OFFSET_KIND, OFFSETS
+
 # (dr, dc) of each undirected constraint direction, in batch order, and the kind of
 # spring it is (0 structural, 1 shear, 2 bend: the index of its compliance)
 DIRECTIONS = ((0, 1), (1, 0), (1, 1), (1, -1), (2, 2), (2, -2))
-DIRECTION_KIND = (0, 0, 1, 1, 2, 2)
-KIND_LENGTH = (1.0, 2.0**0.5, 8.0**0.5)  # |(dr, dc)| in units of h, per kind
+DIRECTION_KIND = tuple(OFFSET_KIND[OFFSETS.index(d)] for d in DIRECTIONS)
 
 
 @dataclass(frozen=True)

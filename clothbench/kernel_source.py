@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import ClothbenchError
+from clothbench.errors import ClothbenchError
 
 _REPO_KERNELS = Path(__file__).resolve().parent.parent / "kernels"
 

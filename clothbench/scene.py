@@ -16,27 +16,27 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SceneError
+from clothbench.errors import SceneError
+from clothbench.solver import FLOAT32_MAX, SOLVERS, Pbd, Solver, Verlet, solver_for_spec
 
 # The 12-spring stencil as (d_row, d_col), in the order every backend sums it.
 STRUCTURAL = ((0, -1), (0, 1), (-1, 0), (1, 0))
 SHEAR = ((-1, -1), (-1, 1), (1, -1), (1, 1))
 BEND = ((-2, -2), (-2, 2), (2, -2), (2, 2))
 OFFSETS = STRUCTURAL + SHEAR + BEND
+# the kind of spring of each offset (0 structural, 1 shear, 2 bend), in OFFSETS order:
+# every kernel takes one rest length (and PBD one compliance) per kind and picks it by this
+OFFSET_KIND = tuple(kind for kind, group in enumerate((STRUCTURAL, SHEAR, BEND)) for _ in group)
 # rest length of each offset in units of the grid spacing h
 OFFSET_LENGTH = tuple(math.hypot(dr, dc) for dr, dc in OFFSETS)
 
 CORNERS = ("top-left", "top-right", "bottom-left", "bottom-right")
 EDGES = ("top", "bottom", "left", "right")
-STARTS = ("rest", "second-order")
-SOLVERS = ("verlet", "pbd")
-PBD_METHODS = ("jacobi", "coloured")
 
 # Keys the scene file may use, per table: anything else is a typo and is refused.
 _CLOTH_KEYS = {"grid", "size", "height", "mass", "stiffness", "damping"}
 _SIM_KEYS = {"dt", "steps", "gravity", "start", "solver"}
 _PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance"}
-_SPHERE_KEYS = {"center", "radius"}
 _PIN_KEYS = {"indices", "corners", "edge"}
 _COLLIDER_KEYS = {
     "sphere": ("center", "radius"),
@@ -105,7 +105,8 @@ COLLIDER_KINDS = {"sphere": Sphere, "cylinder": Cylinder, "plane": Plane}
 
 @dataclass(frozen=True)
 class Scene:
-    """Everything that defines a run except the backend. Validated on construction."""
+    """The model: what is simulated, apart from how it is stepped (solver.py) and for how
+    long. Validated on construction."""
 
     name: str = "custom"
     description: str = ""
@@ -116,18 +117,7 @@ class Scene:
     mass: float = 0.01  # mass of one particle (kg)
     stiffness: float = 1000.0  # k of every spring (N/m)
     damping: float = 0.002  # b of every spring (N s/m), applied to the particle's own velocity
-    # [sim]
-    dt: float = 5e-4
-    steps: int = 300
-    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
-    start: str = "rest"
-    solver: str = "verlet"
-    # [pbd]: the Position Based Dynamics solver (docs/pbd.md)
-    pbd_method: str = "jacobi"
-    iterations: int = 10
-    substeps: int = 1
-    relaxation: float = 1.5  # Jacobi over-relaxation of the averaged correction
-    compliance: tuple[float, float, float] | None = None  # per kind; None: 1/stiffness
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # [sim] gravity (m/s^2)
     # colliders and pins
     spheres: tuple[Sphere, ...] = ()
     cylinders: tuple[Cylinder, ...] = ()
@@ -156,12 +146,6 @@ class Scene:
     def colliders(self) -> tuple:
         """Every collider in the order the step applies them: spheres, cylinders, planes."""
         return self.spheres + self.cylinders + self.planes
-
-    def pbd_compliance(self) -> tuple[float, float, float]:
-        """XPBD compliance (m/N) of structural, shear and bend constraints."""
-        if self.compliance is not None:
-            return self.compliance
-        return (1.0 / self.stiffness,) * 3
 
     def rest_lengths(self) -> tuple[float, ...]:
         """Rest length of each stencil offset, |(dr, dc)| * h, in float64."""
@@ -194,10 +178,8 @@ class Scene:
         return dataclasses.replace(self, **changes)
 
     def initial_state(self, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
-        """(pos, prev) as (n*n, 4) arrays of `dtype`: a flat sheet at rest.
-
-        Computed in float64 and rounded once, so every backend starts from the same bits.
-        """
+        """(pos, prev) as (n*n, 4) arrays of `dtype`: a flat sheet at rest, computed in float64
+        and rounded once. A solver's initial_state applies its own start to this."""
         n, h = self.grid, self.spacing
         row, col = np.divmod(np.arange(n * n), n)
         pos = np.empty((n * n, 4), dtype=np.float64)
@@ -207,12 +189,6 @@ class Scene:
         pos[:, 3] = 1.0 / self.mass
         pos[self.pinned(), 3] = 0.0
         prev = pos.copy()
-        if self.start == "second-order":
-            # x_prev = x - v0*dt + a0*dt^2/2 with v0 = 0 and a0 = g (the flat sheet is at rest
-            # length, so springs add nothing): makes the start second-order accurate.
-            free = pos[:, 3] != 0.0
-            for axis in range(3):
-                prev[free, axis] = pos[free, axis] + 0.5 * self.gravity[axis] * self.dt * self.dt
         return pos.astype(dtype), prev.astype(dtype)
 
 
@@ -238,10 +214,7 @@ def _vec3(value, what: str) -> tuple[float, float, float]:
 def _validate(s: Scene) -> None:
     if not isinstance(s.grid, int) or isinstance(s.grid, bool) or s.grid < 3:
         raise SceneError(f"grid must be an integer >= 3, got {s.grid!r}")
-    if not isinstance(s.steps, int) or isinstance(s.steps, bool) or s.steps < 1:
-        raise SceneError(f"steps must be an integer >= 1, got {s.steps!r}")
     for name, positive in (
-        ("dt", True),
         ("size", True),
         ("mass", True),
         ("stiffness", False),
@@ -256,24 +229,6 @@ def _validate(s: Scene) -> None:
         if positive is False and value < 0:
             raise SceneError(f"{name} must be >= 0, got {value!r}")
     object.__setattr__(s, "gravity", _vec3(s.gravity, "gravity"))
-    if s.solver not in SOLVERS:
-        raise SceneError(f"solver must be one of {', '.join(SOLVERS)}, got {s.solver!r}")
-    if s.pbd_method not in PBD_METHODS:
-        raise SceneError(f"pbd method must be one of {', '.join(PBD_METHODS)}, got {s.pbd_method!r}")
-    for name in ("iterations", "substeps"):
-        value = getattr(s, name)
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise SceneError(f"{name} must be an integer >= 1, got {value!r}")
-    if not _finite(s.relaxation) or not 0 < s.relaxation < 2:
-        raise SceneError(f"relaxation must be in (0, 2), got {s.relaxation!r}")
-    if s.compliance is not None:
-        object.__setattr__(s, "compliance", _vec3(s.compliance, "compliance"))
-        if min(s.compliance) < 0:
-            raise SceneError(f"compliance must be >= 0, got {list(s.compliance)}")
-    elif s.solver == "pbd" and s.stiffness == 0:
-        raise SceneError("the pbd solver needs stiffness > 0 or an explicit [pbd] compliance")
-    if s.start not in STARTS:
-        raise SceneError(f"start must be one of {', '.join(STARTS)}, got {s.start!r}")
     for sphere in s.spheres:
         _vec3(sphere.center, "sphere center")
         if not _finite(sphere.radius) or sphere.radius <= 0:
@@ -302,14 +257,11 @@ def _validate(s: Scene) -> None:
         raise SceneError(f"unknown pin edge {s.pin_edge!r} (known: {', '.join(EDGES)})")
 
 
-FLOAT32_MAX = 3.4028234663852886e38
-
-
 def _check_float32_range(s: Scene) -> None:
     """Every backend but the f64 reference works in float32: a value it cannot hold is
     refused here rather than becoming inf inside a kernel."""
     values = {
-        name: getattr(s, name) for name in ("dt", "size", "height", "mass", "stiffness", "damping")
+        name: getattr(s, name) for name in ("size", "height", "mass", "stiffness", "damping")
     }
     values["gravity"] = max(map(abs, s.gravity))
     for c in s.colliders:
@@ -362,7 +314,44 @@ def _colliders(data: dict, kind: str, where: str) -> tuple:
     return tuple(out)
 
 
-def scene_from_dict(data: dict, where: str = "scene") -> Scene:
+@dataclass(frozen=True)
+class Setup:
+    """What a scene file describes: the model, the solver that steps it, the run length, and
+    the file's [pbd] settings (kept when the solver is Verlet, for commands that switch)."""
+
+    scene: Scene
+    solver: Solver
+    steps: int = 300
+    pbd: Pbd = Pbd()
+
+    def __post_init__(self):
+        if not isinstance(self.steps, int) or isinstance(self.steps, bool) or self.steps < 1:
+            raise SceneError(f"steps must be an integer >= 1, got {self.steps!r}")
+        if isinstance(self.solver, Pbd):
+            self.solver.compliance_for(self.scene)  # refuses stiffness 0 without a compliance
+
+    def solver_for(self, spec: str) -> Solver:
+        """The solver a --solvers entry names, with this file's dt, start and [pbd] settings."""
+        return solver_for_spec(spec, self.solver, self.pbd)
+
+    def replace(self, grid=None, steps=None, dt=None, solver=None, method=None, iterations=None, substeps=None):
+        """A copy with command-line overrides applied (None: keep), validated again."""
+        pbd_changes = {k: v for k, v in (("method", method), ("iterations", iterations), ("substeps", substeps)) if v is not None}
+        pbd = self.pbd.replace(**pbd_changes)
+        current = self.solver.replace(**({"dt": dt} if dt is not None else {}))
+        if isinstance(current, Pbd):
+            current = current.replace(**pbd_changes)
+        if solver is not None and solver != current.name:
+            current = solver_for_spec(solver, current, pbd)
+        return Setup(
+            self.scene.replace(grid=grid) if grid is not None else self.scene,
+            current,
+            steps if steps is not None else self.steps,
+            pbd.replace(dt=current.dt, start=current.start),
+        )
+
+
+def setup_from_dict(data: dict, where: str = "scene") -> Setup:
     unknown = set(data) - _TABLES
     if unknown:
         raise SceneError(
@@ -370,21 +359,23 @@ def scene_from_dict(data: dict, where: str = "scene") -> Scene:
             f"(allowed: {', '.join(sorted(_TABLES))})"
         )
     cloth = _table(data, "cloth", _CLOTH_KEYS, where)
-    sim = _table(data, "sim", _SIM_KEYS, where)
+    sim = dict(_table(data, "sim", _SIM_KEYS, where))
     pins = _table(data, "pins", _PIN_KEYS, where)
     pbd = _table(data, "pbd", _PBD_KEYS, where)
     colliders = {kind: _colliders(data, kind, where) for kind in COLLIDER_KINDS}
-    kwargs = dict(cloth)
-    kwargs.update(sim)
-    kwargs.update({("pbd_method" if k == "method" else k): v for k, v in pbd.items()})
-    if "gravity" in kwargs:
-        kwargs["gravity"] = _vec3(kwargs["gravity"], "gravity")
+    scene_kwargs = dict(cloth)
+    if "gravity" in sim:
+        scene_kwargs["gravity"] = _vec3(sim.pop("gravity"), "gravity")
     indices = pins.get("indices", [])
     corners = pins.get("corners", [])
     if not isinstance(indices, list) or not isinstance(corners, list):
         raise SceneError(f"{where}: [pins] indices and corners must be lists")
+    solver_name = sim.pop("solver", "verlet")
+    steps = sim.pop("steps", 300)
     try:
-        return Scene(
+        if solver_name not in SOLVERS:
+            raise SceneError(f"solver must be one of {', '.join(SOLVERS)}, got {solver_name!r}")
+        scene = Scene(
             name=str(data.get("name", "custom")),
             description=str(data.get("description", "")),
             spheres=colliders["sphere"],
@@ -393,8 +384,11 @@ def scene_from_dict(data: dict, where: str = "scene") -> Scene:
             pin_indices=tuple(indices),
             pin_corners=tuple(corners),
             pin_edge=pins.get("edge"),
-            **kwargs,
+            **scene_kwargs,
         )
+        pbd_settings = Pbd(**sim, **pbd)  # sim now holds dt and start only
+        solver = pbd_settings if solver_name == "pbd" else Verlet(**sim)
+        return Setup(scene, solver, steps, pbd_settings)
     except SceneError as e:
         raise SceneError(f"{where}: {e}") from None
 
@@ -405,7 +399,13 @@ def builtin_scenes() -> list[str]:
 
 
 def load_scene(name_or_path: str) -> Scene:
-    """A built-in scene by name (`sphere`, `drape`, ...) or a TOML file by path."""
+    """The model of a built-in scene or scene file (load_setup: with its solver and steps)."""
+    return load_setup(name_or_path).scene
+
+
+def load_setup(name_or_path: str) -> Setup:
+    """A built-in scene by name (`sphere`, `drape`, ...) or a TOML file by path: the model,
+    its solver settings and run length."""
     path = Path(name_or_path)
     if name_or_path.endswith(".toml") or path.exists():
         where = str(path)
@@ -426,7 +426,10 @@ def load_scene(name_or_path: str) -> Scene:
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{where}: not valid TOML: {e}") from None
     data.setdefault("name", path.stem if where == str(path) else name_or_path)
-    return scene_from_dict(data, where)
+    return setup_from_dict(data, where)
 
 
-__all__ = ["Scene", "Sphere", "Cylinder", "Plane", "OFFSETS", "count_springs", "load_scene", "builtin_scenes"]
+__all__ = [
+    "Scene", "Setup", "Sphere", "Cylinder", "Plane", "OFFSETS",
+    "count_springs", "load_scene", "load_setup", "builtin_scenes",
+]  # fmt: skip

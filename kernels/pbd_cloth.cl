@@ -1,6 +1,6 @@
 /* pbd_cloth.cl: the Position Based Dynamics (XPBD) cloth solver in OpenCL C, one kernel per
  * stage. The solver and the order of every operation are docs/pbd.md; the colliders are
- * docs/semantics.md. Host code: clothbench/backends/opencl_pbd.py.
+ * docs/semantics.md. Host code: clothbench/backends/opencl/pbd.py.
  *
  * State (float4 per particle, w = inverse mass, 0 = pinned): x (positions x(t)), v (velocity,
  * w unused), and two predicted-position buffers that the Jacobi passes ping-pong.

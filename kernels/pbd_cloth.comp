@@ -1,7 +1,7 @@
 // pbd_cloth.comp: the Position Based Dynamics (XPBD) cloth solver as GL 4.3 compute shaders,
 // one program per stage (STAGE below), as in the compute-shader PBD cloth this mirrors. The
 // solver and the order of every operation are docs/pbd.md; the colliders docs/semantics.md
-// (the shared kernels/collide_*.glsl). Host: clothbench/backends/glsl_compute_pbd.py.
+// (the shared kernels/collide_*.glsl). Host: clothbench/backends/gl/compute_pbd.py.
 //
 // State: std430 arrays of vec4 (w = inverse mass, 0 = pinned): x = x(t), v (w unused), and
 // two predicted-position buffers xs that the Jacobi passes ping-pong. The host dispatches,

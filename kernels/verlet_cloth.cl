@@ -2,7 +2,7 @@
  *
  * The step and the colliders are docs/semantics.md, which follows Listing 22.1 of the chapter
  * (Fratarcangeli, "GPGPU Cloth Simulation Using GLSL, OpenCL, and CUDA", Game Engine Gems 2);
- * the numbered comments below are the listing's steps. Host code: clothbench/backends/opencl.py.
+ * the numbered comments below are the listing's steps. Host code: clothbench/backends/opencl/verlet.py.
  *
  * Two builds of this file, chosen by the host:
  *   generic (-DCLOTH_GENERIC): kernel verlet_cloth. The listing as written: float4 positions

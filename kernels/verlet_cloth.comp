@@ -6,7 +6,7 @@
 // i = row * n + col, w = inverse mass. The host ping-pongs two (pos, prev) pairs of buffers
 // by swapping which pair is read and which is written (bindings 2-3).
 //
-// The host (clothbench/backends/glsl_compute.py) prepends #version 430, LOCAL_SIZE, the
+// The host (clothbench/backends/gl/compute.py) prepends #version 430, LOCAL_SIZE, the
 // switches of the shared step (STRICT, NORMALS, GENERIC, the constants: see
 // verlet_cloth_step.glsl), and:
 //   NORMALS      also write the particle's normal to binding 4.

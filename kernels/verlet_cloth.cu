@@ -4,11 +4,11 @@
  *
  * The step is defined operation by operation in docs/semantics.md, the normals in
  * docs/normals.md; this kernel performs those operations in that order and does not restate
- * them. The launch is in Python (clothbench/backends/cuda.py: PingPong), which owns the two
- * pairs of buffers (pos, pos_prev) x (in, out) and either swaps them or copies out to in
+ * them. The launch is in Python (clothbench/backends/cuda/verlet.py: PingPong), which owns the
+ * two pairs of buffers (pos, pos_prev) x (in, out) and either swaps them or copies out to in
  * after each step.
  *
- * The host builds this one file in several ways, with -D switches (cuda.kernel_defines):
+ * The host builds this one file in several ways, with -D switches (verlet.py: kernel_defines):
  *
  *   CLOTH_STRICT   sqrtf and '/', built with --fmad=false --ftz=false --prec-div=true
  *                  --prec-sqrt=true, so every operation is one correctly rounded IEEE float
@@ -35,7 +35,7 @@ struct Offset {
 #define HAS_CYLINDERS 1
 #define HAS_PLANES 1
 #elif !defined(CLOTH_N)
-#error "build with -DCLOTH_GENERIC, or with the scene's -D values (clothbench.backends.cuda.kernel_defines)"
+#error "build with -DCLOTH_GENERIC, or with the scene's -D values (clothbench.backends.cuda.verlet.kernel_defines)"
 #else
 // the scene, baked in: the compiler folds these into the code (n * n, i / n, k * ..., ...)
 constexpr int n = CLOTH_N;

@@ -7,7 +7,7 @@
 // filtering, integer coordinates); the outputs are render targets: the new position, the
 // new previous position and, with NORMALS only, the normal.
 //
-// The host (clothbench/backends/glsl.py) prepends #version and the switches of the shared
+// The host (clothbench/backends/gl/fragment.py) prepends #version and the switches of the shared
 // step (STRICT, NORMALS, GENERIC, the constants: see verlet_cloth_step.glsl), and:
 //   NORMALS      also write the particle's normal to a third target.
 //   IMAGE_READS  read the inputs with imageLoad (GL 4.2) instead of texelFetch: the same

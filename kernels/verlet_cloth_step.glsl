@@ -2,7 +2,7 @@
 // which differ only in how they read and write the state. The step is docs/semantics.md
 // (Listing 22.1); this file follows it operation for operation and does not restate it.
 //
-// GLSL has no #include: the host (clothbench/backends/gl_context.py, shader_source) puts
+// GLSL has no #include: the host (clothbench/backends/gl/context.py, shader_source) puts
 // this file where a kernel includes it. The kernel defines POS(rc) before it, the position
 // of particle rc = (row, col). Switches the host defines in front:
 //   STRICT    bit-exact with the numpy float32 reference: the documented operation order,

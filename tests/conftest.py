@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from clothbench.backends import availability
-from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
+from clothbench.scene import Cylinder, Plane, Scene, Setup, Sphere, load_scene, load_setup
+from clothbench.solver import Verlet
+
+# the solver every built-in scene file names: Verlet at dt = 0.5 ms, from rest
+VERLET = load_setup("sphere").solver
+assert VERLET == Verlet(dt=5e-4)
 
 
 def require(backend: str) -> None:
@@ -19,6 +24,11 @@ def require(backend: str) -> None:
 def sphere(n: int) -> Scene:
     """The built-in sphere scene on an n x n grid."""
     return load_scene("sphere").replace(grid=n)
+
+
+def setup(name: str, n: int | None = None) -> Setup:
+    """A built-in scene file (model, solver, steps), on an n x n grid where given."""
+    return load_setup(name).replace(grid=n)
 
 
 def every_collider_scene(n: int) -> Scene:

@@ -1,24 +1,20 @@
 """Accuracy and stability machinery: order fitting, the lattice bound, bisection, energy, CLI."""
 
+import argparse
 import csv
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from clothbench.accuracy import (
+from clothbench.analysis.artefacts import solver_artefacts
+from clothbench.analysis.convergence import converged_reference, fit_order, run_accuracy
+from clothbench.analysis.lattice import dt_limit, dynamical_matrix, finite_grid_omega2, lattice_omega2
+from clothbench.analysis.stability import (
     DT_60HZ,
-    Variant,
-    backend_variants,
-    converged_reference,
-    dt_limit,
-    dynamical_matrix,
-    finite_grid_omega2,
-    fit_order,
-    lattice_omega2,
     is_stable,
     measure_stability_limit,
-    run_accuracy,
     stability_problem,
     stability_scene,
     stability_state,
@@ -27,11 +23,14 @@ from clothbench.backends import BackendOptions
 from clothbench.cli import main
 from clothbench.harness import simulate
 from clothbench.harness.energy import energy_problem, total_energy
+from clothbench.harness.plan import Variant, plan_variants
 from clothbench.scene import Scene, load_scene
+from clothbench.solver import Pbd
+from conftest import VERLET, setup
 
-F64 = Variant("numpy", BackendOptions(precision="f64"), (("precision", "f64"),))
-PBD_F32 = Variant("numpy", BackendOptions(precision="f32"), (("precision", "f32"),), "pbd", "jacobi")
-PBD_F64 = Variant("numpy", BackendOptions(precision="f64"), (("precision", "f64"),), "pbd", "coloured")
+F64 = Variant("numpy", BackendOptions(precision="f64"), VERLET, "f64")
+PBD_F32 = Variant("numpy", BackendOptions(precision="f32"), Pbd(method="jacobi"), "f32")
+PBD_F64 = Variant("numpy", BackendOptions(precision="f64"), Pbd(method="coloured"), "f64")
 
 
 @pytest.mark.parametrize("order", [1.0, 2.0, 4.0])
@@ -97,8 +96,8 @@ def test_stability_scenes_start_in_equilibrium_where_they_claim_to():
 
 
 def test_converged_reference_of_a_short_drape():
-    scene = load_scene("drape").replace(grid=8)
-    ref = converged_reference(scene, 0.02, 2.5e-4)
+    drape = setup("drape", 8)
+    ref = converged_reference(drape.scene, drape.solver, 0.02, 2.5e-4)
     assert ref.converged and ref.order == pytest.approx(1.0, abs=0.1)  # start = rest
     assert ref.uncertainty < 1e-8
 
@@ -107,18 +106,18 @@ def test_energy_of_free_fall_is_constant_and_a_blow_up_is_caught():
     # flat sheet, b = 0, no pins: no spring stretches, gravity is linear, so the averaged
     # potential makes Verlet's energy exact to float64 rounding
     scene = Scene(grid=8, damping=0.0)
-    e0 = total_energy(*scene.initial_state(), scene).total
-    pos, prev = simulate("numpy", scene, 300, BackendOptions(precision="f64"))
-    assert total_energy(pos, prev, scene).total == pytest.approx(e0, abs=1e-9)
-    assert energy_problem(pos, prev, scene, 300) is None
+    e0 = total_energy(*VERLET.initial_state(scene), scene, VERLET.dt).total
+    pos, prev = simulate("numpy", scene, VERLET, 300, BackendOptions(precision="f64"))
+    assert total_energy(pos, prev, scene, VERLET.dt).total == pytest.approx(e0, abs=1e-9)
+    assert energy_problem(pos, prev, scene, VERLET, 300) is None
     pos = pos.copy()
     pos[5, :3] += 10.0  # one particle 10 m off in one step: 2e4 m/s, springs torn
-    assert "total energy grew" in energy_problem(pos, prev, scene, 300)
+    assert "total energy grew" in energy_problem(pos, prev, scene, VERLET, 300)
 
 
 def test_numpy_variants_are_f32_and_f64():
-    variants, _ = backend_variants(["numpy"])
-    assert [v.options.precision for v in variants] == ["f32", "f64"]
+    variants, _ = plan_variants(["numpy"])
+    assert [v.options.precision for v in variants] == ["f64", "f32"]  # the float64 reference first
 
 
 def test_accuracy_cli_writes_a_csv_and_both_plots(tmp_path, capsys):
@@ -170,24 +169,29 @@ def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
 
 
 def test_pbd_variants_come_from_each_backends_pbd_class():
-    variants, skipped = backend_variants(["numpy"], ("verlet", "pbd"), ("jacobi", "coloured"), (None, 4))
-    pbd = [v for v in variants if v.pbd]
+    from clothbench.cli.accuracy import solvers_from_args
+
+    args = argparse.Namespace(solvers="verlet,pbd", pbd_methods="jacobi,coloured", pbd_iterations=[10, 4])
+    solvers = solvers_from_args(args, VERLET, Pbd())
+    variants, skipped = plan_variants(["numpy"], solvers)
+    pbd = [v for v in variants if v.solver.name == "pbd"]
     assert len(variants) == 2 + 2 * 2 * 2 and len(pbd) == 8 and not skipped
-    assert {(v.pbd_method, v.iterations) for v in pbd} == {
-        ("jacobi", None), ("jacobi", 4), ("coloured", None), ("coloured", 4)
+    assert {(v.solver.method, v.solver.iterations) for v in pbd} == {
+        ("jacobi", 10), ("jacobi", 4), ("coloured", 10), ("coloured", 4)
     }
-    scene = Scene()
-    assert pbd[0].scene(scene).solver == "pbd" and variants[0].scene(scene).solver == "verlet"
-    assert pbd[0].label("f32/pbd-jacobi", scene) == "numpy f32/pbd-jacobi/10it"
-    assert variants[0].label("f32", scene) == "numpy f32"  # Verlet labels are as before
+    assert pbd[0].solver.name == "pbd" and variants[0].solver.name == "verlet"
+    f32 = [v for v in variants if v.options.precision == "f32"]
+    assert f32[1].name == "numpy f32/pbd-jacobi/10it"
+    assert f32[0].name == "numpy f32"  # Verlet labels are as before
 
 
 def test_a_backend_without_a_pbd_class_is_skipped_and_said(monkeypatch):
-    import clothbench.accuracy as acc
+    import clothbench.harness.plan as plan
+    from clothbench.backends import Availability
 
-    monkeypatch.setattr(acc, "backend_class", lambda name, solver="verlet": None if solver == "pbd" else object)
-    monkeypatch.setattr(acc, "availability", lambda name: type("A", (), {"usable": True, "reason": ""})())
-    variants, skipped = acc.backend_variants(["numpy"], ("pbd",))
+    monkeypatch.setitem(plan.BACKENDS, "numpy", dataclasses.replace(plan.BACKENDS["numpy"], pbd=None))
+    monkeypatch.setattr(plan, "availability", lambda name: Availability(True))
+    variants, skipped = plan.plan_variants(["numpy"], (Pbd(),))
     assert variants == [] and skipped == [("numpy (pbd)", "numpy has no pbd solver")]
 
 
@@ -206,20 +210,21 @@ def test_pbd_from_a_strained_start_is_not_called_a_blow_up_but_an_explosion_is()
     # the crumpled sheet springs open: motion from the strain energy it held, not a blow-up.
     # The harness's PBD check (kinetic + gravity against a scale without strain energy)
     # would call this unstable at step 10.
-    scene = stability_scene("crumpled", 1e5, grid=8).replace(solver="pbd", dt=1e-3)
+    scene = stability_scene("crumpled", 1e5, grid=8)
+    solver = Pbd(dt=1e-3)
     start = stability_state(scene, "crumpled")
-    assert energy_problem(*_run(scene, start, 10), scene, 10, start=start) is not None
-    assert is_stable(PBD_F64, scene, start, 100, chunk=10)[0]
+    assert energy_problem(*_run(scene, solver, start, 10), scene, solver, 10, start=start) is not None
+    assert is_stable(PBD_F64, scene, solver, start, 100, chunk=10)[0]
     pos, prev = start[0].copy(), start[1].copy()
-    assert stability_problem(pos, prev, scene, 1, start) is None
+    assert stability_problem(pos, prev, scene, solver, 1, start) is None
     pos[3, :3] += 5.0  # 5 m in one 1 ms step: 5 km/s
-    assert "grew" in stability_problem(pos, prev, scene, 1, start)
+    assert "grew" in stability_problem(pos, prev, scene, solver, 1, start)
 
 
-def _run(scene, start, steps):
+def _run(scene, solver, start, steps):
     from clothbench.backends import create_backend
 
-    with create_backend("numpy", scene, PBD_F64.options) as b:
+    with create_backend("numpy", scene, solver, PBD_F64.options) as b:
         b.upload(*start)
         b.advance(steps)
         return b.read()
@@ -288,9 +293,8 @@ def test_stability_cli_shows_both_solvers_side_by_side_and_marks_60hz(tmp_path, 
 
 
 def test_pbd_is_softer_at_few_iterations_and_damps_at_a_large_step():
-    from clothbench.accuracy import solver_artefacts
-
-    verlet, few, many = solver_artefacts(load_scene("drape").replace(grid=6), ("coloured",), (2, 30), (DT_60HZ,))
+    drape = setup("drape", 6)
+    verlet, few, many = solver_artefacts(drape.scene, drape.pbd, ("coloured",), (2, 30), (DT_60HZ,))
     assert verlet.model == "verlet" and abs(verlet.energy_change) < 1e-3  # symplectic: keeps its energy
     assert few.strain_ratio > 5 and many.strain_ratio < 1.5  # unresolved constraints stretch
     assert few.settle_speed < 0.05 and verlet.settle_speed < 0.05  # at rest when the strain is read

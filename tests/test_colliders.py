@@ -8,6 +8,8 @@ from clothbench.errors import SceneError
 from clothbench.harness import max_penetration, simulate
 from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
+from conftest import VERLET, setup
+
 F64 = BackendOptions(precision="f64")
 F32 = BackendOptions(precision="f32")
 
@@ -17,7 +19,7 @@ def one_step(scene, points):
     pos, prev = scene.initial_state(np.float64)
     pos[: len(points), :3] = points
     prev[: len(points), :3] = points
-    with create_backend("numpy", scene, F64) as b:
+    with create_backend("numpy", scene, VERLET, F64) as b:
         b.upload(pos, prev)
         b.advance(1)
         return b.read()[0][: len(points), :3]
@@ -56,8 +58,9 @@ def test_plane_is_one_sided():
 
 @pytest.mark.parametrize("name", ["sphere", "cylinder", "curtain"])
 def test_builtin_scenes_end_with_no_particle_inside_a_collider(name):
-    s = load_scene(name).replace(grid=24, steps=1500)
-    pos, _ = simulate("numpy", s, s.steps, F32)
+    run = setup(name, 24)
+    s = run.scene
+    pos, _ = simulate("numpy", s, run.solver, 1500, F32)
     assert np.isfinite(pos).all()
     # the cloth must actually reach a collider for this to mean anything
     assert _closest_approach(pos, s) < 0.02
@@ -77,8 +80,8 @@ def _closest_approach(pos, s):
 
 
 def test_cylinder_scene_reaches_the_floor():
-    s = load_scene("cylinder").replace(grid=16, steps=6000)
-    pos, _ = simulate("numpy", s, s.steps, F32)
+    run = setup("cylinder", 16)
+    pos, _ = simulate("numpy", run.scene, run.solver, 6000, F32)
     assert pos[:, 1].min() == pytest.approx(0.0, abs=0.01)
     assert pos[:, 1].min() >= 0.0
 

@@ -4,8 +4,8 @@
    strict and fast mode, specialised for a scene and generic, with and without normals,
    with no warning; the strict PTX has no fused multiply-add; a specialised build holds no
    code for the collider kinds its scene lacks.
-2. g++ compiles the same source, unmodified, with clothbench/cuda_shim/shim.h and the same
-   -D switches (cuda.kernel_defines) into a shared library; PingPong (the CuPy backend's
+2. g++ compiles the same source, unmodified, with clothbench/backends/cuda/shim/shim.h and the
+   same -D switches (cuda.kernel_defines) into a shared library; PingPong (the CuPy backend's
    own host logic: argument list, launch geometry, swap or copy) drives it through ctypes,
    and the strict result equals the NumPy float32 reference bit for bit, with every
    collider kind, specialised and generic; the normals equal docs/normals.md in float32.
@@ -29,22 +29,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import clothbench
 from clothbench.backends import BackendOptions, availability, create_backend
-from clothbench.backends import cuda
-from clothbench.backends.cuda import PingPong, compile_options
+from clothbench.backends.cuda import verlet as cuda
+from clothbench.backends.cuda.verlet import PingPong, compile_options
 from clothbench.errors import ClothbenchError
 from clothbench.harness import max_penetration, position_error, reference, run_timed, simulate
 from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import kernel_path
 from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
-from conftest import assert_bit_exact, bent_state, require, sphere
+from conftest import VERLET, assert_bit_exact, bent_state, require, setup, sphere
 
 KERNEL = kernel_path(cuda.KERNEL_FILE)
-SHIM = Path(clothbench.__file__).parent / "cuda_shim"
+SHIM = Path(cuda.__file__).parent / "shim"
 MODES = {"strict": True, "fast": False}
 BUILDS = {"specialised": False, "generic": True}  # the value of BackendOptions.generic
+SPHERE_STEPS = setup("sphere").steps  # the run length the scene file gives
 
 # Fast mode is another float32 computation (approximate rsqrt, contraction), so it is held
 # to float32's own accuracy: its distance to the float64 reference may be at most this many
@@ -55,8 +55,8 @@ FAST_ERROR_FACTOR = 10
 
 
 def assert_as_accurate_as_float32(pos, scene: Scene, steps: int) -> None:
-    f64 = reference(scene, steps, "f64")[0]
-    f32_rms, f32_max = position_error(reference(scene, steps, "f32")[0], f64)
+    f64 = reference(scene, VERLET, steps, "f64")[0]
+    f32_rms, f32_max = position_error(reference(scene, VERLET, steps, "f32")[0], f64)
     rms, worst = position_error(pos, f64)
     assert worst <= FAST_ERROR_FACTOR * f32_max, f"max error {worst:.3g} m, float32's {f32_max:.3g} m"
     assert rms <= FAST_ERROR_FACTOR * f32_rms, f"RMS error {rms:.3g} m, float32's {f32_rms:.3g} m"
@@ -94,7 +94,7 @@ def touching(pos: np.ndarray, scene: Scene) -> list[int]:
 
 
 def state_after(pingpong: PingPong, scene: Scene, steps: int):
-    pingpong.upload(*scene.initial_state(np.float32))
+    pingpong.upload(*VERLET.initial_state(scene, np.float32))
     for _ in range(steps):
         pingpong.step()
     return pingpong.read()
@@ -113,7 +113,7 @@ def variant_id(variant) -> str:
 
 def nvcc_build(scene: Scene, strict: bool, generic: bool, normals: bool, out: Path):
     """nvcc -ptx -arch=sm_80 with the backend's options and -D switches: (process, PTX)."""
-    defines = [cuda._nvcc_escaped(d) for d in cuda.kernel_defines(scene, normals, generic)]
+    defines = [cuda._nvcc_escaped(d) for d in cuda.kernel_defines(scene, VERLET, normals, generic)]
     cmd = ["nvcc", "-ptx", "-arch=sm_80", *compile_options(strict), *defines,
            "-Werror", "all-warnings", "-o", str(out), str(KERNEL)]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -181,7 +181,8 @@ def test_sphere_only_build_holds_no_cylinder_or_plane_code(tmp_path):
     # preprocessed: the specialised source keeps the sphere and drops the other kinds and
     # the normals; the generic one keeps every kind. g++ -E runs the same #if switches.
     def preprocessed(scene, generic, normals=False):
-        cmd = [_gxx(), "-E", "-P", "-x", "c++", *cuda.kernel_defines(scene, normals, generic), str(KERNEL)]
+        defines = cuda.kernel_defines(scene, VERLET, normals, generic)
+        cmd = [_gxx(), "-E", "-P", "-x", "c++", *defines, str(KERNEL)]
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
         return done.stdout
@@ -203,14 +204,18 @@ def test_sphere_only_build_holds_no_cylinder_or_plane_code(tmp_path):
 
 def test_generic_defines_are_one_key_and_specialised_ones_name_the_scene():
     a, b = sphere(32), every_kind(32)
-    assert cuda.kernel_defines(a, generic=True) == cuda.kernel_defines(b, generic=True) == ("-DCLOTH_GENERIC",)
-    assert cuda.kernel_defines(a) != cuda.kernel_defines(b)
-    assert cuda.kernel_defines(a) != cuda.kernel_defines(a.replace(dt=4e-4))
-    assert cuda.kernel_defines(a) != cuda.kernel_defines(sphere(33))
-    assert cuda.kernel_defines(a, normals=True) == ("-DCLOTH_NORMALS", *cuda.kernel_defines(a))
+
+    def key(scene, solver=VERLET, **switches):
+        return cuda.kernel_defines(scene, solver, **switches)
+
+    assert key(a, generic=True) == key(b, generic=True) == ("-DCLOTH_GENERIC",)
+    assert key(a) != key(b)
+    assert key(a) != key(a, VERLET.replace(dt=4e-4))
+    assert key(a) != key(sphere(33))
+    assert key(a, normals=True) == ("-DCLOTH_NORMALS", *key(a))
 
     def values(scene):
-        return dict(d[2:].split("=", 1) for d in cuda.kernel_defines(scene))
+        return dict(d[2:].split("=", 1) for d in key(scene))
 
     def floats(literal: str) -> list[np.float32]:  # "{{0x1p-1f,...},...}" back to float32
         items = literal.replace("{", "").replace("}", "").split(",")
@@ -243,7 +248,7 @@ def test_backend_compiles_the_kernel_the_way_it_loads_it(using):
         pytest.skip("libnvrtc not loadable (pip install nvidia-cuda-nvrtc-cu12)")
     if using == "nvcc" and not cuda._nvcc_available():
         pytest.skip("nvcc not found by cupy")
-    specialised = cuda.kernel_defines(every_kind(), normals=True)
+    specialised = cuda.kernel_defines(every_kind(), VERLET, normals=True)
     strict_ptx = cuda.compile_kernel(True, "80", using, "ptx", specialised).decode()
     assert "fma." not in strict_ptx and "sqrt.rn.f32" in strict_ptx
     assert entry_parameters(strict_ptx) == 5 and " cylinders[48]" in strict_ptx
@@ -255,9 +260,9 @@ def test_compiled_kernels_are_cached_by_their_specialisation():
     pytest.importorskip("cupy", reason="cupy not installed (pip install -e '.[cuda]')")
     using = cuda.compiler() or pytest.skip("no CUDA compiler")
     before = cuda.compile_kernel.cache_info()
-    first = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(20)))
-    again = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(20)))
-    other = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(21)))
+    first = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(20), VERLET))
+    again = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(20), VERLET))
+    other = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(21), VERLET))
     after = cuda.compile_kernel.cache_info()
     assert again is first and other != first
     assert (after.hits - before.hits, after.misses - before.misses) == (1, 2)
@@ -279,7 +284,7 @@ def _gxx():
 def test_unmodified_kernel_compiles_with_the_shim(tmp_path, build):
     # the header's promise, as its comment writes it
     cmd = [_gxx(), *GXX_FLAGS, "-x", "c++", "-include", str(SHIM / "shim.h"),
-           *cuda.kernel_defines(every_kind(), generic=BUILDS[build]), str(KERNEL),
+           *cuda.kernel_defines(every_kind(), VERLET, generic=BUILDS[build]), str(KERNEL),
            "-c", "-o", str(tmp_path / "verlet_cloth.o")]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -368,8 +373,8 @@ def cpu_pingpong(shim_library):
     on a fresh CpuShimRuntime of the CPU build for exactly that scene and those switches."""
 
     def make(scene: Scene, strict=True, generic=False, normals=False, **options) -> PingPong:
-        lib = shim_library(strict, cuda.kernel_defines(scene, normals, generic))
-        return PingPong(CpuShimRuntime(lib), scene, generic=generic, normals=normals, **options)
+        lib = shim_library(strict, cuda.kernel_defines(scene, VERLET, normals, generic))
+        return PingPong(CpuShimRuntime(lib), scene, VERLET, generic=generic, normals=normals, **options)
 
     return make
 
@@ -379,13 +384,13 @@ def cpu_pingpong(shim_library):
 def test_strict_kernel_on_cpu_matches_numpy_bit_for_bit(cpu_pingpong, n, transfer):
     scene = sphere(n)
     pp = cpu_pingpong(scene, transfer=transfer)
-    pp.upload(*scene.initial_state(np.float32))
+    pp.upload(*VERLET.initial_state(scene, np.float32))
     pp.step()
-    for got, want, what in zip(pp.read(), reference(scene, 1, "f32"), ("pos", "prev")):
+    for got, want, what in zip(pp.read(), reference(scene, VERLET, 1, "f32"), ("pos", "prev")):
         assert_bit_exact(got, want, f"{what} after 1 step, n={n}, {transfer}")
     for _ in range(499):
         pp.step()
-    for got, want, what in zip(pp.read(), reference(scene, 500, "f32"), ("pos", "prev")):
+    for got, want, what in zip(pp.read(), reference(scene, VERLET, 500, "f32"), ("pos", "prev")):
         assert_bit_exact(got, want, f"{what} after 500 steps, n={n}, {transfer}")
     assert pp.runtime.launches == 500
 
@@ -396,7 +401,7 @@ def test_a_block_that_does_not_divide_the_grid_changes_nothing(cpu_pingpong):
     pp = cpu_pingpong(scene, block=100)
     assert (pp.grid, pp.block) == (11, 100)
     pos, prev = state_after(pp, scene, 50)
-    assert_bit_exact(pos, reference(scene, 50, "f32")[0], "pos, block 100")
+    assert_bit_exact(pos, reference(scene, VERLET, 50, "f32")[0], "pos, block 100")
 
 
 def overlapping_spheres() -> Scene:
@@ -414,8 +419,8 @@ def overlapping_spheres() -> Scene:
 def test_strict_kernel_on_cpu_matches_numpy_in_other_scenes(cpu_pingpong, make_scene):
     scene = make_scene()
     pos, prev = state_after(cpu_pingpong(scene), scene, 300)
-    assert_bit_exact(pos, reference(scene, 300, "f32")[0], f"pos, {scene.name}")
-    assert_bit_exact(prev, reference(scene, 300, "f32")[1], f"prev, {scene.name}")
+    assert_bit_exact(pos, reference(scene, VERLET, 300, "f32")[0], f"pos, {scene.name}")
+    assert_bit_exact(prev, reference(scene, VERLET, 300, "f32")[1], f"prev, {scene.name}")
 
 
 COLLIDER_SCENES = {
@@ -429,7 +434,7 @@ COLLIDER_SCENES = {
 def test_strict_kernel_on_cpu_matches_numpy_with_every_collider_kind(cpu_pingpong, name, build):
     make_scene, steps = COLLIDER_SCENES[name]
     scene = make_scene()
-    ref_pos, ref_prev = reference(scene, steps, "f32")
+    ref_pos, ref_prev = reference(scene, VERLET, steps, "f32")
     assert all(touching(ref_pos, scene)), f"{name}: a collider holds no particle, the test proves less"
     pos, prev = state_after(cpu_pingpong(scene, generic=BUILDS[build]), scene, steps)
     assert_bit_exact(pos, ref_pos, f"pos, {name}, {build}")
@@ -445,7 +450,7 @@ def test_specialised_and_generic_kernels_agree(cpu_pingpong, mode):
     specialised = cpu_pingpong(scene, strict=MODES[mode])
     generic = cpu_pingpong(scene, strict=MODES[mode], generic=True)
     for pp in (specialised, generic):
-        pp.upload(*scene.initial_state(np.float32))
+        pp.upload(*VERLET.initial_state(scene, np.float32))
     for step in range(1, ALL_KINDS_STEPS + 1):
         specialised.step()
         generic.step()
@@ -459,7 +464,7 @@ def test_specialised_and_generic_kernels_agree(cpu_pingpong, mode):
 def one_step_both(pingpong: PingPong, scene, pos, prev):
     pingpong.upload(pos, prev)
     pingpong.step()
-    with create_backend("numpy", scene, BackendOptions(precision="f32")) as b:
+    with create_backend("numpy", scene, VERLET, BackendOptions(precision="f32")) as b:
         b.upload(pos, prev)
         b.advance(1)
         return pingpong.read()[0], b.read()[0]
@@ -467,7 +472,7 @@ def one_step_both(pingpong: PingPong, scene, pos, prev):
 
 def test_coincident_particles_take_the_documented_branch(cpu_pingpong):
     scene = Scene(grid=4, damping=0.01)
-    pos, prev = scene.initial_state(np.float32)
+    pos, prev = VERLET.initial_state(scene, np.float32)
     pos[5, :3] = pos[6, :3]  # a structural spring of length 0: no spring force, damping still
     prev[5, :3] = prev[6, :3]
     got, want = one_step_both(cpu_pingpong(scene), scene, pos, prev)
@@ -479,7 +484,7 @@ def test_particle_at_sphere_centre_goes_straight_up(cpu_pingpong):
     # no springs, no gravity, no damping: the particle stays exactly at the centre until collided
     scene = Scene(grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0),
                   spheres=(Sphere((0.5, 1.0, 0.5), 0.25),))
-    pos, prev = scene.initial_state(np.float32)  # particle 4 sits exactly at the centre
+    pos, prev = VERLET.initial_state(scene, np.float32)  # particle 4 sits exactly at the centre
     got, want = one_step_both(cpu_pingpong(scene), scene, pos, prev)
     assert np.array_equal(got[4, :3], np.float32([0.5, 1.25, 0.5]))
     assert_bit_exact(got, want, "pos with a particle at the centre")
@@ -529,9 +534,9 @@ def test_every_collider_branch_matches_numpy(cpu_pingpong, build):
 
 def test_fast_kernel_on_cpu_is_as_accurate_as_float32(cpu_pingpong):
     scene = sphere(64)
-    fast, _ = state_after(cpu_pingpong(scene, strict=False), scene, scene.steps)
-    assert_as_accurate_as_float32(fast, scene, scene.steps)
-    assert not np.array_equal(fast, reference(scene, scene.steps, "f32")[0])  # the fast path ran
+    fast, _ = state_after(cpu_pingpong(scene, strict=False), scene, SPHERE_STEPS)
+    assert_as_accurate_as_float32(fast, scene, SPHERE_STEPS)
+    assert not np.array_equal(fast, reference(scene, VERLET, SPHERE_STEPS, "f32")[0])  # the fast path ran
 
 
 def test_fast_kernel_on_cpu_with_every_kind_is_as_accurate_as_float32(cpu_pingpong):
@@ -588,7 +593,7 @@ NORMAL_TOLERANCE = 1e-6
 @pytest.mark.parametrize("mode", MODES)
 def test_flat_sheet_normals_point_straight_up(cpu_pingpong, mode, build):
     scene = sphere(33)
-    pos, _ = scene.initial_state(np.float32)
+    pos, _ = VERLET.initial_state(scene, np.float32)
     normals = normals_on_cpu(cpu_pingpong, scene, pos, MODES[mode], BUILDS[build])
     assert np.all(normals[:, [0, 2]] == 0)
     if mode == "strict":  # y / sqrt(y*y) is exactly 1 in IEEE arithmetic
@@ -628,7 +633,7 @@ def test_normals_belong_to_the_positions_the_last_step_read(cpu_pingpong, transf
 def test_normals_do_not_change_the_step(cpu_pingpong, build):
     scene = every_kind(32)
     pos, prev = state_after(cpu_pingpong(scene, generic=BUILDS[build], normals=True), scene, 100)
-    assert_bit_exact(pos, reference(scene, 100, "f32")[0], f"pos with normals on, {build}")
+    assert_bit_exact(pos, reference(scene, VERLET, 100, "f32")[0], f"pos with normals on, {build}")
 
 
 def test_without_normals_there_is_no_normal_buffer(cpu_pingpong):
@@ -736,7 +741,7 @@ def cuda_on_cpu(shim_library, monkeypatch):
         monkeypatch.setitem(sys.modules, "cupy", stand_in_cupy(load_kernel))
         monkeypatch.setattr(cuda, "compiler", lambda: "stand-in")
         monkeypatch.setattr(cuda, "compile_kernel", compile_kernel)
-        backend = cuda.CudaBackend(scene, BackendOptions(**options))
+        backend = cuda.CudaBackend(scene, VERLET, BackendOptions(**options))
         assert compiled[-1] == (bool(options.get("strict")), backend.defines)
         return backend, backend.state.runtime.kernel.runtime
 
@@ -748,16 +753,16 @@ def test_cuda_backend_host_code_matches_numpy_on_the_cpu_build(cuda_on_cpu, tran
     scene = sphere(32)
     backend, runtime = cuda_on_cpu(scene, strict=True, transfer=transfer)
     with backend:
-        assert backend.mode == f"strict/{transfer}/bs=auto"
-        backend.upload(*scene.initial_state(np.float32))
+        assert backend.mode == f"strict/{transfer}/ls={cuda.AUTO_BLOCK}"
+        backend.upload(*VERLET.initial_state(scene, np.float32))
         backend.advance(1)
-        assert_bit_exact(backend.read()[0], reference(scene, 1, "f32")[0], "pos after 1 step")
+        assert_bit_exact(backend.read()[0], reference(scene, VERLET, 1, "f32")[0], "pos after 1 step")
         backend.advance(499)
         backend.synchronize()
         pos, prev = backend.read()
         copies = sys.modules["cupy"].cuda.runtime.copies
-    assert_bit_exact(pos, reference(scene, 500, "f32")[0], "pos after 500 steps")
-    assert_bit_exact(prev, reference(scene, 500, "f32")[1], "prev after 500 steps")
+    assert_bit_exact(pos, reference(scene, VERLET, 500, "f32")[0], "pos after 500 steps")
+    assert_bit_exact(prev, reference(scene, VERLET, 500, "f32")[1], "prev after 500 steps")
     assert runtime.launches == 500
     assert copies == (2 * 500 if transfer == "copy" else 0)  # both buffers, every step
 
@@ -767,41 +772,41 @@ def test_cuda_backend_runs_every_collider_kind(cuda_on_cpu, build):
     # the backend no longer refuses cylinders and planes, specialised or generic
     scene = every_kind(32)
     backend, runtime = cuda_on_cpu(scene, strict=True, generic=BUILDS[build], normals=True)
-    assert backend.defines == cuda.kernel_defines(scene, normals=True, generic=BUILDS[build])
+    assert backend.defines == cuda.kernel_defines(scene, VERLET, normals=True, generic=BUILDS[build])
     with backend:
-        assert backend.mode == "strict/normals" + ("/generic" if BUILDS[build] else "") + "/swap/bs=auto"
-        backend.upload(*scene.initial_state(np.float32))
+        generic = "/generic" if BUILDS[build] else ""
+        assert backend.mode == f"strict/normals{generic}/swap/ls={cuda.AUTO_BLOCK}"
+        backend.upload(*VERLET.initial_state(scene, np.float32))
         assert backend.read_normals() is None
         backend.advance(ALL_KINDS_STEPS)
         pos, prev = backend.read()
         normals = backend.read_normals()
-    assert_bit_exact(pos, reference(scene, ALL_KINDS_STEPS, "f32")[0], f"pos, {build}")
+    assert_bit_exact(pos, reference(scene, VERLET, ALL_KINDS_STEPS, "f32")[0], f"pos, {build}")
     assert_bit_exact(normals[:, :3], grid_normals(prev, 32, np.float32), f"normals, {build}")
     assert runtime.signature.startswith("ppppp")  # the normal buffer is the fifth argument
 
 
 def test_cuda_backend_reports_event_times_per_chunk(cuda_on_cpu):
-    scene = sphere(16).replace(steps=20)
-    backend, _ = cuda_on_cpu(scene, local_size=64)
+    backend, _ = cuda_on_cpu(sphere(16), local_size=64)
     with backend:
         assert backend.device_elapsed_ms() is None  # nothing timed yet
         assert backend.read_normals() is None  # not asked for
-        result = run_timed(backend, scene, scene.steps, chunk=5)
-    assert result.mode == "fast/swap/bs=64"
+        result = run_timed(backend, 20, chunk=5)
+    assert result.mode == "fast/swap/ls=64"
     assert len(result.device_ms_per_step) == 4 and all(t > 0 for t in result.device_ms_per_step)
 
 
 def test_cuda_backend_generic_mode_says_so(cuda_on_cpu):
     backend, runtime = cuda_on_cpu(sphere(8), generic=True, transfer="copy", local_size=32)
-    assert backend.mode == "fast/generic/copy/bs=32"
+    assert backend.mode == "fast/generic/copy/ls=32"
     assert backend.defines == ("-DCLOTH_GENERIC",) and len(runtime.signature) > 4
 
 
 @pytest.mark.parametrize(
     "options, message",
     [
-        ({"transfer": "per-step"}, "cuda --transfer must be swap or copy, got 'per-step'"),
-        ({"precision": "f64"}, "cuda runs in f32 only"),
+        ({"transfer": "per-step"}, r"cuda does not take --transfer per-step \(it takes: swap, copy\)"),
+        ({"precision": "f64"}, r"cuda does not take --precision f64 \(it takes: f32;"),
         ({"local_size": 2048}, r"cuda --local-size must be 1 \.\. 1024 here, got 2048"),
         ({"device": "gpu0"}, "cuda --device must be a device index"),
     ],
@@ -814,48 +819,19 @@ def test_cuda_backend_refuses_bad_options_in_one_line(cuda_on_cpu, options, mess
 # --- 3. on a CUDA device (skipped here) ------------------------------------------------
 
 
-@pytest.mark.parametrize("steps", [1, 500])
-@pytest.mark.parametrize("n", [32, 64])
-def test_cuda_strict_matches_numpy_bit_for_bit(n, steps):
-    require("cuda")
-    scene = sphere(n)
-    pos, prev = simulate("cuda", scene, steps, BackendOptions(strict=True))
-    assert_bit_exact(pos, reference(scene, steps, "f32")[0], f"pos after {steps} steps, n={n}")
-    assert_bit_exact(prev, reference(scene, steps, "f32")[1], f"prev after {steps} steps, n={n}")
-
-
 def test_cuda_fast_is_as_accurate_as_float32():
     require("cuda")
     scene = sphere(64)
-    pos, _ = simulate("cuda", scene, scene.steps, BackendOptions(strict=False))
-    assert_as_accurate_as_float32(pos, scene, scene.steps)
-
-
-@pytest.mark.parametrize("strict", [True, False], ids=["strict", "fast"])
-def test_cuda_copy_transfer_equals_pointer_swap(strict):
-    # copying out to in moves the same bits the swap exchanges: the result cannot change
-    require("cuda")
-    scene = sphere(32)
-    swap = simulate("cuda", scene, 100, BackendOptions(strict=strict, transfer="swap"))
-    copy = simulate("cuda", scene, 100, BackendOptions(strict=strict, transfer="copy"))
-    assert_bit_exact(copy[0], swap[0], "pos, copy vs swap")
-    assert_bit_exact(copy[1], swap[1], "prev, copy vs swap")
-
-
-def test_cuda_block_size_does_not_change_the_result():
-    require("cuda")
-    scene = sphere(32)
-    auto = simulate("cuda", scene, 50, BackendOptions(strict=True))
-    odd = simulate("cuda", scene, 50, BackendOptions(strict=True, local_size=100))
-    assert_bit_exact(odd[0], auto[0], "pos, block 100 vs auto")
+    pos, _ = simulate("cuda", scene, VERLET, SPHERE_STEPS, BackendOptions(strict=False))
+    assert_as_accurate_as_float32(pos, scene, SPHERE_STEPS)
 
 
 def test_cuda_timing_reports_positive_times():
     require("cuda")
-    scene = sphere(64).replace(steps=40)
-    with create_backend("cuda", scene, BackendOptions(transfer="copy", local_size=128)) as b:
-        assert b.mode == "fast/copy/bs=128"
-        result = run_timed(b, scene, scene.steps, chunk=10)
+    scene = sphere(64)
+    with create_backend("cuda", scene, VERLET, BackendOptions(transfer="copy", local_size=128)) as b:
+        assert b.mode == "fast/copy/ls=128"
+        result = run_timed(b, 40, chunk=10)
     assert len(result.chunk_ms_per_step) == 4 and all(t > 0 for t in result.chunk_ms_per_step)
     assert len(result.device_ms_per_step) == 4 and all(t > 0 for t in result.device_ms_per_step)
 
@@ -866,16 +842,16 @@ def test_cuda_strict_matches_numpy_with_every_collider_kind(name, build):
     require("cuda")
     make_scene, steps = COLLIDER_SCENES[name]
     scene = make_scene()
-    pos, prev = simulate("cuda", scene, steps, BackendOptions(strict=True, generic=BUILDS[build]))
-    assert_bit_exact(pos, reference(scene, steps, "f32")[0], f"pos, {name}, {build}")
+    pos, prev = simulate("cuda", scene, VERLET, steps, BackendOptions(strict=True, generic=BUILDS[build]))
+    assert_bit_exact(pos, reference(scene, VERLET, steps, "f32")[0], f"pos, {name}, {build}")
     assert max_penetration(pos, scene) < PENETRATION_TOLERANCE
 
 
 def test_cuda_specialised_equals_generic_bit_for_bit():
     require("cuda")
     scene = every_kind(64)
-    specialised = simulate("cuda", scene, ALL_KINDS_STEPS, BackendOptions(strict=True))
-    generic = simulate("cuda", scene, ALL_KINDS_STEPS, BackendOptions(strict=True, generic=True))
+    specialised = simulate("cuda", scene, VERLET, ALL_KINDS_STEPS, BackendOptions(strict=True))
+    generic = simulate("cuda", scene, VERLET, ALL_KINDS_STEPS, BackendOptions(strict=True, generic=True))
     assert_bit_exact(specialised[0], generic[0], "pos, specialised vs generic")
 
 
@@ -883,7 +859,8 @@ def test_cuda_specialised_equals_generic_bit_for_bit():
 def test_cuda_strict_normals_equal_the_formula_in_float32(build):
     require("cuda")
     scene, pos = bent_state(29)
-    with create_backend("cuda", scene, BackendOptions(strict=True, normals=True, generic=BUILDS[build])) as b:
+    options = BackendOptions(strict=True, normals=True, generic=BUILDS[build])
+    with create_backend("cuda", scene, VERLET, options) as b:
         b.upload(pos, pos)
         b.advance(1)
         normals = b.read_normals()
@@ -923,7 +900,7 @@ def test_without_cupy_the_module_imports_and_says_how_to_install():
     code = (
         "import sys; sys.modules['cupy'] = None\n"
         "from clothbench.cli import main\n"
-        "import clothbench.backends.cuda as cuda\n"
+        "import clothbench.backends.cuda.verlet as cuda\n"
         "print(cuda.probe().reason)\n"
         "sys.exit(main(['run', '--backend', 'cuda']))\n"
     )

@@ -7,7 +7,10 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.constraints import DIRECTIONS, coloured_batches
 from clothbench.errors import BlowUp, ClothbenchError
 from clothbench.harness import max_penetration, run_timed, simulate
-from clothbench.scene import Scene, count_springs, load_scene
+from clothbench.scene import Scene, count_springs
+from clothbench.solver import Pbd
+
+from conftest import setup
 
 F32 = BackendOptions(precision="f32")
 
@@ -38,9 +41,9 @@ def test_twelve_colours_are_needed():
 
 
 def curtain_pbd(method, iterations, grid=24, steps=2000):
-    return load_scene("curtain").replace(
-        grid=grid, solver="pbd", pbd_method=method, iterations=iterations, dt=1 / 60, steps=steps
-    )
+    """The curtain file stepped by PBD at 60 Hz: a Setup (scene, solver, steps)."""
+    curtain = setup("curtain", grid)
+    return curtain.replace(solver="pbd", method=method, iterations=iterations, dt=1 / 60, steps=steps)
 
 
 def structural_strain(pos, s):
@@ -53,9 +56,10 @@ def structural_strain(pos, s):
 
 @pytest.mark.parametrize("method", ["jacobi", "coloured"])
 def test_pinned_curtain_at_60hz_stays_bounded(method):
-    s = curtain_pbd(method, iterations=10)
-    with create_backend("numpy", s, F32) as b:
-        result = run_timed(b, s, s.steps)  # raises BlowUp if it is not
+    run = curtain_pbd(method, iterations=10)
+    s = run.scene
+    with create_backend("numpy", s, run.solver, F32) as b:
+        result = run_timed(b, run.steps)  # raises BlowUp if it is not
     pos = result.pos
     assert np.isfinite(pos).all()
     start, _ = s.initial_state(np.float32)
@@ -70,40 +74,40 @@ def test_pinned_curtain_at_60hz_stays_bounded(method):
 def test_constraint_violation_falls_as_iterations_rise(method):
     strains = []
     for iterations in (2, 8, 32):
-        s = curtain_pbd(method, iterations, grid=16, steps=120)
-        pos, _ = simulate("numpy", s, s.steps, F32)
-        strains.append(structural_strain(pos, s))
+        run = curtain_pbd(method, iterations, grid=16, steps=120)
+        pos, _ = simulate("numpy", run.scene, run.solver, run.steps, F32)
+        strains.append(structural_strain(pos, run.scene))
     assert strains[0] > strains[1] > strains[2], strains
 
 
 def test_verlet_at_the_same_dt_and_stiffness_blows_up():
-    s = curtain_pbd("jacobi", 10).replace(solver="verlet", steps=200)
-    with create_backend("numpy", s, F32) as b, pytest.raises(BlowUp) as err:
-        run_timed(b, s, s.steps)
+    run = curtain_pbd("jacobi", 10).replace(solver="verlet", steps=200)
+    with create_backend("numpy", run.scene, run.solver, F32) as b, pytest.raises(BlowUp) as err:
+        run_timed(b, run.steps)
     assert err.value.step < 50
 
 
 def test_gauss_seidel_converges_faster_than_jacobi():
     # at equal iterations the coloured form leaves less constraint violation (docs/pbd.md)
     sj, sc = curtain_pbd("jacobi", 8, grid=16, steps=120), curtain_pbd("coloured", 8, grid=16, steps=120)
-    pj, _ = simulate("numpy", sj, sj.steps, F32)
-    pc, _ = simulate("numpy", sc, sc.steps, F32)
-    assert structural_strain(pc, sc) < structural_strain(pj, sj)
+    pj, _ = simulate("numpy", sj.scene, sj.solver, sj.steps, F32)
+    pc, _ = simulate("numpy", sc.scene, sc.solver, sc.steps, F32)
+    assert structural_strain(pc, sc.scene) < structural_strain(pj, sj.scene)
 
 
 def test_free_fall_without_constraints_matches_symplectic_euler():
     # no damping, compliance so large the constraints do nothing: x_S = x0 + g h^2 S(S+1)/2
-    s = Scene(grid=4, solver="pbd", damping=0.0, compliance=(1e30, 1e30, 1e30), steps=50)
-    pos, _ = simulate("numpy", s, s.steps, BackendOptions(precision="f64"))
-    closed = s.height + s.gravity[1] * s.dt**2 * s.steps * (s.steps + 1) / 2
+    s, solver, steps = Scene(grid=4, damping=0.0), Pbd(compliance=(1e30, 1e30, 1e30)), 50
+    pos, _ = simulate("numpy", s, solver, steps, BackendOptions(precision="f64"))
+    closed = s.height + s.gravity[1] * solver.dt**2 * steps * (steps + 1) / 2
     assert np.abs(pos[:, 1] - closed).max() < 1e-12
 
 
 def test_state_round_trips_through_velocity():
-    s = curtain_pbd("jacobi", 4, grid=8)
-    pos, prev = s.initial_state(np.float64)
+    run = curtain_pbd("jacobi", 4, grid=8)
+    pos, prev = run.scene.initial_state(np.float64)
     prev[:, 1] += 1e-3  # moving down
-    with create_backend("numpy", s, BackendOptions(precision="f64")) as b:
+    with create_backend("numpy", run.scene, run.solver, BackendOptions(precision="f64")) as b:
         b.upload(pos, prev)
         p2, q2 = b.read()
     np.testing.assert_allclose(q2, prev, atol=1e-15)
@@ -111,15 +115,15 @@ def test_state_round_trips_through_velocity():
 
 
 def test_backend_without_pbd_says_which_have_it():
-    s = curtain_pbd("jacobi", 4, grid=8)
+    run = curtain_pbd("jacobi", 4, grid=8)
     with pytest.raises(ClothbenchError, match="has no pbd solver .*numpy"):
-        _create_unusual(s)
+        _create_unusual(run)
 
 
-def _create_unusual(s):
+def _create_unusual(run):
     from clothbench.backends import BACKENDS, availability
 
     for name, entry in BACKENDS.items():
         if entry.pbd is None and availability(name).usable:
-            return create_backend(name, s)
+            return create_backend(name, run.scene, run.solver)
     pytest.skip("every usable backend has a pbd solver")

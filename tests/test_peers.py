@@ -3,11 +3,12 @@ against the NumPy reference. Each test skips with the registry's reason when its
 is missing (pip install -e '.[peers]').
 
 What each peer gives against the NumPy float32 reference, measured:
-- strict (taichi fast_math=False, numba fastmath=False, warp's default): bit for bit,
+- strict (taichi fast_math=False, numba fastmath=False, warp's one kernel): bit for bit,
   except that Taichi flushes subnormal results to zero on its threads (its Program sets
   FTZ) where NumPy keeps them: values of ~1e-37 m near an axis can differ.
-- warp's default: bit for bit as well. Warp has no fast-math knob on the CPU, and its
-  generated C++ makes one inline call per operation, so clang never contracts to FMA.
+- warp fast (its default, the same kernel): bit for bit as well. Warp has no fast-math
+  knob on the CPU, and its generated C++ makes one inline call per operation, so clang
+  never contracts to FMA.
 - taichi's default (fast_math=True) marks every operation `reassoc ninf nsz` in the
   LLVM IR, so LLVM re-associates sums and products (and folds the compiled-in
   constants): up to 2e-6 m after 100 steps at n = 64, growing as the cloth's dynamics
@@ -33,7 +34,7 @@ from clothbench.harness import position_error, reference, simulate
 from clothbench.harness.health import max_penetration
 from clothbench.scene import Cylinder, Plane, Sphere, load_scene
 
-from conftest import assert_bit_exact, require
+from conftest import VERLET, assert_bit_exact, require
 
 PEERS = ("taichi", "warp", "numba")
 FAST_ROUNDS_DIFFERENTLY = ("taichi", "numba")  # warp's default is already IEEE
@@ -49,22 +50,13 @@ def _assert_state_bit_exact(got, want, what):
     assert_bit_exact(got[1], want[1], f"{what} prev")
 
 
-@pytest.mark.parametrize("scene_name", ["sphere", "drape"])
-@pytest.mark.parametrize("name", PEERS)
-def test_strict_peer_matches_numpy_bit_for_bit(name, scene_name):
-    require(name)
-    scene = load_scene(scene_name)
-    got = simulate(name, scene, CONTACT, STRICT)
-    _assert_state_bit_exact(got, reference(scene, CONTACT, "f32"), f"{name} --strict, {scene_name}")
-
-
 @pytest.mark.parametrize("name", PEERS)
 def test_strict_peer_matches_numpy_where_results_underflow(name):
     # at n = 40, after 30 steps, coordinates that started at exactly 0 have drifted to
     # ~1e-37 and their differences pass through the subnormal range (below 1.2e-38)
     require(name)
     scene = load_scene("sphere").replace(grid=40)
-    got, want = simulate(name, scene, 30, STRICT), reference(scene, 30, "f32")
+    got, want = simulate(name, scene, VERLET, 30, STRICT), reference(scene, VERLET, 30, "f32")
     near_zero = (want[0] != 0) & (np.abs(want[0]) < 1e-30)
     assert near_zero.any(), "the case no longer reaches the subnormal range"
     if name != "taichi":
@@ -87,12 +79,13 @@ def test_taichi_leaves_numpys_floating_point_environment_alone():
         import numpy as np
         from clothbench.backends import create_backend
         from clothbench.scene import load_scene
+        from clothbench.solver import Verlet
         def subnormal():
             return np.float32(1e-38) * np.float32(1e-3)
         assert subnormal() != 0
         scene = load_scene("drape").replace(grid=8)
-        with create_backend("taichi", scene) as b:
-            b.upload(*scene.initial_state(np.float32))
+        with create_backend("taichi", scene, Verlet()) as b:
+            b.upload(*b.initial_state())
             b.advance(2)
             b.synchronize()
             print(subnormal() != 0)
@@ -105,8 +98,8 @@ def test_taichi_leaves_numpys_floating_point_environment_alone():
 def test_warp_default_matches_numpy_bit_for_bit(scene_name):
     require("warp")
     scene = load_scene(scene_name)
-    got = simulate("warp", scene, CONTACT)
-    _assert_state_bit_exact(got, reference(scene, CONTACT, "f32"), f"warp default, {scene_name}")
+    got = simulate("warp", scene, VERLET, CONTACT)
+    _assert_state_bit_exact(got, reference(scene, VERLET, CONTACT, "f32"), f"warp default, {scene_name}")
 
 
 @pytest.mark.parametrize("scene_name", ["sphere", "drape"])
@@ -114,9 +107,9 @@ def test_warp_default_matches_numpy_bit_for_bit(scene_name):
 def test_fast_peer_matches_numpy_within_float32_rounding(name, scene_name):
     require(name)
     scene = load_scene(scene_name)
-    f32, f64 = reference(scene, SHORT, "f32")[0], reference(scene, SHORT)[0]
+    f32, f64 = reference(scene, VERLET, SHORT, "f32")[0], reference(scene, VERLET, SHORT)[0]
     budget = position_error(f32, f64)[1]  # how far float32 rounding alone moves the result
-    pos = simulate(name, scene, SHORT)[0]
+    pos = simulate(name, scene, VERLET, SHORT)[0]
     worst = position_error(pos, f32)[1]
     assert worst <= budget, (
         f"{name} fast, {scene_name}: {worst:.3g} m from the numpy float32 state after {SHORT} "
@@ -132,8 +125,8 @@ def test_every_sphere_collides_in_scene_order(name):
     scene = load_scene("sphere").replace(
         spheres=(Sphere((0.5, 0.5, 0.5), 0.3), Sphere((0.65, 0.55, 0.5), 0.25)), grid=32
     )
-    got = simulate(name, scene, CONTACT, STRICT)  # the sheet touches both by then
-    _assert_state_bit_exact(got, reference(scene, CONTACT, "f32"), f"{name} --strict, two spheres")
+    got = simulate(name, scene, VERLET, CONTACT, STRICT)  # the sheet touches both by then
+    _assert_state_bit_exact(got, reference(scene, VERLET, CONTACT, "f32"), f"{name} --strict, two spheres")
 
 
 @pytest.mark.parametrize("name", PEERS)
@@ -142,7 +135,7 @@ def test_pinned_particles_never_move(name):
     scene = load_scene("drape")
     start = scene.initial_state(np.float32)[0]
     pinned = scene.pinned()
-    pos, prev = simulate(name, scene, CONTACT)
+    pos, prev = simulate(name, scene, VERLET, CONTACT)
     assert_bit_exact(pos[pinned], start[pinned], f"{name}: pinned pos")
     assert_bit_exact(prev[pinned], start[pinned], f"{name}: pinned prev")
     free = np.setdiff1d(np.arange(scene.particles), pinned)
@@ -153,7 +146,7 @@ def test_pinned_particles_never_move(name):
 def test_no_particle_ends_inside_the_sphere(name):
     require(name)
     scene = load_scene("sphere")
-    pos = simulate(name, scene, CONTACT)[0]
+    pos = simulate(name, scene, VERLET, CONTACT)[0]
     sphere = scene.spheres[0]
     dist = np.sqrt(((pos[:, :3].astype(np.float64) - sphere.center) ** 2).sum(axis=1))
     assert dist.min() < sphere.radius + 1e-3, f"{name}: the sheet never reached the sphere"
@@ -165,16 +158,16 @@ def test_no_particle_ends_inside_the_sphere(name):
 def test_two_instances_in_one_process_keep_their_own_state(name):
     require(name)
     scenes = [load_scene("sphere").replace(grid=16), load_scene("drape").replace(grid=24)]
-    backends = [create_backend(name, s, STRICT) for s in scenes]
+    backends = [create_backend(name, s, VERLET, STRICT) for s in scenes]
     try:
         for b, s in zip(backends, scenes):
-            b.upload(*s.initial_state(np.float32))
+            b.upload(*b.initial_state())
         for _ in range(5):  # interleaved: neither may disturb the other
             for b in backends:
                 b.advance(20)
         for b, s in zip(backends, scenes):
             b.synchronize()
-            _assert_state_bit_exact(b.read(), reference(s, 100, "f32"), f"{name} n={s.grid}")
+            _assert_state_bit_exact(b.read(), reference(s, VERLET, 100, "f32"), f"{name} n={s.grid}")
     finally:
         for b in backends:
             b.close()
@@ -183,20 +176,13 @@ def test_two_instances_in_one_process_keep_their_own_state(name):
 def test_taichi_refuses_a_second_mode_while_one_is_alive():
     require("taichi")
     scene = load_scene("drape").replace(grid=8)
-    with create_backend("taichi", scene, BackendOptions(strict=False)):
+    with create_backend("taichi", scene, VERLET, BackendOptions(strict=False)):
         with pytest.raises(ClothbenchError, match="close the other taichi backend"):
-            create_backend("taichi", scene, STRICT)
-    with create_backend("taichi", scene, STRICT) as b:  # alone, it may switch
-        b.upload(*scene.initial_state(np.float32))
+            create_backend("taichi", scene, VERLET, STRICT)
+    with create_backend("taichi", scene, VERLET, STRICT) as b:  # alone, it may switch
+        b.upload(*b.initial_state())
         b.advance(10)
-        _assert_state_bit_exact(b.read(), reference(scene, 10, "f32"), "taichi after switching")
-
-
-@pytest.mark.parametrize("name", PEERS)
-def test_peers_refuse_float64(name):
-    require(name)
-    with pytest.raises(ClothbenchError, match="f32 only"):
-        create_backend(name, load_scene("drape"), BackendOptions(precision="f64"))
+        _assert_state_bit_exact(b.read(), reference(scene, VERLET, 10, "f32"), "taichi after switching")
 
 
 @pytest.mark.parametrize("name", PEERS)
@@ -227,9 +213,9 @@ def _tilted():
 
 def _assert_contact(scene, steps, kinds, what):
     """Each of these kinds of collider changes the numpy result: contact really happens."""
-    want = reference(scene, steps, "f32")[0]
+    want = reference(scene, VERLET, steps, "f32")[0]
     for kind in kinds:
-        other = reference(scene.replace(**{kind: ()}), steps, "f32")[0]
+        other = reference(scene.replace(**{kind: ()}), VERLET, steps, "f32")[0]
         assert not np.array_equal(want, other), f"{what}: the cloth never touches the {kind}"
 
 
@@ -249,7 +235,7 @@ def test_no_particle_ends_inside_a_cylinder_plane_or_sphere(name, strict, scene_
     make, kinds = SCENES_WITH_CONTACT[scene_name]
     scene = make()
     _assert_contact(scene, SMALL_CONTACT, kinds, scene_name)
-    pos = simulate(name, scene, SMALL_CONTACT, BackendOptions(strict=strict))[0]
+    pos = simulate(name, scene, VERLET, SMALL_CONTACT, BackendOptions(strict=strict))[0]
     assert np.isfinite(pos).all(), f"{name}: non-finite positions on {scene_name}"
     assert max_penetration(pos, scene) <= 1e-6, (
         f"{name} strict={strict}: a particle is inside a collider ({scene_name})"
@@ -261,8 +247,8 @@ def test_no_particle_ends_inside_a_cylinder_plane_or_sphere(name, strict, scene_
 def test_strict_peer_matches_numpy_bit_for_bit_with_cylinders_and_planes(name, scene_name):
     require(name)
     scene = SCENES_WITH_CONTACT[scene_name][0]()
-    got = simulate(name, scene, SMALL_CONTACT, STRICT)
-    want = reference(scene, SMALL_CONTACT, "f32")
+    got = simulate(name, scene, VERLET, SMALL_CONTACT, STRICT)
+    want = reference(scene, VERLET, SMALL_CONTACT, "f32")
     _assert_state_bit_exact(got, want, f"{name} --strict, {scene_name}")
 
 
@@ -270,15 +256,16 @@ def test_strict_peer_matches_numpy_bit_for_bit_with_cylinders_and_planes(name, s
 def test_warp_default_matches_numpy_bit_for_bit_with_cylinders_and_planes(scene_name):
     require("warp")
     scene = SCENES_WITH_CONTACT[scene_name][0]()
-    got = simulate("warp", scene, SMALL_CONTACT)
-    _assert_state_bit_exact(got, reference(scene, SMALL_CONTACT, "f32"), f"warp default, {scene_name}")
+    got = simulate("warp", scene, VERLET, SMALL_CONTACT)
+    want = reference(scene, VERLET, SMALL_CONTACT, "f32")
+    _assert_state_bit_exact(got, want, f"warp default, {scene_name}")
 
 
 @pytest.mark.parametrize("name", FAST_ROUNDS_DIFFERENTLY)
 def test_fast_peer_matches_numpy_within_float32_rounding_on_cylinder(name):
     require(name)
     scene = load_scene("cylinder")
-    f32, f64 = reference(scene, SHORT, "f32")[0], reference(scene, SHORT)[0]
+    f32, f64 = reference(scene, VERLET, SHORT, "f32")[0], reference(scene, VERLET, SHORT)[0]
     budget = position_error(f32, f64)[1]
-    worst = position_error(simulate(name, scene, SHORT)[0], f32)[1]
+    worst = position_error(simulate(name, scene, VERLET, SHORT)[0], f32)[1]
     assert worst <= budget, f"{name} fast, cylinder: {worst:.3g} m from numpy f32, budget {budget:.3g} m"

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from clothbench.cli import main
-from clothbench.harness.sweep import COLUMNS, csv_line
+from clothbench.harness.sweep_csv import COLUMNS, csv_line
 from clothbench.reports.plots import FILES, plot_sweep, scaling_exponent
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

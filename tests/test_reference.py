@@ -3,11 +3,13 @@
 import numpy as np
 import pytest
 
-from clothbench.backends import BackendOptions
+from clothbench.backends import BackendOptions, create_backend
 from clothbench.errors import BlowUp
-from clothbench.harness import max_penetration, position_error, run_timed, simulate
-from clothbench.backends import create_backend
+from clothbench.harness import max_penetration, position_error, run_timed, simulate, state_problem
 from clothbench.scene import Scene, Sphere, load_scene
+from clothbench.solver import Verlet
+
+from conftest import VERLET, sphere
 
 F32 = BackendOptions(precision="f32")
 F64 = BackendOptions(precision="f64")
@@ -20,9 +22,9 @@ def free_fall_scene(n=16):
 
 def test_free_fall_matches_verlet_closed_form_in_float64():
     # Verlet from rest: y_S = y0 + a*dt^2 * S(S+1)/2, exactly, in real arithmetic.
-    s, steps = free_fall_scene(), 300
-    pos, _ = simulate("numpy", s, steps, F64)
-    closed = s.height + s.gravity[1] * s.dt**2 * steps * (steps + 1) / 2
+    s, steps, dt = free_fall_scene(), 300, VERLET.dt
+    pos, _ = simulate("numpy", s, VERLET, steps, F64)
+    closed = s.height + s.gravity[1] * dt**2 * steps * (steps + 1) / 2
     assert np.abs(pos[:, 1] - closed).max() < 1e-9
 
 
@@ -34,16 +36,16 @@ def test_free_fall_in_float32_follows_the_rounded_recurrence_within_the_derived_
     # g*dt2 rounds by at most ulp(y)/2, an error Verlet carries forward with weight (S - s),
     # plus g and dt2 each rounded once (relative 2^-24): in all
     #   |y_S - closed| <= S(S+1)/2 * (ulp(y0)/2 + 3 * 2^-24 * |g| * dt^2).
-    s, steps = free_fall_scene(), 300
-    pos, _ = simulate("numpy", s, steps, F32)
+    s, steps, dt = free_fall_scene(), 300, VERLET.dt
+    pos, _ = simulate("numpy", s, VERLET, steps, F32)
     y, yp = np.float32(s.height), np.float32(s.height)
-    g_dt2 = np.float32(s.gravity[1]) * np.float32(s.dt * s.dt)
+    g_dt2 = np.float32(s.gravity[1]) * np.float32(dt * dt)
     for _ in range(steps):
         y, yp = (np.float32(2) * y - yp) + g_dt2, y
     assert np.all(pos[:, 1] == y), "every particle must follow the scalar float32 recurrence"
-    closed = s.height + s.gravity[1] * s.dt**2 * steps * (steps + 1) / 2
+    closed = s.height + s.gravity[1] * dt**2 * steps * (steps + 1) / 2
     ulp = np.spacing(np.float32(s.height))
-    bound = steps * (steps + 1) / 2 * (ulp / 2 + 3 * U32 * abs(s.gravity[1]) * s.dt**2)
+    bound = steps * (steps + 1) / 2 * (ulp / 2 + 3 * U32 * abs(s.gravity[1]) * dt**2)
     assert abs(float(y) - closed) <= bound
 
 
@@ -56,16 +58,16 @@ def test_sheet_at_rest_length_without_gravity_stays_put():
     s = Scene(grid=32, damping=0.0, gravity=(0.0, 0.0, 0.0))
     steps = 2000
     start, _ = s.initial_state(np.float64)
-    pos64, _ = simulate("numpy", s, steps, F64)
+    pos64, _ = simulate("numpy", s, VERLET, steps, F64)
     assert np.abs(pos64[:, :3] - start[:, :3]).max() < 1e-9
-    pos32, _ = simulate("numpy", s, steps, F32)
+    pos32, _ = simulate("numpy", s, VERLET, steps, F32)
     eps_l = 2 * U32 * s.size + 3 * U32 * s.spacing
     assert np.abs(pos32[:, :3] - start[:, :3]).max() <= 2 * s.grid * eps_l
 
 
 def test_no_particle_ends_inside_the_sphere():
-    s = load_scene("sphere").replace(grid=32, steps=600)  # contact starts near step 200
-    pos, _ = simulate("numpy", s, s.steps, F32)
+    s = sphere(32)
+    pos, _ = simulate("numpy", s, VERLET, 600, F32)  # contact starts near step 200
     center = np.array(s.spheres[0].center)
     dist = np.sqrt(((pos[:, :3] - center) ** 2).sum(axis=1))
     assert dist.min() < s.spheres[0].radius + 0.01, "the cloth should be resting on the sphere"
@@ -76,8 +78,8 @@ def test_no_particle_ends_inside_the_sphere():
 def test_sphere_scene_is_mirror_symmetric():
     # sheet and sphere are symmetric under x -> 1 - x (columns reversed); float64, short
     # horizon: the only asymmetry is the summation order of the stencil, ~1e-15 per step.
-    s = load_scene("sphere").replace(grid=24, steps=400)
-    pos, _ = simulate("numpy", s, s.steps, F64)
+    s = sphere(24)
+    pos, _ = simulate("numpy", s, VERLET, 400, F64)
     grid = pos[:, :3].reshape(s.grid, s.grid, 3)
     mirrored = grid[:, ::-1].copy()
     mirrored[..., 0] = s.size - mirrored[..., 0]
@@ -87,7 +89,7 @@ def test_sphere_scene_is_mirror_symmetric():
 def test_pinned_particles_never_move():
     s = load_scene("drape").replace(grid=16)
     start, _ = s.initial_state(np.float32)
-    pos, prev = simulate("numpy", s, 500, F32)
+    pos, prev = simulate("numpy", s, VERLET, 500, F32)
     pinned = s.pinned()
     assert np.array_equal(pos[pinned], start[pinned])
     assert np.array_equal(prev[pinned], start[pinned])
@@ -98,9 +100,9 @@ def test_float32_and_float64_agree_over_a_short_horizon():
     # 100 steps (0.05 s) of the sphere scene: the float32 error is dominated by the rounded
     # Verlet increment of the fall (see the free-fall bound: S(S+1)/2 * ulp/2 ~ 1.5e-4 at
     # S = 100); 2e-4 m allows that and nothing structural.
-    s = load_scene("sphere").replace(grid=32)
-    p32, _ = simulate("numpy", s, 100, F32)
-    p64, _ = simulate("numpy", s, 100, F64)
+    s = sphere(32)
+    p32, _ = simulate("numpy", s, VERLET, 100, F32)
+    p64, _ = simulate("numpy", s, VERLET, 100, F64)
     rms, worst = position_error(p32, p64)
     assert worst < 2e-4
     assert rms > 0  # they are different computations
@@ -111,7 +113,7 @@ def test_coincident_particles_stay_finite():
     pos, prev = s.initial_state(np.float32)
     pos[5, :3] = pos[6, :3]  # a structural spring of length 0
     prev[5, :3] = prev[6, :3]
-    with create_backend("numpy", s, F32) as b:
+    with create_backend("numpy", s, VERLET, F32) as b:
         b.upload(pos, prev)
         b.advance(10)
         out, _ = b.read()
@@ -121,7 +123,7 @@ def test_coincident_particles_stay_finite():
 def test_particle_at_sphere_centre_is_pushed_to_the_top():
     s = Scene(grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0), spheres=(Sphere((0.5, 1.0, 0.5), 0.25),))
     pos, prev = s.initial_state(np.float64)  # particle 4 (row 1, col 1) is at (0.5, 1, 0.5)
-    with create_backend("numpy", s, F64) as b:
+    with create_backend("numpy", s, VERLET, F64) as b:
         b.upload(pos, prev)
         b.advance(1)
         out, _ = b.read()
@@ -131,12 +133,10 @@ def test_particle_at_sphere_centre_is_pushed_to_the_top():
 
 def test_a_blow_up_is_detected_with_its_step():
     # dt far past the stability limit 2/omega (omega^2 <= 24 k/m): grows within a few steps
-    s = Scene(grid=8, stiffness=1e5, dt=2e-3, steps=200)
-    with create_backend("numpy", s, F32) as b, pytest.raises(BlowUp) as err:
-        run_timed(b, s, s.steps)
+    s, solver = Scene(grid=8, stiffness=1e5), Verlet(dt=2e-3)
+    with create_backend("numpy", s, solver, F32) as b, pytest.raises(BlowUp) as err:
+        run_timed(b, 200)
     assert 1 <= err.value.step < 200
     # the named step is the first bad one: the step before it is still healthy
-    from clothbench.harness import state_problem
-
-    pos, prev = simulate("numpy", s, err.value.step - 1, F32)
-    assert state_problem(pos, prev, s, err.value.step - 1) is None
+    pos, prev = simulate("numpy", s, solver, err.value.step - 1, F32)
+    assert state_problem(pos, prev, s, solver, err.value.step - 1) is None

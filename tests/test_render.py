@@ -13,13 +13,16 @@ import pytest
 from PIL import Image
 
 from clothbench import cli
-from clothbench.backends import BackendOptions, glsl, glsl_compute
+from clothbench.backends import BackendOptions, capabilities
+from clothbench.backends.gl import fragment as glsl
+from clothbench.backends.gl import compute as glsl_compute
 from clothbench.harness import simulate
 from clothbench.reports import render as render_module
 from clothbench.reports.render import RenderSettings, cloth_indices, frame_scene, render
 from clothbench.scene import load_scene
+from clothbench.solver import Pbd
 
-from conftest import require
+from conftest import VERLET, require
 
 SIZE = (160, 120)
 # Strict GL and numpy f32 states are the same bits, so the two ways to the vertex shader
@@ -52,10 +55,10 @@ def small(name: str, n: int = 16):
     return load_scene(name).replace(grid=n)
 
 
-def render_png(tmp_path, scene, backend="glsl", steps=100, **options) -> np.ndarray:
+def render_png(tmp_path, scene, backend="glsl", steps=100, solver=VERLET, **options) -> np.ndarray:
     out = tmp_path / f"{backend}.png"
     settings = RenderSettings(frames=1, every=steps, size=SIZE)
-    report = render(scene, backend, BackendOptions(**options), settings, str(out))
+    report = render(scene, solver, backend, BackendOptions(**options), settings, str(out))
     assert report.files == [out]
     image = np.asarray(Image.open(out).convert("RGB"))
     assert image.shape == (SIZE[1], SIZE[0], 3)
@@ -67,7 +70,7 @@ def test_the_png_shows_the_cloth_where_the_cloth_is(tmp_path):
     image = render_png(tmp_path, scene, steps=steps)
     assert is_background(image).any() and not is_background(image).all()
     # where the camera sees the particles (the edge ones may fall on the silhouette) it is cloth
-    _, prev = simulate("numpy", scene, steps, BackendOptions())  # a frame shows x(t): prev
+    _, prev = simulate("numpy", scene, VERLET, steps, BackendOptions())  # a frame shows x(t): prev
     inner = prev.reshape(16, 16, 4)[1:-1, 1:-1, :3].reshape(-1, 3)
     col, row = np.round(frame_scene(scene, SIZE).project(inner)).astype(int).T
     assert ((col >= 0) & (col < SIZE[0]) & (row >= 0) & (row < SIZE[1])).all(), "the camera frames the sheet"
@@ -87,7 +90,8 @@ def test_the_gif_has_the_frames_asked_for(tmp_path):
     out = tmp_path / "cloth.gif"
     seen = []
     settings = RenderSettings(frames=5, every=40, size=SIZE)
-    report = render(small("sphere"), "glsl", BackendOptions(), settings, str(out), on_frame=seen.append)
+    report = render(small("sphere"), VERLET, "glsl", BackendOptions(), settings, str(out),
+                    on_frame=seen.append)
     assert seen == [1, 2, 3, 4, 5]
     with Image.open(out) as gif:
         assert gif.n_frames == 5 and report.merged == 0
@@ -101,7 +105,7 @@ def test_the_gif_has_the_frames_asked_for(tmp_path):
 def test_a_folder_gets_one_png_per_frame(tmp_path):
     out = tmp_path / "frames"
     settings = RenderSettings(frames=3, every=10, size=SIZE)
-    report = render(small("drape"), "glsl-compute", BackendOptions(), settings, str(out) + "/")
+    report = render(small("drape"), VERLET, "glsl-compute", BackendOptions(), settings, str(out) + "/")
     names = sorted(p.name for p in out.iterdir())
     assert names == ["frame_0001.png", "frame_0002.png", "frame_0003.png"]
     assert report.files == [out / name for name in names]
@@ -123,6 +127,19 @@ def test_gl_backends_draw_from_the_device_without_reading_back(tmp_path, monkeyp
     assert is_cloth(on_device).sum() > 300  # the curtain is in the picture
     differ = (np.abs(on_device.astype(int) - uploaded).max(axis=-1) > 0).mean()
     assert differ <= PIXEL_TOLERANCE, f"{differ:.2%} of the pixels differ from the uploaded path"
+
+
+def test_a_backend_without_normals_is_drawn_with_the_harness_normals(tmp_path):
+    # glsl-compute's PBD solver computes no normals: the render asks it for none and draws its
+    # state read back, with grid_normals, as it draws numpy's
+    require("glsl-compute")
+    scene, solver = small("curtain", 24), Pbd()
+    assert not capabilities("glsl-compute", "pbd").normals
+    on_gl = render_png(tmp_path, scene, "glsl-compute", steps=300, solver=solver, strict=True)
+    uploaded = render_png(tmp_path, scene, "numpy", steps=300, solver=solver)
+    assert is_cloth(on_gl).sum() > 300
+    differ = (np.abs(on_gl.astype(int) - uploaded).max(axis=-1) > 0).mean()
+    assert differ <= PIXEL_TOLERANCE, f"{differ:.2%} of the pixels differ from numpy's PBD"
 
 
 def test_the_numpy_path_differs_when_the_state_does(tmp_path):

@@ -14,12 +14,14 @@ import types
 import numpy as np
 import pytest
 
-from clothbench.backends import BACKENDS, Availability, BackendEntry, availability
-from clothbench.backends.numpy import NumpyBackend
+from clothbench.backends import BACKENDS, Availability, BackendEntry, Capabilities, availability
+from clothbench.backends.numpy.verlet import NumpyBackend
 from clothbench.cli import main
 from clothbench.harness import sweep as sweep_module
-from clothbench.harness.sweep import COLUMNS, MEASUREMENT_COLUMNS, row_key
-from clothbench.scene import count_springs, load_scene
+from clothbench.harness.sweep_csv import COLUMNS, MEASUREMENT_COLUMNS, row_key
+from clothbench.scene import count_springs
+
+from conftest import VERLET
 
 # Columns the issue asks every row to have (the file has more).
 ISSUE_COLUMNS = (
@@ -48,19 +50,14 @@ class LocalSizeBackend(NumpyBackend):
     """The numpy step, claiming a work-group size and strict/fast variants."""
 
     name = "fake-local"
-    has_local_size = True
-    sweep_variants = ({"strict": True}, {"strict": False})
-
-    @property
-    def mode(self) -> str:
-        return "strict" if self.options.strict else "fast"
+    capabilities = Capabilities(local_size=True, sweep_variants=({"strict": True}, {"strict": False}))
 
 
 class ExplodingBackend(NumpyBackend):
     """Raises as a driver would when a launch fails."""
 
     name = "fake-explode"
-    sweep_variants = ({},)
+    capabilities = Capabilities()
 
     def advance(self, steps: int) -> None:
         raise RuntimeError("kernel launch failed: CL_OUT_OF_RESOURCES")
@@ -70,7 +67,7 @@ class NaNBackend(NumpyBackend):
     """Turns a particle into NaN on every step: a blow-up."""
 
     name = "fake-nan"
-    sweep_variants = ({},)
+    capabilities = Capabilities()
 
     def advance(self, steps: int) -> None:
         super().advance(steps)
@@ -79,15 +76,14 @@ class NaNBackend(NumpyBackend):
 
 class PeerBackend(NumpyBackend):
     name = "fake-peer"
-    sweep_variants = ({},)
+    capabilities = Capabilities()
 
 
 class GenericBackend(NumpyBackend):
     """Has a generic kernel beside its specialised one: the generic one is slower."""
 
     name = "fake-generic"
-    sweep_variants = ({},)
-    has_generic = True
+    capabilities = Capabilities(generic=True)
 
     def advance(self, steps: int) -> None:
         super().advance(steps * (3 if self.options.generic else 1))
@@ -104,14 +100,14 @@ def fake_backends(monkeypatch):
     monkeypatch.setitem(sys.modules, usable.__name__, usable)
     monkeypatch.setitem(sys.modules, absent.__name__, absent)
     for name, module, cls, peer in (
-        ("fake-local", "_fake_usable", "LocalSizeBackend", False),
-        ("fake-explode", "_fake_usable", "ExplodingBackend", False),
-        ("fake-nan", "_fake_usable", "NaNBackend", False),
-        ("fake-peer", "_fake_usable", "PeerBackend", True),
-        ("fake-generic", "_fake_usable", "GenericBackend", False),
-        ("fake-absent", "_fake_absent", "Nothing", False),
+        ("fake-local", usable, "LocalSizeBackend", False),
+        ("fake-explode", usable, "ExplodingBackend", False),
+        ("fake-nan", usable, "NaNBackend", False),
+        ("fake-peer", usable, "PeerBackend", True),
+        ("fake-generic", usable, "GenericBackend", False),
+        ("fake-absent", absent, "Nothing", False),
     ):
-        monkeypatch.setitem(BACKENDS, name, BackendEntry(name, module, cls, peer=peer))
+        monkeypatch.setitem(BACKENDS, name, BackendEntry(name, f"{module.__name__}:{cls}", peer=peer))
     availability.cache_clear()
     yield
     availability.cache_clear()
@@ -128,13 +124,12 @@ def test_sweep_of_two_tiny_grids_writes_every_column_and_one_row_per_variant_and
     # numpy sweeps f32 and f64: 2 variants x 2 grids
     assert sorted((r["grid"], r["precision"]) for r in rows) == [("12", "f32"), ("12", "f64"), ("8", "f32"), ("8", "f64")]
     assert len({row_key(r) for r in rows}) == len(rows)
-    scene = load_scene("sphere")
     for r in rows:
         n = int(r["grid"])
         assert r["status"] == "ok" and r["note"] == "" and r["finite"] == "true"
         assert (int(r["particles"]), int(r["springs"])) == (n * n, count_springs(n))
         assert (r["steps"], r["repeats"], r["solver"], r["timed_region"]) == ("3", "2", "verlet", "steps")
-        assert float(r["simulated_s"]) == pytest.approx(6 * scene.dt)
+        assert float(r["simulated_s"]) == pytest.approx(6 * VERLET.dt)
         assert 0 < float(r["ms_min"]) <= float(r["ms_median"]) <= float(r["ms_max"])
         assert float(r["particles_per_s"]) == pytest.approx(n * n * 1e3 / float(r["ms_median"]), rel=1e-5)
         assert r["cpu"] and r["python"] and "numpy=" in r["packages"] and r["timestamp"]
@@ -194,7 +189,10 @@ def test_local_sizes_add_rows_only_for_backends_that_have_one(tmp_path, fake_bac
     assert main(["sweep", *args]) == 0
     rows = read_csv(out)
     local = sorted((r["mode"], r["local_size"]) for r in rows if r["backend"] == "fake-local")
-    assert local == [("fast", ""), ("fast", "16"), ("fast", "32"), ("strict", ""), ("strict", "16"), ("strict", "32")]
+    assert local == [
+        ("fast/ls=16", "16"), ("fast/ls=32", "32"), ("fast/ls=auto", ""),
+        ("strict/ls=16", "16"), ("strict/ls=32", "32"), ("strict/ls=auto", ""),
+    ]  # fmt: skip
     assert {r["local_size"] for r in rows if r["backend"] == "numpy"} == {""}
     assert len({row_key(r) for r in rows}) == len(rows) == 8
 

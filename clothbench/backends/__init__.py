@@ -1,8 +1,9 @@
 """The backend registry: every backend by name, whether it can run here, and why not.
 
-Each backend is one module in this folder exposing `probe() -> Availability` (cheap, never
-raises) and a `Backend` subclass named in BACKENDS. Modules are imported only when asked
-for, so a missing optional package costs nothing until its backend is used.
+Each backend is a module exposing `probe() -> Availability` (cheap, never raises) and one
+`Backend` subclass per solver it implements, named here as "module:Class". Modules are
+imported only when asked for, so a missing optional package costs nothing until its backend
+is used. Options are checked against the class's declared Capabilities before it is built.
 """
 
 from __future__ import annotations
@@ -11,64 +12,41 @@ import importlib
 from dataclasses import dataclass
 from functools import lru_cache
 
-from ..errors import BackendUnavailable, ClothbenchError
-from ..scene import Scene
-from .base import Availability, Backend, BackendOptions
+from clothbench.errors import BackendUnavailable, ClothbenchError
+from clothbench.scene import Scene
+from clothbench.solver import SOLVERS, Solver
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 
 
 @dataclass(frozen=True)
 class BackendEntry:
     name: str
-    module: str
-    cls: str
+    verlet: str  # "module:Class" of its Verlet backend; the module's probe() says if it runs
+    pbd: str | None = None  # "module:Class" of its PBD backend, if it has one
     peer: bool = False  # a system users would pick instead of clothbench (not ours)
     summary: str = ""
-    pbd: tuple[str, str] | None = None  # (module, class) of its PBD solver, if it has one
+
+    def solvers(self) -> tuple[str, ...]:
+        return tuple(s for s in SOLVERS if getattr(self, s) is not None)
 
 
+_OWN = "clothbench.backends"
 BACKENDS: dict[str, BackendEntry] = {
     e.name: e
     for e in (
-        BackendEntry(
-            "numpy",
-            "numpy",
-            "NumpyBackend",
-            summary="vectorised NumPy reference (CPU)",
-            pbd=("numpy_pbd", "NumpyPbdBackend"),
-        ),
-        BackendEntry(
-            "opencl",
-            "opencl",
-            "OpenCLBackend",
-            summary="OpenCL kernel via pyopencl",
-            pbd=("opencl_pbd", "OpenCLPbdBackend"),
-        ),
-        BackendEntry("glsl", "glsl", "GLSLBackend", summary="GLSL fragment shader, FBO ping-pong"),
-        BackendEntry(
-            "glsl-compute",
-            "glsl_compute",
-            "GLSLComputeBackend",
-            summary="GLSL compute shader",
-            pbd=("glsl_compute_pbd", "GLSLComputePbdBackend"),
-        ),
-        BackendEntry("cuda", "cuda", "CudaBackend", summary="CUDA kernel via CuPy RawKernel"),
-        BackendEntry("taichi", "taichi", "TaichiBackend", peer=True, summary="Taichi (peer)"),
-        BackendEntry("warp", "warp", "WarpBackend", peer=True, summary="NVIDIA Warp (peer)"),
-        BackendEntry("numba", "numba", "NumbaBackend", peer=True, summary="Numba (peer)"),
+        BackendEntry("numpy", f"{_OWN}.numpy.verlet:NumpyBackend", f"{_OWN}.numpy.pbd:NumpyPbdBackend",
+                     summary="vectorised NumPy reference (CPU)"),
+        BackendEntry("opencl", f"{_OWN}.opencl.verlet:OpenCLBackend", f"{_OWN}.opencl.pbd:OpenCLPbdBackend",
+                     summary="OpenCL kernel via pyopencl"),
+        BackendEntry("glsl", f"{_OWN}.gl.fragment:GLSLBackend", summary="GLSL fragment shader, FBO ping-pong"),
+        BackendEntry("glsl-compute", f"{_OWN}.gl.compute:GLSLComputeBackend",
+                     f"{_OWN}.gl.compute_pbd:GLSLComputePbdBackend", summary="GLSL compute shader"),
+        BackendEntry("cuda", f"{_OWN}.cuda.verlet:CudaBackend", summary="CUDA kernel via CuPy RawKernel"),
+        BackendEntry("taichi", "clothbench.peers.taichi:TaichiBackend", peer=True, summary="Taichi (peer)"),
+        BackendEntry("warp", "clothbench.peers.warp:WarpBackend", peer=True, summary="NVIDIA Warp (peer)"),
+        BackendEntry("numba", "clothbench.peers.numba:NumbaBackend", peer=True, summary="Numba (peer)"),
     )
-}
-
-OWN_BACKENDS = [name for name, e in BACKENDS.items() if not e.peer]
-
-
-def _module(name: str, module: str | None = None):
-    full = f"{__name__}.{module or BACKENDS[name].module}"
-    try:
-        return importlib.import_module(full)
-    except ModuleNotFoundError as e:
-        if e.name == full:
-            return None  # the backend's own file does not exist yet
-        raise
+}  # fmt: skip
 
 
 def check_name(name: str) -> BackendEntry:
@@ -77,48 +55,49 @@ def check_name(name: str) -> BackendEntry:
     return BACKENDS[name]
 
 
+def _load(target: str):
+    module, _, cls = target.partition(":")
+    return getattr(importlib.import_module(module), cls)
+
+
 @lru_cache(maxsize=None)
 def availability(name: str) -> Availability:
     """Can `name` run on this machine? Never raises for a known backend."""
-    check_name(name)
-    module = _module(name)
-    if module is None:
-        return Availability(False, "not implemented yet")
+    target = check_name(name).verlet
     try:
-        return module.probe()
+        return importlib.import_module(target.partition(":")[0]).probe()
     except Exception as e:  # a probe must not take the whole CLI down
         return Availability(False, f"probe failed: {type(e).__name__}: {e}")
 
 
-def backend_class(name: str, solver: str = "verlet") -> type[Backend] | None:
-    """The Backend subclass for `name` and `solver`, or None where there is none yet."""
+def backend_class(name: str, solver: str = "verlet") -> type[Backend]:
+    """The Backend subclass of `name` for `solver`; one line saying so where it has none."""
     entry = check_name(name)
-    module_name, cls = entry.module, entry.cls
-    if solver == "pbd":
-        if entry.pbd is None:
-            return None
-        module_name, cls = entry.pbd
-    module = _module(name, module_name)
-    return getattr(module, cls) if module is not None else None
+    if solver not in SOLVERS:
+        raise ClothbenchError(f"unknown solver {solver!r} (known: {', '.join(SOLVERS)})")
+    target = getattr(entry, solver)
+    if target is None:
+        raise ClothbenchError(f"{name} has no {solver} solver (it runs on: {', '.join(solver_backends(solver))})")
+    return _load(target)
 
 
-def pbd_backends() -> list[str]:
-    return [name for name in BACKENDS if backend_class(name, "pbd") is not None]
+def capabilities(name: str, solver: str = "verlet") -> Capabilities:
+    return backend_class(name, solver).capabilities
 
 
-def create_backend(name: str, scene: Scene, options: BackendOptions | None = None) -> Backend:
-    """A ready backend for `scene`, or BackendUnavailable saying why not."""
+def solver_backends(solver: str) -> list[str]:
+    """The backends that implement `solver`."""
+    return [name for name, e in BACKENDS.items() if getattr(e, solver) is not None]
+
+
+def create_backend(name: str, scene: Scene, solver: Solver, options: BackendOptions | None = None) -> Backend:
+    """A ready backend for `scene` stepped by `solver`, or one line saying why not."""
     options = options or BackendOptions()
     check_name(name)
     avail = availability(name)
     if not avail.usable:
         raise BackendUnavailable(name, avail.reason)
-    cls = backend_class(name, scene.solver)
-    if cls is None:
-        raise ClothbenchError(
-            f"{name} has no {scene.solver} solver (it runs on: {', '.join(pbd_backends())})"
-        )
-    return cls(scene, options)
+    return backend_class(name, solver.name)(scene, solver, options)
 
 
 def resolve_names(spec: str, include_peers: bool = True) -> list[str]:
@@ -136,12 +115,14 @@ def resolve_names(spec: str, include_peers: bool = True) -> list[str]:
 __all__ = [
     "Availability",
     "Backend",
+    "BackendEntry",
     "BackendOptions",
     "BACKENDS",
-    "OWN_BACKENDS",
+    "Capabilities",
     "availability",
     "backend_class",
-    "pbd_backends",
+    "capabilities",
     "create_backend",
     "resolve_names",
+    "solver_backends",
 ]

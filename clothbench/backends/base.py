@@ -1,23 +1,32 @@
-"""The interface every backend implements, and the options a run may pass to it.
+"""The interface every backend implements, what each declares it can do, and the options a
+run may pass to it.
 
-A backend owns the device state of one scene. The harness drives it:
+A backend owns the device state of one scene stepped by one solver. The harness drives it:
 upload the initial state once, advance k steps (the state stays on the device),
 synchronise before reading the clock, read back only when asked, close.
+
+What a backend can do is declared once, as `capabilities` on its class; the registry checks
+the options against it before a backend is built (one wording for every refusal), the sweep
+plans its variants from it, and `Backend.mode` names a run from it (one spelling).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..scene import Scene
+from clothbench.errors import ClothbenchError
+from clothbench.scene import Scene
+from clothbench.solver import Solver
+
+GL_PROVIDERS = ("egl", "osmesa")
 
 
 @dataclass(frozen=True)
 class BackendOptions:
-    """Run options. A backend uses the ones that apply to it and ignores the rest."""
+    """Run options. Each is checked against the backend's Capabilities before it is built."""
 
     precision: str = "f32"  # "f32" everywhere; "f64" only on numpy (the reference)
     strict: bool = False  # bit-exact with the numpy f32 reference: no contraction, no fast math
@@ -34,6 +43,83 @@ class BackendOptions:
 
 
 @dataclass(frozen=True)
+class Capabilities:
+    """What one backend class can do, declared once."""
+
+    precisions: tuple[str, ...] = ("f32",)
+    strict: bool = True  # has a strict (bit-exact) and a fast mode; False: one mode, always exact
+    transfers: tuple[str, ...] = ()  # transfer modes; the first is the default
+    local_size: bool = False  # options.local_size means a work-group / block size
+    generic: bool = False  # options.generic selects one kernel for every scene
+    normals: bool = False  # computes normals in the step (read_normals)
+    device: bool = False  # options.device selects among several devices
+    gl: bool = False  # options.gl selects the GL context provider
+    # option overrides a sweep measures by default, one CSV row each
+    sweep_variants: tuple[dict, ...] = ({},)
+
+    def refusal(self, backend: str, options: BackendOptions) -> str | None:
+        """Why `backend` cannot take `options`, in one wording, or None."""
+
+        def no(option: str, value, takes: str) -> str:
+            given = f"{option} {value}" if value != "" else option
+            return f"{backend} does not take {given} (it takes: {takes})"
+
+        if options.precision not in self.precisions:
+            return no("--precision", options.precision, ", ".join(self.precisions) + "; f64 is the numpy reference")
+        if options.transfer is not None and options.transfer not in self.transfers:
+            return no("--transfer", options.transfer, ", ".join(self.transfers) or "no transfer modes")
+        if options.local_size is not None:
+            if not self.local_size:
+                return no("--local-size", options.local_size, "no work-group size")
+            if options.local_size < 1:
+                return no("--local-size", options.local_size, "an integer >= 1")
+        if options.generic and not self.generic:
+            return no("--generic", "", "its scene-specialised kernel only")
+        if options.normals and not self.normals:
+            return no("--save-normals", "", "no normals: it does not compute them")
+        if options.device is not None and not self.device:
+            return no("--device", options.device, "its one device")
+        if options.gl not in GL_PROVIDERS:
+            return no("--gl", options.gl, ", ".join(GL_PROVIDERS))
+        if options.gl != "egl" and not self.gl:
+            return no("--gl", options.gl, "no GL context")
+        return None
+
+    def adapt(self, options: BackendOptions) -> BackendOptions:
+        """`options` less what this backend does not take: how one set of command-line
+        options is given to every backend of a sweep."""
+        return replace(
+            options,
+            precision=options.precision if options.precision in self.precisions else self.precisions[0],
+            strict=options.strict and self.strict,
+            transfer=options.transfer if options.transfer in self.transfers else None,
+            local_size=options.local_size if self.local_size else None,
+            generic=options.generic and self.generic,
+            normals=options.normals and self.normals,
+            device=options.device if self.device else None,
+            gl=options.gl if self.gl else "egl",
+        )
+
+    def mode(self, options: BackendOptions, solver: Solver, local_size: int | None = None) -> str:
+        """The settings that change speed or results, one spelling for every backend:
+        precision (where there are several), strict|fast, pbd-method, normals, generic,
+        transfer, ls=work-group size."""
+        parts = []
+        if len(self.precisions) > 1:
+            parts.append(options.precision)
+        if self.strict:
+            parts.append("strict" if options.strict else "fast")
+        if solver.name == "pbd":
+            parts.append(solver.spec)
+        parts += ["normals"] * options.normals + ["generic"] * options.generic
+        if self.transfers:
+            parts.append(options.transfer or self.transfers[0])
+        if self.local_size:
+            parts.append(f"ls={local_size or options.local_size or 'auto'}")
+        return "/".join(parts) or "default"
+
+
+@dataclass(frozen=True)
 class Availability:
     """Whether a backend can run here; if not, why (one line a person can act on)."""
 
@@ -46,17 +132,14 @@ class Backend(ABC):
     """One simulation on one device. Subclasses supply the device-specific parts only."""
 
     name: str = "?"
-    # Option overrides a sweep measures for this backend by default, one CSV row each,
-    # e.g. ({"strict": True}, {"strict": False}) or transfer modes.
-    sweep_variants: tuple[dict, ...] = ({},)
-    # Whether options.local_size means something here (work-group / block size).
-    has_local_size: bool = False
-    # Whether options.generic selects a different kernel (one for every scene) from the
-    # default one specialised for the scene.
-    has_generic: bool = False
+    capabilities: Capabilities = Capabilities()
 
-    def __init__(self, scene: Scene, options: BackendOptions):
+    def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):
+        refusal = self.capabilities.refusal(self.name, options)
+        if refusal:
+            raise ClothbenchError(refusal)
         self.scene = scene
+        self.solver = solver
         self.options = options
 
     @property
@@ -67,7 +150,19 @@ class Backend(ABC):
     @property
     def mode(self) -> str:
         """The settings that change speed or results, for tables and CSV rows."""
-        return "strict" if self.options.strict else "fast"
+        return self.capabilities.mode(self.options, self.solver, self.effective_local_size) + self.mode_suffix
+
+    # the work-group size the backend chose where options.local_size is None
+    effective_local_size: int | None = None
+    # a backend-specific part of the mode (e.g. a slower read path it fell back to)
+    mode_suffix: str = ""
+    # whether its arithmetic flushes subnormal floats to zero (NumPy keeps them): a strict
+    # run there is watched against NumPy and says where they part (harness/strict_watch.py)
+    flushes_subnormals: bool = False
+
+    def initial_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The solver's start of this scene, in this backend's working precision."""
+        return self.solver.initial_state(self.scene, self.options.dtype)
 
     @abstractmethod
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:

@@ -1,4 +1,4 @@
-"""What the two GPU PBD backends (opencl_pbd.py, glsl_compute_pbd.py) share: PbdDeviceBackend,
+"""What the two GPU PBD backends (opencl/pbd.py, gl/compute_pbd.py) share: PbdDeviceBackend,
 the host side of the solver (docs/pbd.md) apart from the device calls.
 
 One substep is a fixed list of launches, each seeing the previous one's writes: predict,
@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..constraints import coloured_batches
-from ..errors import ClothbenchError
-from ..scene import Scene
-from .base import Backend, BackendOptions
-from .kernel_inputs import PbdConstants
+from clothbench.constraints import coloured_batches
+from clothbench.errors import ClothbenchError
+from clothbench.scene import Scene
+from clothbench.solver import Pbd
+from clothbench.backends.base import Backend, BackendOptions
+from clothbench.backends.kernel_inputs import PbdConstants
 
 
 def batch_stage_name(batch) -> str:
@@ -27,28 +28,17 @@ def batch_stage_name(batch) -> str:
 class PbdDeviceBackend(Backend):
     """What the GPU PBD backends share. A subclass builds `self.launches`, one substep as
     [(stage name, launch)], and says how to enqueue a launch, time one on its own, wait for
-    them all (synchronize), and move the (x, v) state to and from the device."""
+    them all (synchronize), and move the (x, v) state to and from the device. It declares
+    its capabilities: no transfer modes, no --generic (the kernels are always specialised to
+    the scene), no normals."""
 
-    sweep_variants = ({"strict": True}, {"strict": False})
-    has_local_size = True
-
-    def __init__(self, scene: Scene, options: BackendOptions):
-        super().__init__(scene, options)
-        if options.precision != "f32":
-            raise ClothbenchError(f"{self.name} runs in f32 only (got {options.precision}); f64 is the numpy reference")
-        if options.generic:
-            raise ClothbenchError(f"the {self.name} PBD kernels are always specialised to the scene; drop --generic")
-        if options.transfer is not None:
-            raise ClothbenchError(f"the {self.name} PBD solver keeps its state on the device; drop --transfer")
-        if options.normals:
-            raise ClothbenchError(f"the {self.name} PBD solver does not compute normals; drop --save-normals")
-        if options.local_size is not None and options.local_size < 1:
-            raise ClothbenchError(f"local size must be >= 1, got {options.local_size}")
+    def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
+        super().__init__(scene, solver, options)
         self.strict = options.strict
         self.n = scene.grid
         self.n2 = scene.particles
-        self.constants = PbdConstants.of(scene)
-        self.jacobi = scene.pbd_method == "jacobi"
+        self.constants = PbdConstants.of(scene, solver)
+        self.jacobi = solver.method == "jacobi"
         self.batches = [] if self.jacobi else coloured_batches(self.n)
         # lambda: 12 per particle (Jacobi) or one per constraint (coloured)
         self.lambda_count = 12 * self.n2 if self.jacobi else sum(len(b.i) for b in self.batches)
@@ -61,8 +51,6 @@ class PbdDeviceBackend(Backend):
         self.launches: list[tuple[str, object]] = []  # one substep: (stage, launch)
 
     # --- what a subclass supplies ------------------------------------------------------
-    local_size: int | None = None
-
     def _write_state(self, x: np.ndarray, v: np.ndarray) -> None:
         raise NotImplementedError
 
@@ -83,12 +71,12 @@ class PbdDeviceBackend(Backend):
         ("collide", buffer index), ("update", buffer index), where a buffer index names one
         of the two predicted-position buffers (predict writes 0)."""
         plan = [("predict",)]
-        for it in range(self.scene.iterations):
+        for it in range(self.solver.iterations):
             if self.jacobi:
                 plan.append(("jacobi", it, it % 2, 1 - it % 2))
             else:
                 plan += [("coloured", it, b) for b in range(len(self.batches))]
-        final = self.scene.iterations % 2 if self.jacobi else 0
+        final = self.solver.iterations % 2 if self.jacobi else 0
         if self.scene.colliders:
             plan.append(("collide", final))
         plan.append(("update", final))
@@ -109,11 +97,6 @@ class PbdDeviceBackend(Backend):
         return step[0]
 
     # --- Backend interface ---------------------------------------------------------------
-    @property
-    def mode(self) -> str:
-        arithmetic = "strict" if self.strict else "fast"
-        return f"{arithmetic}/pbd-{self.scene.pbd_method}/wg={self.local_size or 'auto'}"
-
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         expected = (self.n2, 4)
         if pos.shape != expected or prev.shape != expected:
@@ -132,7 +115,7 @@ class PbdDeviceBackend(Backend):
 
     def advance(self, steps: int) -> None:
         enqueue = self._enqueue
-        for _ in range(steps * self.scene.substeps):
+        for _ in range(steps * self.solver.substeps):
             for _, launch in self.launches:
                 enqueue(launch)
 
@@ -141,7 +124,7 @@ class PbdDeviceBackend(Backend):
         each stage (a stage's launches summed over iterations and substeps)."""
         self.synchronize()
         totals: dict[str, float] = {}
-        for _ in range(steps * self.scene.substeps):
+        for _ in range(steps * self.solver.substeps):
             for stage, launch in self.launches:
                 totals[stage] = totals.get(stage, 0.0) + self._timed(launch)
         return {stage: 1e3 * seconds / max(steps, 1) for stage, seconds in totals.items()}

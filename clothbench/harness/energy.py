@@ -23,7 +23,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..scene import OFFSETS, Scene
+from clothbench.scene import OFFSETS, Scene
+from clothbench.solver import Solver
 
 # Each spring once: the offsets pointing "forward" (the stencil lists both ends).
 FORWARD = tuple(o for o in OFFSETS if o[0] > 0 or (o[0] == 0 and o[1] > 0))
@@ -47,11 +48,11 @@ class Energy:
     def total(self) -> float:
         return self.kinetic + self.spring + self.gravity
 
-    def watched(self, scene: Scene) -> float:
+    def watched(self, solver: Solver) -> float:
         """The energy the blow-up check watches. PBD's constraints are as stiff as its
         iterations make them, not k, so k*(L - rest)^2/2 is not its energy: there only
         kinetic + gravitational energy is watched (a stable PBD step only loses it)."""
-        return self.total if scene.solver != "pbd" else self.kinetic + self.gravity
+        return self.total if solver.name != "pbd" else self.kinetic + self.gravity
 
 
 def _grid(a: np.ndarray, n: int) -> np.ndarray:
@@ -65,12 +66,13 @@ def _lengths(x: np.ndarray, dr: int, dc: int) -> np.ndarray:
     return np.sqrt(((b - a) ** 2).sum(axis=-1))
 
 
-def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene) -> Energy:
-    """Kinetic, spring and gravitational energy (J) of the state (pos, prev) of `scene`."""
+def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float) -> Energy:
+    """Kinetic, spring and gravitational energy (J) of the state (pos, prev) of `scene`,
+    prev taken dt before pos."""
     n, m, k = scene.grid, scene.mass, scene.stiffness
     free = pos[:, 3] != 0
     x, xp = _grid(pos, n), _grid(prev, n)
-    v = (x - xp) / scene.dt
+    v = (x - xp) / dt
     kinetic = 0.5 * m * float((v * v).sum(axis=-1).reshape(-1)[free].sum())
     g = np.array(scene.gravity)
     mid = 0.5 * (x + xp).reshape(-1, 3)[free]
@@ -84,36 +86,40 @@ def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene) -> Energy:
     return Energy(kinetic, spring, gravity)
 
 
-def energy_scale(scene: Scene, pos: np.ndarray | None = None, prev: np.ndarray | None = None) -> float:
+def energy_scale(
+    scene: Scene, solver: Solver, pos: np.ndarray | None = None, prev: np.ndarray | None = None
+) -> float:
     """What a stable run of `scene` can plausibly move around (J): the energy of lifting the
     free particles by the size of the sheet, plus the kinetic and elastic energy at the start,
     plus the cloth moving at FLOOR_SPEED."""
     if pos is None:
-        pos, prev = scene.initial_state(np.float64)
+        pos, prev = solver.initial_state(scene, np.float64)
     free_mass = scene.mass * int((pos[:, 3] != 0).sum())
     g = math.sqrt(sum(c * c for c in scene.gravity))
     xyz = pos[:, :3].astype(np.float64)
     extent = max(scene.size, float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0))))
-    e = total_energy(pos, prev, scene)
-    spring = abs(e.spring) if scene.solver != "pbd" else 0.0
+    e = total_energy(pos, prev, scene, solver.dt)
+    spring = abs(e.spring) if solver.name != "pbd" else 0.0
     return free_mass * g * extent + abs(e.kinetic) + spring + 0.5 * free_mass * FLOOR_SPEED**2
 
 
 @lru_cache(maxsize=32)
-def _start(scene: Scene) -> tuple[float, float]:
-    pos, prev = scene.initial_state(np.float64)
-    return total_energy(pos, prev, scene).watched(scene), energy_scale(scene, pos, prev)
+def _start(scene: Scene, solver: Solver) -> tuple[float, float]:
+    pos, prev = solver.initial_state(scene, np.float64)
+    return total_energy(pos, prev, scene, solver.dt).watched(solver), energy_scale(scene, solver, pos, prev)
 
 
-def energy_bound(scene: Scene, start: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
+def energy_bound(
+    scene: Scene, solver: Solver, start: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[float, float]:
     """(E0, limit): the start's total energy and the largest total a stable run reaches.
 
-    `start` is the initial (pos, prev) when the run did not start from scene.initial_state()."""
+    `start` is the initial (pos, prev) when the run did not start from solver.initial_state()."""
     if start is None:
-        e0, scale = _start(scene)
+        e0, scale = _start(scene, solver)
     else:
-        e0 = total_energy(*start, scene).watched(scene)
-        scale = energy_scale(scene, *start)
+        e0 = total_energy(*start, scene, solver.dt).watched(solver)
+        scale = energy_scale(scene, solver, *start)
     return e0, e0 + ENERGY_GROWTH * scale
 
 
@@ -121,15 +127,16 @@ def energy_problem(
     pos: np.ndarray,
     prev: np.ndarray,
     scene: Scene,
+    solver: Solver,
     step: int,
     start: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> str | None:
     """None while the total energy stays under the bound, else what is wrong (one line).
 
     Same signature as harness.health.state_problem, so it can be chained after it."""
-    e0, limit = energy_bound(scene, start)
+    e0, limit = energy_bound(scene, solver, start)
     with np.errstate(all="ignore"):
-        e = total_energy(pos, prev, scene).watched(scene)
+        e = total_energy(pos, prev, scene, solver.dt).watched(solver)
     if not math.isfinite(e):
         return "the total energy is not finite"
     if e > limit:
@@ -158,7 +165,7 @@ def max_step_displacement(pos: np.ndarray, prev: np.ndarray) -> tuple[float, int
     return float(d[i]), i
 
 
-def fast_impact_warning(pos: np.ndarray, prev: np.ndarray, scene: Scene) -> str | None:
+def fast_impact_warning(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float) -> str | None:
     """A warning (one line) if a particle moves as far per step as the smallest sphere's
     radius, so the collider could let it through; None otherwise or with no spheres."""
     if not scene.spheres:
@@ -167,14 +174,14 @@ def fast_impact_warning(pos: np.ndarray, prev: np.ndarray, scene: Scene) -> str 
     d, i = max_step_displacement(pos, prev)
     if not math.isfinite(d) or d < r:
         return None
-    speed = d / scene.dt
+    speed = d / dt
     return (
         f"fast impact: particle {i} moves {d:.3g} m per step ({speed:.3g} m/s), at least the "
         f"sphere radius {r:.3g} m, so it can pass through the sphere; use dt < {r / speed:.2g} s"
     )
 
 
-def predicted_fast_impact(scene: Scene) -> str | None:
+def predicted_fast_impact(scene: Scene, solver: Solver) -> str | None:
     """Before a run: the free-fall speed a particle reaches by the bottom of the lowest-reaching
     sphere, times dt, against the smallest radius (the same rule, predicted from the scene)."""
     if not scene.spheres:
@@ -184,21 +191,21 @@ def predicted_fast_impact(scene: Scene) -> str | None:
     if gn == 0:
         return None
     down = g / gn
-    pos, prev = scene.initial_state(np.float64)
+    pos, prev = solver.initial_state(scene, np.float64)
     free = pos[:, 3] != 0
     if not free.any():
         return None
     xyz = pos[free, :3]
-    v0 = float(np.sqrt((((pos[free, :3] - prev[free, :3]) / scene.dt) ** 2).sum(axis=1)).max())
+    v0 = float(np.sqrt((((pos[free, :3] - prev[free, :3]) / solver.dt) ** 2).sum(axis=1)).max())
     # the deepest point any sphere reaches along gravity, measured from the highest particle
     drop = max(float(np.dot(np.array(s.center), down)) + s.radius for s in scene.spheres)
     drop -= float((xyz @ down).min())
     speed = math.sqrt(v0 * v0 + 2 * gn * max(drop, 0.0))
     r = min(s.radius for s in scene.spheres)
-    if speed * scene.dt < r:
+    if speed * solver.dt < r:
         return None
     return (
-        f"fast impact: falling freely the cloth reaches {speed:.3g} m/s, {speed * scene.dt:.3g} m "
+        f"fast impact: falling freely the cloth reaches {speed:.3g} m/s, {speed * solver.dt:.3g} m "
         f"per step, at least the sphere radius {r:.3g} m; use dt < {r / speed:.2g} s"
     )
 

@@ -12,17 +12,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scene import Scene
-from .energy import energy_problem
+from clothbench.scene import Scene
+from clothbench.solver import Solver
+from clothbench.harness.energy import energy_problem
 
 
-def state_problem(pos: np.ndarray, prev: np.ndarray, scene: Scene, step: int) -> str | None:
+def state_problem(pos: np.ndarray, prev: np.ndarray, scene: Scene, solver: Solver, step: int) -> str | None:
     """None if the state after `step` steps is healthy, else what is wrong with it."""
     xyz = pos[:, :3]
     if not np.isfinite(xyz).all() or not np.isfinite(prev[:, :3]).all():
         bad = int(np.argmax(~np.isfinite(xyz).all(axis=1)))
         return f"particle {bad} is not finite (NaN or Inf)"
-    return energy_problem(pos, prev, scene, step)
+    return energy_problem(pos, prev, scene, solver, step)
 
 
 def max_penetration(pos: np.ndarray, scene: Scene) -> float:

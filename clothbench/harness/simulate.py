@@ -6,25 +6,26 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..backends import BackendOptions, create_backend
-from ..scene import Scene
+from clothbench.backends import BackendOptions, create_backend
+from clothbench.scene import Scene
+from clothbench.solver import Solver
 
 
 def simulate(
-    backend: str, scene: Scene, steps: int, options: BackendOptions | None = None
+    backend: str, scene: Scene, solver: Solver, steps: int, options: BackendOptions | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(pos, prev) after `steps` steps of `scene` from its initial state on `backend`."""
+    """(pos, prev) after `steps` steps of `scene` stepped by `solver` from its start on `backend`."""
     options = options or BackendOptions()
-    with create_backend(backend, scene, options) as b:
-        b.upload(*scene.initial_state(options.dtype))
+    with create_backend(backend, scene, solver, options) as b:
+        b.upload(*b.initial_state())
         b.advance(steps)
         return b.read()
 
 
 @lru_cache(maxsize=32)
-def reference(scene: Scene, steps: int, precision: str = "f64") -> tuple[np.ndarray, np.ndarray]:
+def reference(scene: Scene, solver: Solver, steps: int, precision: str = "f64") -> tuple[np.ndarray, np.ndarray]:
     """The NumPy reference state, cached: many comparisons share one reference run."""
-    pos, prev = simulate("numpy", scene, steps, BackendOptions(precision=precision))
+    pos, prev = simulate("numpy", scene, solver, steps, BackendOptions(precision=precision))
     pos.setflags(write=False)
     prev.setflags(write=False)
     return pos, prev

@@ -4,7 +4,9 @@ What is inside the timed region: only `advance(chunk)` between two `synchronize(
 so the clock sees the steps and nothing else. The upload of the initial state and the
 readback after each chunk (used for the blow-up check) are outside it. A backend whose
 transfer mode uploads every step (the chapter's OpenCL variant) does that inside
-`advance`, so its cost is timed, as it should be.
+`advance`, so its cost is timed, as it should be. A strict run on a driver that flushes
+subnormal floats has a NumPy float32 run stepped beside it, outside the timed region too
+(strict_watch.py).
 
 Warm-up: the backend is built (kernel compiled) and advanced a few steps on a throwaway
 run before the timed run restarts from the initial state.
@@ -14,15 +16,18 @@ from __future__ import annotations
 
 import statistics
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from ..errors import BlowUp
-from ..scene import Scene
-from .energy import fast_impact_warning
-from .health import max_penetration, state_problem
+from clothbench.errors import BlowUp
+from clothbench.scene import Scene
+from clothbench.solver import Solver
+from clothbench.harness.energy import fast_impact_warning
+from clothbench.harness.health import max_penetration, state_problem
+from clothbench.harness.strict_watch import StrictWatch, needs_watch
 
 WARMUP_STEPS = 3
 
@@ -33,6 +38,7 @@ class RunResult:
     device: str
     mode: str
     scene: Scene
+    solver: Solver
     steps: int
     chunk_ms_per_step: list[float] = field(default_factory=list)  # one per timed chunk
     device_ms_per_step: list[float] = field(default_factory=list)  # profiling events, if any
@@ -41,6 +47,8 @@ class RunResult:
     prev: np.ndarray | None = None
     blowup: BlowUp | None = None
     warnings: list[str] = field(default_factory=list)  # one line each, said once
+    # --strict on a driver that flushes subnormals: the first step it parts from NumPy f32
+    strict_divergence: str | None = None
 
     @property
     def ms_per_step(self) -> float:
@@ -68,11 +76,10 @@ def default_chunk(steps: int) -> int:
     return max(1, steps // 10)
 
 
-def warm_up(backend, scene: Scene) -> float:
+def warm_up(backend) -> float:
     """Compile and run a few steps; seconds taken."""
     t0 = time.perf_counter()
-    pos, prev = scene.initial_state(backend.options.dtype)
-    backend.upload(pos, prev)
+    backend.upload(*backend.initial_state())
     backend.advance(WARMUP_STEPS)
     backend.synchronize()
     backend.read()
@@ -81,59 +88,65 @@ def warm_up(backend, scene: Scene) -> float:
 
 def run_timed(
     backend,
-    scene: Scene,
     steps: int,
     chunk: int | None = None,
     on_progress: Callable[[int], None] | None = None,
     raise_on_blowup: bool = True,
     build_s: float = 0.0,
 ) -> RunResult:
-    """Run `steps` steps from the initial state in timed chunks, checking health after each."""
+    """Run `steps` steps of the backend's scene and solver from the solver's start in timed
+    chunks, checking health after each."""
     chunk = chunk or default_chunk(steps)
-    result = RunResult(backend.name, backend.device, backend.mode, scene, steps)
-    result.warmup_s = build_s + warm_up(backend, scene)
+    scene, solver = backend.scene, backend.solver
+    result = RunResult(backend.name, backend.device, backend.mode, scene, solver, steps)
+    result.warmup_s = build_s + warm_up(backend)
 
-    pos, prev = scene.initial_state(backend.options.dtype)
+    pos, prev = backend.initial_state()
     backend.upload(pos, prev)
-    done = 0
-    while done < steps:
-        c = min(chunk, steps - done)
-        backend.synchronize()
-        t0 = time.perf_counter()
-        backend.advance(c)
-        backend.synchronize()
-        elapsed = time.perf_counter() - t0
-        result.chunk_ms_per_step.append(1e3 * elapsed / c)
-        dev = backend.device_elapsed_ms()
-        if dev is not None:
-            result.device_ms_per_step.append(dev / c)
-        new_pos, new_prev = backend.read()
-        problem = state_problem(new_pos, new_prev, scene, done + c)
-        if problem is not None:
-            step, what = _pinpoint(backend, scene, pos, prev, done, c)
-            result.pos, result.prev = new_pos, new_prev
-            result.blowup = BlowUp(step, what or problem)
-            if raise_on_blowup:
-                raise result.blowup
-            return result
-        pos, prev = new_pos, new_prev
-        warning = fast_impact_warning(pos, prev, scene)
-        if warning and warning.split(":")[0] not in {w.split(":")[0] for w in result.warnings}:
-            result.warnings.append(warning)
-        done += c
-        if on_progress:
-            on_progress(done)
+    with StrictWatch(backend, pos, prev) if needs_watch(backend) else nullcontext() as watch:
+        done = 0
+        while done < steps:
+            c = min(chunk, steps - done)
+            backend.synchronize()
+            t0 = time.perf_counter()
+            backend.advance(c)
+            backend.synchronize()
+            elapsed = time.perf_counter() - t0
+            result.chunk_ms_per_step.append(1e3 * elapsed / c)
+            dev = backend.device_elapsed_ms()
+            if dev is not None:
+                result.device_ms_per_step.append(dev / c)
+            new_pos, new_prev = backend.read()
+            problem = state_problem(new_pos, new_prev, scene, solver, done + c)
+            if problem is not None:
+                step, what = _pinpoint(backend, pos, prev, done, c)
+                result.pos, result.prev = new_pos, new_prev
+                result.blowup = BlowUp(step, what or problem)
+                if raise_on_blowup:
+                    raise result.blowup
+                return result
+            pos, prev = new_pos, new_prev
+            divergence = watch.check(done, c, pos, prev) if watch is not None else None
+            if divergence is not None:
+                result.strict_divergence = divergence
+                result.warnings.append(divergence)
+            warning = fast_impact_warning(pos, prev, scene, solver.dt)
+            if warning and warning.split(":")[0] not in {w.split(":")[0] for w in result.warnings}:
+                result.warnings.append(warning)
+            done += c
+            if on_progress:
+                on_progress(done)
     result.pos, result.prev = pos, prev
     return result
 
 
-def _pinpoint(backend, scene, pos, prev, done, chunk) -> tuple[int, str | None]:
+def _pinpoint(backend, pos, prev, done, chunk) -> tuple[int, str | None]:
     """Replay a failed chunk one step at a time from its start to name the first bad step."""
     backend.upload(pos, prev)
     for s in range(1, chunk + 1):
         backend.advance(1)
         p, q = backend.read()
-        problem = state_problem(p, q, scene, done + s)
+        problem = state_problem(p, q, backend.scene, backend.solver, done + s)
         if problem is not None:
             return done + s, problem
     return done + chunk, None  # not reproduced step by step: report the chunk's end

@@ -28,8 +28,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
-from ..errors import ClothbenchError
-from ..harness.sweep import read_sweep
+from clothbench.errors import ClothbenchError
+from clothbench.harness.sweep_csv import read_sweep
 
 # Columns plot needs; a CSV without them is refused with their names.
 REQUIRED = (

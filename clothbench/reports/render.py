@@ -24,10 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..backends import BackendOptions, create_backend, gl_context
-from ..errors import ClothbenchError
-from ..harness.normals import grid_normals
-from ..scene import Scene
+from clothbench.backends import BackendOptions, capabilities, create_backend
+from clothbench.backends.gl import context as gl_context
+from clothbench.errors import ClothbenchError
+from clothbench.harness.normals import grid_normals
+from clothbench.scene import Scene
+from clothbench.solver import Solver
 
 BACKGROUND = (0.86, 0.89, 0.93)
 CLOTH_COLOURS = ((0.80, 0.16, 0.13), (0.97, 0.78, 0.30))  # checker: red and gold
@@ -402,26 +404,30 @@ def check_settings(settings: RenderSettings) -> None:
 
 def render(
     scene: Scene,
+    solver: Solver,
     backend_name: str,
     options: BackendOptions,
     settings: RenderSettings,
     out: str,
     on_frame=None,
 ) -> RenderReport:
-    """Simulate `settings.frames` x `settings.every` steps of `scene` on `backend_name`,
-    drawing a frame after every `every` steps, into `out` (see OUTPUT_KINDS)."""
+    """Simulate `settings.frames` x `settings.every` steps of `scene` stepped by `solver` on
+    `backend_name`, drawing a frame after every `every` steps, into `out` (see OUTPUT_KINDS)."""
     kind = output_kind(out)
     check_settings(settings)
     path = Path(out)
     _writable(path if kind == "folder" else path.parent)  # fail before simulating, not after
-    options = replace(options, normals=True)  # the GL backends compute them in the step
+    takes = capabilities(backend_name, solver.name)
+    # normals from the step where the backend computes them (else draw_backend's grid_normals);
+    # options.gl is the renderer's context, passed on to the backend where it takes one
+    backend_options = replace(options, normals=takes.normals, gl=options.gl if takes.gl else "egl")
     report = RenderReport([], settings.frames, settings.frames * settings.every)
     images = []
-    with create_backend(backend_name, scene, options) as backend:
+    with create_backend(backend_name, scene, solver, backend_options) as backend:
         device = backend.gl if hasattr(backend, "drawable_state") else gl_context.get_device(options.gl)
         renderer = Renderer(device, scene, settings.size)
         try:
-            backend.upload(*scene.initial_state(options.dtype))
+            backend.upload(*backend.initial_state())
             for frame in range(1, settings.frames + 1):
                 t0 = time.perf_counter()
                 backend.advance(settings.every)

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import pytest
 
-from clothbench.accuracy import backend_variants
 from clothbench.backends import BACKENDS, availability
+from clothbench.harness.plan import plan_variants
 
 from conftest import require  # tests/conftest.py
 
@@ -23,9 +23,9 @@ def _params():
         if not availability(name).usable:
             params.append(pytest.param((name, None), id=name))
             continue
-        for v in backend_variants([name])[0]:
-            tag = "-".join(f"{k}={val}" if not isinstance(val, str) else val for k, val in v.overrides)
-            params.append(pytest.param((name, v), id=f"{name}-{tag}" if tag else name))
+        for v in plan_variants([name])[0]:
+            tag = v.label.replace(" ", "-")
+            params.append(pytest.param((name, v), id=f"{name}-{tag}" if tag != "default" else name))
     return params
 
 
@@ -37,13 +37,14 @@ def variant(request):
     return v
 
 
-def run_from(v, scene, start, steps):
-    """(pos, prev) after `steps` steps of `scene` on variant `v` from the float64 state `start`
-    (rounded once to the variant's precision, as Scene.initial_state does)."""
+def run_from(v, scene, start, steps, solver=None):
+    """(pos, prev) after `steps` steps of `scene` on variant `v` (stepped by `solver`, default
+    the variant's) from the float64 state `start` (rounded once to the variant's precision,
+    as initial_state does)."""
     from clothbench.backends import create_backend
 
     dtype = v.options.dtype
-    with create_backend(v.backend, scene, v.options) as b:
+    with create_backend(v.backend, scene, solver or v.solver, v.options) as b:
         b.upload(start[0].astype(dtype), start[1].astype(dtype))
         b.advance(steps)
         return b.read()

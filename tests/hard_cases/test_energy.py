@@ -19,28 +19,29 @@ import pytest
 
 from clothbench.backends import create_backend
 from clothbench.harness.energy import energy_scale, total_energy
-from clothbench.scene import load_scene
+from conftest import setup
 from hard_case_variants import variant  # noqa: F401
 
-DRAPE = load_scene("drape").replace(grid=8)
+DRAPE = setup("drape", 8)
+SOLVER = DRAPE.solver
 
 
 def _energies(v, scene, steps, every):
-    with create_backend(v.backend, scene, v.options) as b:
-        b.upload(*scene.initial_state(v.options.dtype))
+    with create_backend(v.backend, scene, SOLVER, v.options) as b:
+        b.upload(*b.initial_state())
         out = []
         for _ in range(steps // every):
             b.advance(every)
             pos, prev = b.read()
             assert np.isfinite(pos[:, :3]).all()
-            out.append(total_energy(pos, prev, scene).total)
+            out.append(total_energy(pos, prev, scene, SOLVER.dt).total)
     return np.array(out)
 
 
 @pytest.mark.slow
 def test_undamped_energy_stays_in_its_band_for_100000_steps(variant):
-    scene = DRAPE.replace(damping=0.0)
-    e0 = total_energy(*scene.initial_state(np.float64), scene).total
+    scene = DRAPE.scene.replace(damping=0.0)
+    e0 = total_energy(*SOLVER.initial_state(scene, np.float64), scene, SOLVER.dt).total
     free_mass = scene.mass * (scene.particles - len(scene.pinned()))
     band = 0.01 * free_mass * abs(scene.gravity[1]) * scene.size
     e = _energies(variant, scene, 100_000, 1000)
@@ -49,10 +50,10 @@ def test_undamped_energy_stays_in_its_band_for_100000_steps(variant):
 
 
 def test_damped_energy_never_increases_by_more_than_rounding(variant):
-    scene = DRAPE  # b = 0.002
+    scene = DRAPE.scene  # b = 0.002
     e = _energies(variant, scene, 20_000, 100)
     u = np.finfo(variant.options.dtype).eps / 2
-    tol = 16 * u * energy_scale(scene)
+    tol = 16 * u * energy_scale(scene, SOLVER)
     rise = float(np.diff(e).max())
     assert rise <= tol, f"energy rose by {rise:.3g} J between samples (rounding: {tol:.3g} J)"
     assert e[-1] < e[0] - 1.0, "the damped drape should have lost most of its swing"

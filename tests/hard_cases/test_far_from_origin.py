@@ -12,19 +12,20 @@ import numpy as np
 
 from clothbench.backends import BackendOptions
 from clothbench.harness import position_error, simulate
-from clothbench.scene import load_scene
+from conftest import setup
 from hard_case_variants import run_from, variant  # noqa: F401
 
 OFFSET = np.array([1e4, 1e4, 1e4, 0.0])
-SCENE = load_scene("drape").replace(grid=16)
+DRAPE = setup("drape", 16)
+SCENE, SOLVER = DRAPE.scene, DRAPE.solver
 STEPS = 200  # 0.1 s: before the drape buckles, so errors are not chaos (docs/accuracy.md)
 
 
 def test_ten_km_from_the_origin(variant):
-    origin, _ = simulate("numpy", SCENE, STEPS, BackendOptions(precision="f64"))
-    pos, prev = SCENE.initial_state(np.float64)
+    origin, _ = simulate("numpy", SCENE, SOLVER, STEPS, BackendOptions(precision="f64"))
+    pos, prev = SOLVER.initial_state(SCENE, np.float64)
     start = (pos + OFFSET, prev + OFFSET)
-    out, _ = run_from(variant, SCENE, start, STEPS)
+    out, _ = run_from(variant, SCENE, start, STEPS, SOLVER)
     local = out.astype(np.float64) - OFFSET
     rms, worst = position_error(local, origin)
     fall = SCENE.height - origin[:, 1].mean()

@@ -10,18 +10,21 @@ is not flagged.
 import numpy as np
 
 from clothbench.harness.energy import fast_impact_warning, predicted_fast_impact
-from clothbench.scene import Scene, Sphere, load_scene
+from clothbench.scene import Scene, Sphere
+from clothbench.solver import Verlet
+from conftest import VERLET, setup
 from hard_case_variants import run_from, variant  # noqa: F401
 
 BALL = Sphere((0.2, 0.0, 0.2), 0.1)
 # 9 x 9 over 0.4 m: the middle particle (40) is right above the centre
-SCENE = Scene(grid=9, size=0.4, dt=1e-3, spheres=(BALL,))
+SCENE = Scene(grid=9, size=0.4, spheres=(BALL,))
+SOLVER = Verlet(dt=1e-3)
 
 
 def _start(height: float, speed: float):
     scene = SCENE.replace(height=height)
-    pos, prev = scene.initial_state(np.float64)
-    prev[:, 1] += speed * scene.dt  # moving down at `speed`
+    pos, prev = SOLVER.initial_state(scene, np.float64)
+    prev[:, 1] += speed * SOLVER.dt  # moving down at `speed`
     return scene, (pos, prev)
 
 
@@ -30,10 +33,10 @@ def test_a_sheet_crossing_the_sphere_in_one_step_is_flagged_and_really_tunnels(v
     # particle lands at 0.25, then at -0.05: inside the sphere but past its centre, so the
     # projection pushes it out at the bottom (y = -0.1) instead of catching it on top.
     scene, start = _start(0.55, 300.0)
-    warning = fast_impact_warning(*start, scene)
+    warning = fast_impact_warning(*start, scene, SOLVER.dt)
     assert warning is not None and "fast impact" in warning and "dt <" in warning
-    after, after_prev = run_from(variant, scene, start, 2)
-    assert fast_impact_warning(after, after_prev, scene) is not None
+    after, after_prev = run_from(variant, scene, start, 2, SOLVER)
+    assert fast_impact_warning(after, after_prev, scene, SOLVER.dt) is not None
     assert after[40, 1] <= BALL.center[1] - 0.99 * BALL.radius, "expected the tunnelling the rule predicts"
 
 
@@ -42,14 +45,15 @@ def test_an_ordinary_impact_is_not_flagged_and_is_caught(variant):
     scene, start = _start(0.15, 1.0)
     state = start
     for _ in range(10):
-        state = run_from(variant, scene, state, 10)
-        assert fast_impact_warning(*state, scene) is None
+        state = run_from(variant, scene, state, 10, SOLVER)
+        assert fast_impact_warning(*state, scene, SOLVER.dt) is None
     # the middle particle rests on top of the sphere, not inside or below it
     assert state[0][40, 1] >= BALL.center[1] + BALL.radius - 1e-5
 
 
 def test_the_rule_predicted_from_a_scene():
-    assert predicted_fast_impact(load_scene("sphere")) is None  # 1.4 m/s: 0.7 mm/step << 0.3 m
+    sphere = setup("sphere")
+    assert predicted_fast_impact(sphere.scene, sphere.solver) is None  # 1.4 m/s: 0.7 mm/step << 0.3 m
     # dropped from 100 m onto a 1 cm ball: 44 m/s, 2.2 cm per step at dt = 0.5 ms
     far = Scene(height=100.0, spheres=(Sphere((0.5, 0.0, 0.5), 0.01),))
-    assert "fast impact" in predicted_fast_impact(far)
+    assert "fast impact" in predicted_fast_impact(far, VERLET)

@@ -13,10 +13,10 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from clothbench.accuracy import backend_variants
 from clothbench.backends import BACKENDS, create_backend
 from clothbench.harness import run_timed
-from clothbench.scene import load_scene
+from clothbench.harness.plan import plan_variants
+from conftest import setup
 from hard_case_variants import require
 
 N = 1024
@@ -27,12 +27,13 @@ STEPS = 10
 @pytest.mark.parametrize("backend", list(BACKENDS))
 def test_a_million_particles_run_without_blow_up(backend):
     require(backend)
-    variant = backend_variants([backend])[0][0]  # the first sweep variant (numpy: f32)
-    scene = load_scene("sphere").replace(grid=N, steps=STEPS)
+    # the first sweep variant that is not the float64 reference (numpy: f32)
+    variant = next(v for v in plan_variants([backend])[0] if not v.is_reference)
+    sphere = setup("sphere", N)
     tracemalloc.start()
     try:
-        with create_backend(variant.backend, scene, variant.options) as b:
-            result = run_timed(b, scene, STEPS, chunk=5, raise_on_blowup=False)
+        with create_backend(variant.backend, sphere.scene, sphere.solver, variant.options) as b:
+            result = run_timed(b, STEPS, chunk=5, raise_on_blowup=False)
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()

@@ -8,19 +8,20 @@ Scene: 12 x 12, top edge pinned, gravity on. The hanging sheet is barely stretch
 weight of a column, 1.2 N, over k = 1e5 gives a strain of 1e-4), so the flat-lattice bound
 applies; the release from rest excites every mode, so nothing depends on rounding noise to
 seed the instability. A 12 x 12 grid's top frequency is 2.6 % under the infinite lattice's
-(accuracy.finite_grid_omega2), inside the 5 % margin.
+(analysis.lattice.finite_grid_omega2), inside the 5 % margin.
 """
 
 import pytest
 
-from clothbench.accuracy import finite_grid_omega2, lattice_omega2, predicted_dt_max
+from clothbench.analysis.lattice import finite_grid_omega2, lattice_omega2, predicted_dt_max
 from clothbench.backends import create_backend
 from clothbench.errors import BlowUp
 from clothbench.harness import run_timed
 from clothbench.scene import Scene
 from hard_case_variants import variant  # noqa: F401  (the parametrised fixture)
 
-STIFF = Scene(grid=12, stiffness=1e5, pin_edge="top", steps=10_000)
+STIFF = Scene(grid=12, stiffness=1e5, pin_edge="top")
+STEPS = 10_000
 
 
 def test_twelve_by_twelve_is_within_the_margin_of_the_lattice_bound():
@@ -30,19 +31,19 @@ def test_twelve_by_twelve_is_within_the_margin_of_the_lattice_bound():
 
 
 def test_five_percent_under_the_limit_stays_bounded_for_10000_steps(variant):
-    scene = STIFF.replace(dt=0.95 * predicted_dt_max(STIFF))
-    with create_backend(variant.backend, scene, variant.options) as b:
-        result = run_timed(b, scene, scene.steps, chunk=1000, raise_on_blowup=False)
+    solver = variant.solver.replace(dt=0.95 * predicted_dt_max(STIFF))
+    with create_backend(variant.backend, STIFF, solver, variant.options) as b:
+        result = run_timed(b, STEPS, chunk=1000, raise_on_blowup=False)
     assert result.blowup is None, str(result.blowup)
     assert result.finite
     # bounded: the sheet hangs; nothing is more than a sheet length below its start
-    assert (scene.height - result.pos[:, 1]).max() < scene.size
+    assert (STIFF.height - result.pos[:, 1]).max() < STIFF.size
 
 
 def test_five_percent_over_the_limit_is_a_blow_up_naming_the_step(variant):
-    scene = STIFF.replace(dt=1.05 * predicted_dt_max(STIFF))
-    with create_backend(variant.backend, scene, variant.options) as b:
+    solver = variant.solver.replace(dt=1.05 * predicted_dt_max(STIFF))
+    with create_backend(variant.backend, STIFF, solver, variant.options) as b:
         with pytest.raises(BlowUp) as err:
-            run_timed(b, scene, scene.steps, chunk=100)
-    assert 0 < err.value.step < scene.steps
+            run_timed(b, STEPS, chunk=100)
+    assert 0 < err.value.step < STEPS
     assert str(err.value).startswith(f"simulation blew up at step {err.value.step}: ")

@@ -1,0 +1,1 @@
+"""CUDA through CuPy RawKernel: Verlet (verlet.py, kernels/verlet_cloth.cu)."""

@@ -1,0 +1,188 @@
+"""The PBD solver (docs/pbd.md) as GL 4.3 compute shaders: kernels/pbd_cloth.comp.
+
+Host code only; the stages, the substep plan, the state conversion and the profiling are
+shared with the OpenCL solver (pbd_device.PbdDeviceBackend). One program per stage (the
+kernel file's STAGE), the scene's constants compiled in as exact float32 literals; every
+dispatch is followed by a memory barrier, since the next one reads what it wrote. The state
+(x, v, two predicted-position buffers, lambda) stays in SSBOs; the coloured batches' (i, j)
+pairs are uploaded once. The context, its program cache, the work-group size and the
+dispatch geometry are gl/context.py's.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from clothbench.kernel_source import glsl_float
+from clothbench.scene import Scene
+from clothbench.solver import Pbd
+from clothbench.backends.gl import context as gl_context
+from clothbench.backends.base import BackendOptions, Capabilities
+from clothbench.backends.gl.context import open_compute_device, work_groups
+from clothbench.backends.pbd_device import PbdDeviceBackend
+
+KERNEL_FILE = "pbd_cloth.comp"
+STAGES = {"predict": 0, "jacobi": 1, "coloured": 2, "collide": 3, "update": 4}  # as the kernel's
+PARTS = {"all": 0, "interior": 1, "border": 2}  # of a Jacobi pass, as the kernel's
+# The constraint passes read positions through imageBuffer views of their buffers where the
+# driver allows a view that large: llvmpipe gathers image loads and loads SSBOs lane by lane
+# (measured at n = 256: Jacobi 1.5-2x, coloured 1.2x faster). Tests turn it off to check the
+# SSBO path.
+PREFER_IMAGE_READS = True
+
+
+def jacobi_parts(n: int) -> list[tuple[str, int]]:
+    """The launches of one Jacobi pass and their work items: the interior (2 or more from
+    every edge: all 12 neighbours exist, no bounds tests) and the border, or, below n = 5,
+    the border kernel over every particle."""
+    if n < 5:
+        return [("border", n * n)]
+    return [("interior", (n - 4) ** 2), ("border", 8 * n - 16)]
+
+
+class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
+    name = "glsl-compute"
+    capabilities = Capabilities(local_size=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}))
+
+    def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
+        super().__init__(scene, solver, options)
+        self.gl, self.local_size = open_compute_device(self.name, options)
+        self.effective_local_size = self.local_size
+        size = self.n2 * 16  # one vec4 per particle
+        self.sources: dict[str, str] = {}
+        with self.gl:
+            ctx = self.gl.ctx
+            self.x = ctx.buffer(reserve=size)
+            self.v = ctx.buffer(reserve=size)
+            self.xs = [ctx.buffer(reserve=size) for _ in range(2)]  # Jacobi ping-pong
+            self.lam = ctx.buffer(reserve=4 * self.lambda_count)
+            self.ij = None if self.jacobi else ctx.buffer(self.batch_pairs.tobytes())
+            # imageBuffer views of the two predicted-position buffers (no copy), for the reads
+            # of the constraint passes (PREFER_IMAGE_READS)
+            self.image_reads = PREFER_IMAGE_READS and self.gl.max_texture_buffer_size >= self.n2
+            self.views = [self.gl.buffer_texture(buf) for buf in self.xs] if self.image_reads else []
+            self.mode_suffix = gl_context.mode_suffix(self.gl, ssbo_reads=not self.image_reads)
+            self.programs = {}
+            self.launches = self._plan_launches()
+
+    def _defines(self) -> dict[str, object]:
+        c = self.constants
+        defines: dict[str, object] = {"STRICT": ""} if self.strict else {}
+        defines.update(gl_context.constant_defines(self.scene, self.solver, generic=False))  # n, colliders
+        defines.update(
+            LOCAL_SIZE=self.local_size,
+            H_VALUE=glsl_float(c.h),
+            GH_VALUE="vec3({})".format(", ".join(map(glsl_float, c.gh))),
+            AT_VALUE="float[3]({})".format(", ".join(map(glsl_float, c.at))),
+            REST_VALUE="float[3]({})".format(", ".join(map(glsl_float, c.rest))),
+            DAMP_VALUE=glsl_float(c.damp),
+            RELAX_VALUE=glsl_float(c.relax),
+        )
+        return defines
+
+    def _program(self, stage: str, part: str | None = None):
+        key = (stage, part)
+        if key in self.programs:
+            return self.programs[key]
+        defines = self._defines()
+        defines["STAGE"] = STAGES[stage]
+        if stage == "jacobi":
+            defines["PART"] = PARTS[part]
+        if stage in ("jacobi", "coloured") and self.image_reads:
+            defines["IMAGE_READS"] = ""
+        kinds = gl_context.collider_kinds(self.scene, generic=False)
+        source = gl_context.shader_source(KERNEL_FILE, 430, defines, kinds)
+        self.sources[stage if part is None else f"{stage} {part}"] = source
+        # the source is the specialisation key: the same scene and switches share a program
+        program = self.gl.program(("pbd-comp", source), lambda: self.gl.ctx.compute_shader(source))
+        self.programs[key] = program
+        return program
+
+    def _launches_of(self, step) -> list:
+        """[(program, work groups, SSBO bindings, image bindings, uniform values)] of one step
+        of the plan."""
+        kind = step[0]
+        if kind == "jacobi":
+            _, it, src, dst = step
+            images = ((0, self.views[src]),) if self.image_reads else ()
+            ssbos = ((1, self.xs[dst]), (2, self.lam)) + (() if self.image_reads else ((0, self.xs[src]),))
+            launches = []
+            for part, items in jacobi_parts(self.n):
+                program = self._program(kind, "all" if self.n < 5 else part)
+                uniforms = ((program["first_pass"], int(it == 0)),)
+                launches.append((program, work_groups(items, self.local_size), ssbos, images, uniforms))
+            return launches
+        program, items = self._program(kind), self.n2
+        uniforms: tuple = ()
+        images: tuple = ()
+        if kind == "predict":
+            bindings = (self.x, self.v, self.xs[0])
+        elif kind == "coloured":
+            _, it, b = step
+            batch = self.batches[b]
+            items = len(batch.i)
+            bindings = (self.xs[0], self.ij, self.lam)
+            images = ((0, self.views[0]),) if self.image_reads else ()
+            uniforms = (
+                ("batch_offset", int(self.batch_offsets[b])),
+                ("batch_count", items),
+                ("batch_kind", batch.kind),
+                ("first_pass", int(it == 0)),
+            )
+        elif kind == "collide":
+            bindings = (self.xs[step[1]],)
+        else:
+            bindings = (self.x, self.v, self.xs[step[1]])
+        uniforms = tuple((program[u], v) for u, v in uniforms)
+        return [(program, work_groups(items, self.local_size), tuple(enumerate(bindings)), images, uniforms)]
+
+    # --- PbdDeviceBackend ----------------------------------------------------------------
+    def _enqueue(self, launch) -> None:
+        program, groups, ssbos, images, uniforms = launch
+        for binding, buf in ssbos:
+            buf.bind_to_storage_buffer(binding)
+        for unit, view in images:
+            self.gl.bind_image_read(unit, view)
+        for uniform, value in uniforms:
+            uniform.value = value
+        program.run(*groups)
+        self.gl.ctx.memory_barrier()  # the next dispatch reads what this one wrote
+
+    def _timed(self, launch) -> float:
+        # wall clock around finish(): llvmpipe's timer queries are not to be trusted
+        t0 = time.perf_counter()
+        self._enqueue(launch)
+        self.gl.ctx.finish()
+        return time.perf_counter() - t0
+
+    def _write_state(self, x: np.ndarray, v: np.ndarray) -> None:
+        with self.gl:
+            self.x.write(np.ascontiguousarray(x, dtype=np.float32))
+            self.v.write(np.ascontiguousarray(v, dtype=np.float32))
+
+    def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
+        with self.gl:
+            return tuple(
+                np.frombuffer(buf.read(), dtype=np.float32).reshape(self.n2, 4).copy() for buf in (self.x, self.v)
+            )
+
+    # --- Backend interface -----------------------------------------------------------------
+    def advance(self, steps: int) -> None:
+        with self.gl:
+            super().advance(steps)
+
+    def profile_stages(self, steps: int) -> dict[str, float]:
+        with self.gl:
+            return super().profile_stages(steps)
+
+    def close(self) -> None:
+        if self.x is None:
+            return
+        with self.gl:  # the context is shared (gl_context), so only our objects go
+            self.gl.delete_textures(self.views)
+            for buf in (self.x, self.v, *self.xs, self.lam, self.ij):
+                if buf is not None:
+                    buf.release()
+        self.x = None

@@ -1,0 +1,1 @@
+"""NumPy: the reference, float32 or float64, Verlet (verlet.py) and PBD (pbd.py)."""

@@ -1,0 +1,123 @@
+"""The NumPy reference of the PBD solver (docs/pbd.md), Jacobi and coloured Gauss-Seidel.
+
+Same layout and the same element-wise, correctly rounded operations in the documented
+order as the Verlet reference (numpy/verlet.py), whose collider code it reuses, so a PBD kernel
+that follows docs/pbd.md reproduces the float32 Jacobi result bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clothbench.constraints import coloured_batches
+from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.solver import Pbd
+from clothbench.backends.base import Backend, BackendOptions
+from clothbench.backends.kernel_inputs import PbdConstants
+from clothbench.backends.numpy.verlet import (
+    COLLIDE,
+    GridPlanes,
+    NumpyBackend,
+    collider_constants,
+    dot3,
+    neighbour_regions,
+)
+
+
+class NumpyPbdBackend(GridPlanes, Backend):
+    name = "numpy"
+    capabilities = NumpyBackend.capabilities  # the same two precisions and one mode
+
+    def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
+        super().__init__(scene, solver, options)
+        t = self.dtype = options.dtype
+        n = scene.grid
+        c = PbdConstants.of(scene, solver, t)  # the f64 reference takes them in float64
+        self.dt, self.h, self.at, self.damp, self.relax = c.dt, c.h, c.at, c.damp, c.relax
+        self.gh = np.array(c.gh, dtype=t).reshape(3, 1, 1)
+        self.stencil = [
+            (*neighbour_regions(n, dr, dc), c.rest[kind], c.at[kind])
+            for (dr, dc), kind in zip(OFFSETS, OFFSET_KIND)
+        ]
+        counts = np.zeros((n, n), dtype=t)
+        for i, _, _, _ in self.stencil:
+            counts[i[1:]] += 1
+        self.jacobi_scale = self.relax / counts  # relax / cnt, one division per particle
+        self.batches = coloured_batches(n)
+        self.batch_rest = [c.rest[b.kind] for b in self.batches]
+        self.colliders = collider_constants(scene, t)
+        self.pos = self.vel = np.zeros((3, n, n), dtype=t)
+        self.w, self.free = np.zeros((n, n), dtype=t), np.zeros((n, n), dtype=bool)
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        self.pos = self.planes(pos)
+        self.vel = (self.pos - self.planes(prev)) / self.dt
+        self.set_inverse_mass(pos)
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.state(self.pos), self.state(self.pos - self.vel * self.dt)
+
+    def advance(self, steps: int) -> None:
+        with np.errstate(all="ignore"):  # 0/0 is masked below; a blow-up is the harness's
+            for _ in range(steps * self.solver.substeps):
+                self._substep()
+
+    def _substep(self) -> None:
+        x, free = self.pos, self.free
+        # predict: pinned particles stay and have no velocity
+        v = np.where(free, self.vel + self.gh, 0).astype(self.dtype)
+        xs = np.where(free, x + v * self.h, x).astype(self.dtype)
+        if self.solver.method == "jacobi":
+            xs = self._jacobi(xs)
+        else:
+            xs = self._coloured(xs)
+        for kind, constants in self.colliders:
+            COLLIDE[kind](xs, free, **constants)
+        v = (xs - x) / self.h
+        self.vel = v * self.damp
+        self.pos = xs
+
+    def _jacobi(self, x: np.ndarray) -> np.ndarray:
+        w = self.w
+        lam = [np.zeros(w[i[1:]].shape, dtype=self.dtype) for i, _, _, _ in self.stencil]
+        for _ in range(self.solver.iterations):
+            corr = np.zeros_like(x)
+            for (i, j, rest, at), lam_o in zip(self.stencil, lam):
+                d = x[i] - x[j]
+                length2 = dot3(d, d)
+                length = np.sqrt(length2)
+                denom = (w[i[1:]] + w[j[1:]]) + at
+                valid = (length2 > 0) & (denom > 0)
+                dlam = ((-(length - rest)) - at * lam_o) / denom
+                dlam[~valid] = 0
+                lam_o += dlam
+                s = (w[i[1:]] * dlam) / length
+                s[~valid] = 0
+                corr[i] += d * s
+            x = x + corr * self.jacobi_scale  # a new array: the ping-pong of the GPU form
+        return x
+
+    def _coloured(self, x: np.ndarray) -> np.ndarray:
+        n2 = self.scene.particles
+        flat = x.reshape(3, n2).copy()
+        w = self.w.reshape(n2)
+        lam = [np.zeros(len(b.i), dtype=self.dtype) for b in self.batches]
+        for _ in range(self.solver.iterations):
+            for batch, rest, lam_b in zip(self.batches, self.batch_rest, lam):
+                i, j, at = batch.i, batch.j, self.at[batch.kind]
+                d = flat[:, i] - flat[:, j]
+                length2 = dot3(d, d)
+                length = np.sqrt(length2)
+                denom = (w[i] + w[j]) + at
+                valid = (length2 > 0) & (denom > 0)
+                dlam = ((-(length - rest)) - at * lam_b) / denom
+                dlam[~valid] = 0
+                lam_b += dlam
+                si = (w[i] * dlam) / length
+                sj = (w[j] * dlam) / length
+                si[~valid] = 0
+                sj[~valid] = 0
+                # a batch shares no particle, so these scattered writes never collide
+                flat[:, i] = flat[:, i] + d * si
+                flat[:, j] = flat[:, j] - d * sj
+        return flat.reshape(x.shape)

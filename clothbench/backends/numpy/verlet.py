@@ -1,0 +1,190 @@
+"""The NumPy reference: docs/semantics.md, vectorised over the grid, float32 or float64.
+
+Every operation below is an element-wise, correctly rounded NumPy operation performed in
+the order the semantics fix, so a kernel that does the same operations in the same order
+(without FMA contraction) reproduces the float32 result bit for bit.
+The float64 run is the reference every accuracy figure is measured against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clothbench.environment import cpu_model
+from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.solver import Verlet
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+
+
+def probe() -> Availability:
+    return Availability(True, device=cpu_model())
+
+
+def neighbour_regions(n: int, dr: int, dc: int):
+    """Slices (rows, cols) of the particles i that have neighbour i + (dr, dc), and of those
+    neighbours, so that a neighbour outside the grid is skipped rather than added as zero."""
+    i_rows = slice(max(0, -dr), n - max(0, dr))
+    i_cols = slice(max(0, -dc), n - max(0, dc))
+    j_rows = slice(max(0, dr), n + min(0, dr))
+    j_cols = slice(max(0, dc), n + min(0, dc))
+    return (slice(None), i_rows, i_cols), (slice(None), j_rows, j_cols)
+
+
+class GridPlanes:
+    """The state as (3, n, n) component planes and an (n, n) inverse mass: the same arithmetic
+    as (n*n, 4) rows, with faster slicing. Shared by the Verlet and PBD references."""
+
+    @property
+    def device(self) -> str:
+        return cpu_model()
+
+    def planes(self, state: np.ndarray) -> np.ndarray:
+        n = self.scene.grid
+        return np.ascontiguousarray(state[:, :3].T.reshape(3, n, n), dtype=self.dtype)
+
+    def set_inverse_mass(self, pos: np.ndarray) -> None:
+        n = self.scene.grid
+        self.w = np.ascontiguousarray(pos[:, 3].reshape(n, n), dtype=self.dtype)
+        self.free = self.w != 0
+
+    def state(self, planes: np.ndarray) -> np.ndarray:
+        """(n*n, 4) rows of `planes` with the inverse mass as w."""
+        n2 = self.scene.particles
+        a = np.empty((n2, 4), dtype=self.dtype)
+        a[:, :3] = planes.reshape(3, n2).T
+        a[:, 3] = self.w.reshape(n2)
+        return a
+
+
+class NumpyBackend(GridPlanes, Backend):
+    name = "numpy"
+    # one mode, no --strict: it is what --strict is measured against
+    capabilities = Capabilities(
+        precisions=("f32", "f64"), strict=False, sweep_variants=({"precision": "f32"}, {"precision": "f64"})
+    )
+
+    def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
+        super().__init__(scene, solver, options)
+        t = self.dtype = options.dtype
+        n = scene.grid
+        c = VerletConstants.of(scene, solver, t)  # the f64 reference takes them in float64
+        self.dt, self.dt2, self.k, self.b = c.dt, c.dt2, c.k, c.b
+        self.gravity = np.array(c.g, dtype=t).reshape(3, 1, 1)
+        self.springs = [
+            (*neighbour_regions(n, dr, dc), c.rest[kind]) for (dr, dc), kind in zip(OFFSETS, OFFSET_KIND)
+        ]
+        self.colliders = collider_constants(scene, t)
+        self.pos = self.prev = np.zeros((3, n, n), dtype=t)
+        self.w, self.free = np.zeros((n, n), dtype=t), np.zeros((n, n), dtype=bool)
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        self.pos, self.prev = self.planes(pos), self.planes(prev)
+        self.set_inverse_mass(pos)
+
+    def advance(self, steps: int) -> None:
+        # 0/0 for coincident particles is replaced below; overflow in a blow-up is the
+        # harness's to report, not NumPy's to warn about
+        with np.errstate(all="ignore"):
+            for _ in range(steps):
+                self.pos, self.prev = self._step(self.pos, self.prev), self.pos
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.state(self.pos), self.state(self.prev)
+
+    def _step(self, pos: np.ndarray, prev: np.ndarray) -> np.ndarray:
+        # Listing 22.1 step 3: velocity from the two positions; damping uses it per spring
+        vel = (pos - prev) / self.dt
+        bv = self.b * vel
+        force = np.zeros_like(pos)
+        for i, j, rest in self.springs:  # step 5: the 12 neighbours, in OFFSETS order
+            d = pos[j] - pos[i]
+            length2 = dot3(d, d)
+            length = np.sqrt(length2)
+            s = (self.k * (length - rest)) / length
+            s[length2 == 0] = 0  # coincident particles: no direction, no spring force
+            force[i] += s * d - bv[i]
+        # step 6: Verlet, acceleration = gravity + force * inverse mass
+        force *= self.w
+        force += self.gravity
+        force *= self.dt2
+        new = 2 * pos
+        new -= prev
+        new += force
+        np.copyto(new, pos, where=~self.free)  # pinned particles do not move
+        for kind, constants in self.colliders:  # spheres, then cylinders, then planes
+            COLLIDE[kind](new, self.free, **constants)
+        return new
+
+
+def collider_constants(scene: Scene, t) -> list[tuple[str, dict]]:
+    """(kind, constants) of every collider in the order the step applies them, from
+    kernel_inputs.collider_rows in the working precision, shaped for (3, n, n) planes."""
+    rows = collider_rows(scene, t)
+
+    def vec(row):
+        return row[:3].reshape(3, 1, 1)
+
+    spheres = [("sphere", {"c": vec(s), "r": s[3]}) for s in rows["spheres"]]
+    cylinders = [
+        ("cylinder", {"a": vec(a), "u": vec(u), "length": a[3], "r": u[3], "radial_r": vec(radial_r)})
+        for a, u, radial_r in rows["cylinders"].reshape(-1, 3, 4)  # (start, length), (axis, r), (radial_r, 0)
+    ]
+    planes = [("plane", {"p0": vec(p), "nrm": vec(nrm)}) for p, nrm in rows["planes"].reshape(-1, 2, 4)]
+    return spheres + cylinders + planes
+
+
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(a.x*b.x + a.y*b.y) + a.z*b.z, the association every kernel uses."""
+    out = a[0] * b[0]
+    out += a[1] * b[1]
+    out += a[2] * b[2]
+    return out
+
+
+def _collide_sphere(x, free, c, r) -> None:
+    d = x - c
+    length2 = dot3(d, d)
+    length = np.sqrt(length2)
+    inside = (length < r) & free
+    if not inside.any():
+        return
+    pushed = c + d * (r / length)
+    # a particle exactly at the centre has no direction: push it straight up
+    at_center = inside & (length2 == 0)
+    pushed[1][at_center] = c[1, 0, 0] + r
+    pushed[0][at_center] = c[0, 0, 0]
+    pushed[2][at_center] = c[2, 0, 0]
+    np.copyto(x, pushed, where=inside)
+
+
+def _collide_cylinder(x, free, a, u, length, r, radial_r) -> None:
+    d = x - a
+    t = dot3(d, u)  # axial coordinate (m) from the start cap
+    q = u * t
+    p = d - q  # radial vector
+    rho2 = dot3(p, p)
+    rho = np.sqrt(rho2)
+    inside = (t > 0) & (t < length) & (rho < r) & free
+    if not inside.any():
+        return
+    # push out the shortest way: through the side, or through the nearer cap
+    side = r - rho
+    to_end = length - t
+    through_side = (side <= t) & (side <= to_end)
+    through_start = ~through_side & (t <= to_end)
+    pushed_side = (a + q) + p * (r / rho)
+    on_axis = rho2 == 0
+    pushed_side[:, on_axis] = ((a + q) + radial_r)[:, on_axis]
+    pushed = np.where(through_side, pushed_side, np.where(through_start, x - q, x + u * to_end))
+    np.copyto(x, pushed, where=inside)
+
+
+def _collide_plane(x, free, p0, nrm) -> None:
+    dist = dot3(x - p0, nrm)
+    inside = (dist < 0) & free
+    if inside.any():
+        np.copyto(x, x - nrm * dist, where=inside)
+
+
+COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "plane": _collide_plane}

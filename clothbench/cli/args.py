@@ -1,0 +1,111 @@
+"""Argument groups every command shares, and how they become a Setup and BackendOptions."""
+
+from __future__ import annotations
+
+import argparse
+
+from clothbench.errors import ClothbenchError
+from clothbench.solver import PBD_METHODS, SOLVER_SPECS, SOLVERS
+
+
+class Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, not usage + error
+        where = self.prog.removeprefix("clothbench").strip()
+        raise ClothbenchError(f"{where}: {message}" if where else message)
+
+
+def add_scene_args(p: argparse.ArgumentParser, default: str = "sphere", run_length: bool = True, solver: bool = True) -> None:
+    """--scene and what overrides the scene file: --grid, --dt, and (where the command takes
+    them) --steps and the solver settings."""
+    p.add_argument("--scene", default=default, help=f"built-in scene name or a .toml file (default {default})")
+    p.add_argument("--grid", type=int, help="particles per side (n >= 3; default: the scene's)")
+    p.add_argument("--dt", type=float, help="time step (s); default: the scene's")
+    if run_length:
+        p.add_argument("--steps", type=int, help="steps to simulate (default: the scene's)")
+    if solver:
+        p.add_argument("--solver", choices=SOLVERS, help="mass-spring Verlet or PBD (docs/pbd.md)")
+        p.add_argument("--pbd-method", choices=PBD_METHODS, help="PBD: Jacobi or coloured Gauss-Seidel")
+        p.add_argument("--iterations", type=int, help="PBD: constraint passes per substep")
+        p.add_argument("--substeps", type=int, help="PBD: substeps per step")
+
+
+def setup_from_args(args):
+    """The scene file named by --scene with the command line's overrides applied."""
+    from clothbench.scene import load_setup
+
+    return load_setup(args.scene).replace(
+        grid=args.grid,
+        steps=getattr(args, "steps", None),
+        dt=args.dt,
+        solver=getattr(args, "solver", None),
+        method=getattr(args, "pbd_method", None),
+        iterations=getattr(args, "iterations", None),
+        substeps=getattr(args, "substeps", None),
+    )
+
+
+def add_backend_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--precision", choices=["f32", "f64"], default="f32")
+    p.add_argument(
+        "--strict", action="store_true", help="bit-exact with the numpy f32 reference (no FMA, no fast math)"
+    )
+    p.add_argument("--transfer", help="opencl: resident|per-step; cuda: swap|copy")
+    p.add_argument("--local-size", type=int, help="work-group / block size (default: the runtime's)")
+    add_device_args(p)
+    p.add_argument("--save-normals", action="store_true", help="compute normals and save them with --save")
+    p.add_argument("--generic", action="store_true", help="one kernel for every scene (no specialisation)")
+
+
+def add_device_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", help="device selector (opencl: 'platform:device' index, like PYOPENCL_CTX)")
+    p.add_argument("--gl", choices=["egl", "osmesa"], default="egl", help="GL context provider")
+
+
+def options_from_args(args):
+    from clothbench.backends import BackendOptions
+
+    return BackendOptions(
+        precision=args.precision,
+        strict=args.strict,
+        transfer=args.transfer,
+        local_size=args.local_size,
+        device=args.device,
+        gl=args.gl,
+        normals=args.save_normals,
+        generic=args.generic,
+    )
+
+
+def solver_specs(text: str, option: str = "--solvers") -> tuple[str, ...]:
+    """'verlet,pbd-coloured' -> ('verlet', 'pbd-coloured'), each checked, duplicates dropped."""
+    specs = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    bad = [s for s in specs if s not in SOLVER_SPECS]
+    if bad or not specs:
+        raise ClothbenchError(f"{option} takes {', '.join(SOLVER_SPECS)} (comma-separated), got {text!r}")
+    return specs
+
+
+def int_list(what: str, minimum: int):
+    """An argparse type for '32,64,128': positive integers, duplicates dropped, order kept."""
+
+    def parse(text: str) -> list[int]:
+        values = []
+        for part in text.split(","):
+            part = part.strip()
+            if not part:
+                continue
+            try:
+                value = int(part)
+            except ValueError:
+                raise argparse.ArgumentTypeError(
+                    f"{what} takes comma-separated integers like 32,64,128, got {part!r}"
+                ) from None
+            if value < minimum:
+                raise argparse.ArgumentTypeError(f"{what} must all be >= {minimum}, got {value}")
+            if value not in values:
+                values.append(value)
+        if not values:
+            raise argparse.ArgumentTypeError(f"{what} is empty")
+        return values
+
+    return parse

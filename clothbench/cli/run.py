@@ -1,0 +1,89 @@
+"""`clothbench run`: one scene on one backend, timed, with its health and penetration."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+
+from clothbench.cli.args import add_backend_args, add_scene_args, options_from_args, setup_from_args
+
+
+def register(subparsers) -> None:
+    from clothbench.backends import BACKENDS
+
+    p = subparsers.add_parser("run", help="run one scene on one backend and time it")
+    p.add_argument("--backend", default="numpy", help=f"one of: {', '.join(BACKENDS)}")
+    add_scene_args(p)
+    add_backend_args(p)
+    p.add_argument("--save", help="write pos, prev (and normals) to this .npz")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
+    p.set_defaults(func=cmd_run)
+
+
+def cmd_run(args) -> int:
+    import numpy as np
+
+    from clothbench.backends import check_name, create_backend
+    from clothbench.harness import run_timed
+    from clothbench.harness.energy import predicted_fast_impact
+    from clothbench.reports.progress import LazyProgress
+
+    check_name(args.backend)
+    setup = setup_from_args(args)
+    scene, solver, steps = setup.scene, setup.solver, setup.steps
+    options = options_from_args(args)
+    if warning := predicted_fast_impact(scene, solver):
+        print(f"clothbench: warning: {warning}", file=sys.stderr)
+    t0 = time.perf_counter()
+    backend = create_backend(args.backend, scene, solver, options)
+    build_s = time.perf_counter() - t0
+    with backend, LazyProgress(steps, f"{args.backend} n={scene.grid}") as progress:
+        result = run_timed(backend, steps, on_progress=progress.update, raise_on_blowup=False, build_s=build_s)
+        normals = backend.read_normals() if args.save_normals else None
+        stages = None
+        if args.profile and result.blowup is None:
+            backend.upload(*backend.initial_state())
+            stages = backend.profile_stages(steps)
+    for warning in result.warnings:
+        print(f"clothbench: warning: {warning}", file=sys.stderr)
+    if args.save:
+        arrays = {"pos": result.pos, "prev": result.prev}
+        if normals is not None:
+            arrays["normals"] = normals
+        np.savez(args.save, **arrays)
+    if result.blowup is not None:
+        raise result.blowup
+    summary = {
+        "backend": result.backend,
+        "device": result.device,
+        "mode": result.mode,
+        "scene": scene.name,
+        "solver": solver.name,
+        "grid": scene.grid,
+        "particles": scene.particles,
+        "springs": scene.springs,
+        "steps": steps,
+        "dt": solver.dt,
+        "precision": args.precision,
+        "ms_per_step": result.ms_per_step,
+        "ms_per_step_min": result.spread()["min"],
+        "ms_per_step_max": result.spread()["max"],
+        "simulated_s": steps * solver.dt,
+        "warmup_s": result.warmup_s,
+        "finite": result.finite,
+        "max_penetration": result.max_penetration,
+    }
+    if result.device_ms_per_step:
+        summary["device_ms_per_step"] = statistics.median(result.device_ms_per_step)
+    if args.profile:
+        summary["stages_ms_per_step"] = stages  # None: this backend has one stage
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        from clothbench.reports.tables import print_run
+
+        print_run(summary)
+    return 0

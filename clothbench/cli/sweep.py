@@ -1,0 +1,183 @@
+"""`clothbench sweep`: time every usable backend over grid sizes into a CSV, row by row."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from clothbench.cli.args import add_device_args, int_list, solver_specs
+
+DEFAULT_GRIDS = "32,64,128,256"
+
+EPILOG = """\
+One CSV row per (backend, mode, grid, local size), appended and flushed to the disk as
+soon as it is measured: an interrupted sweep keeps every finished row, and --resume
+measures only the rows the file lacks. Each row: build and warm up, then R timed chunks
+of S steps (uploads and readbacks outside the clock, except in per-step transfer modes),
+then the final state against the numpy float64 run of the same scene and S*R steps.
+Backends that cannot run here are listed once as skipped, with the reason. Rows already
+in the file are kept whatever their status: delete a failed row's line to measure it
+again. `clothbench sweep --columns` says what every column means."""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "sweep",
+        help="time every usable backend over grid sizes into a CSV (rows kept as measured)",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--backends",
+        default="all",
+        help="comma-separated backend names, or all (default); unusable ones are skipped with the reason",
+    )
+    p.add_argument(
+        "--grids",
+        type=int_list("--grids", 3),
+        default=int_list("--grids", 3)(DEFAULT_GRIDS),
+        help=f"particles per side, comma-separated (default {DEFAULT_GRIDS})",
+    )
+    p.add_argument("--steps", type=int, default=50, help="steps per timed chunk, S (default 50)")
+    p.add_argument("--repeat", type=int, default=10, help="timed chunks per row, R (default 10)")
+    p.add_argument("--scene", default="sphere", help="built-in scene name or a .toml file (default sphere)")
+    p.add_argument("--dt", type=float, help="time step (s); default: the scene's")
+    p.add_argument(
+        "--local-sizes",
+        type=int_list("--local-sizes", 1),
+        default=[],
+        help="also time these work-group / block sizes on backends that have one, e.g. 16,32,64,128",
+    )
+    add_device_args(p)
+    p.add_argument(
+        "--generic",
+        nargs="?",
+        const="yes",
+        default="no",
+        choices=["no", "yes", "both"],
+        help="time the generic kernel (one for every scene) instead of the specialised one; "
+        "'both' times each and writes the specialised speed-up on the generic row",
+    )
+    p.add_argument(
+        "--solvers",
+        default="verlet",
+        help="comma-separated: verlet (mass-spring), pbd (docs/pbd.md, the scene's method), "
+        "pbd-jacobi, pbd-coloured (default verlet)",
+    )
+    p.add_argument("--out", default="sweep.csv", help="the CSV to write (default sweep.csv)")
+    p.add_argument("--resume", action="store_true", help="add only the rows --out lacks (after an interruption)")
+    p.add_argument("--columns", action="store_true", help="print what every CSV column means, and exit")
+    p.set_defaults(func=cmd_sweep)
+
+
+def cmd_sweep(args) -> int:
+    from clothbench.backends import BackendOptions, resolve_names
+    from clothbench.harness.sweep import SweepSettings, run_sweep
+    from clothbench.harness.sweep_csv import COLUMN_DOCS, KEY_COLUMNS
+    from clothbench.reports.progress import LazyProgress
+    from clothbench.scene import load_setup
+
+    if args.columns:
+        width = max(map(len, COLUMN_DOCS))
+        for name, doc in COLUMN_DOCS.items():
+            print(f"{name:<{width}}  {doc}")
+        print(f"\none row per key: {', '.join(KEY_COLUMNS)}")
+        return 0
+    names = resolve_names(args.backends)
+    setup = load_setup(args.scene).replace(dt=args.dt)
+    scene = setup.scene
+    settings = SweepSettings(
+        setup=setup,
+        grids=args.grids,
+        steps=args.steps,
+        repeats=args.repeat,
+        base=BackendOptions(device=args.device, gl=args.gl),
+        local_sizes=tuple(args.local_sizes),
+        solvers=solver_specs(args.solvers),
+        generic=args.generic,
+    )
+    bar: LazyProgress | None = None
+    state: list = []  # the sweep's progress, once it has started
+
+    def on_start(progress) -> None:
+        nonlocal bar
+        state.append(progress)
+        for name, reason in progress.plan.skipped:
+            _note(f"skipped {name}: {reason}")
+        if progress.dropped_bytes:
+            _note(f"dropped a partial last line ({progress.dropped_bytes} bytes) left by an interrupted write")
+        if progress.earlier_commits:
+            _note(f"rows already in {args.out} were measured at commit {', '.join(sorted(progress.earlier_commits))}")
+        backends = sorted({r.backend for r in progress.todo}, key=[r.backend for r in progress.plan.rows].index)
+        already = f" ({progress.already} already in the file)" if progress.already else ""
+        _note(
+            f"sweep: {len(progress.todo)} rows to measure{already}: {', '.join(backends) or 'none'} "
+            f"on {scene.name}, grids {','.join(map(str, args.grids))}, {args.repeat} chunks x {args.steps} steps "
+            f"-> {args.out}"
+        )
+        bar = LazyProgress(max(1, len(progress.todo) * args.steps * args.repeat), "sweep")
+
+    def on_step(done: int, description: str) -> None:
+        if bar is not None:
+            bar.update(done, description)
+
+    try:
+        progress = run_sweep(names, settings, args.out, args.resume, on_start, on_step)
+    except KeyboardInterrupt:
+        if bar is not None:
+            bar.close()
+        if state:
+            p = state[0]
+            _note(
+                f"{p.already + len(p.measured)} rows are in {args.out}; "
+                "run the same command with --resume to measure the rest"
+            )
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+
+    if progress.measured:
+        print_rows(progress.measured, title=f"clothbench sweep: {args.out}")
+    bad = [r for r in progress.measured if r["status"] != "ok"]
+    total = progress.already + len(progress.measured)
+    _note(
+        f"{len(progress.measured)} rows measured, {total} in {args.out}"
+        + (f"; {len(bad)} not ok (see the status and note columns)" if bad else "")
+    )
+    return 0
+
+
+def print_rows(rows: list[dict[str, str]], title: str) -> None:
+    """The measured rows as a terminal table (time with its spread, error, status), then the
+    reason for every row that is not ok, each distinct reason once."""
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    console = Console()
+    if not console.is_terminal:
+        console = Console(width=160)  # a log file or a pipe: no reason to wrap at 80
+    local = any(r["local_size"] for r in rows)
+    table = Table(title=title)
+    for col in ("backend", "mode") + (("local",) if local else ()) + ("n", "ms/step", "min-max", "RMS err (m)", "status"):
+        table.add_column(col, justify="left" if col in ("backend", "mode", "status") else "right")
+    reasons: dict[tuple[str, str], list[str]] = {}
+    for r in rows:
+        if r["status"] == "ok":
+            cells = [f"{float(r['ms_median']):.3f}", f"{float(r['ms_min']):.3f}-{float(r['ms_max']):.3f}"]
+            cells += [f"{float(r['err_rms_m']):.2e}" if r["err_rms_m"] else "", "ok"]
+        else:
+            cells = ["", "", "", f"[red]{r['status']}[/red]"]
+            reasons.setdefault((r["status"], r["note"]), []).append(f"{r['backend']} n={r['grid']}")
+        lead = [r["backend"], escape(r["mode"])] + ([r["local_size"] or "auto"] if local else []) + [r["grid"]]
+        table.add_row(*lead, *cells)
+    console.print(table)
+    for (status, note), where in reasons.items():
+        places = ", ".join(dict.fromkeys(where))
+        console.print(f"[red]{status}[/red] ({len(where)} rows: {escape(places)}): {escape(note)}", highlight=False)
+
+
+def _note(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)

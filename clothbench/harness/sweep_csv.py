@@ -1,0 +1,249 @@
+"""The sweep's CSV: its columns and what each means, one row per key, and the file that
+keeps every finished row.
+
+Nothing measured is lost. Each row is written to the CSV as one complete line in a single
+write, then flushed to the disk (fsync), the moment it is measured; an interrupted sweep
+keeps every finished row, and a resumed one measures only the rows whose key is not in the
+file yet, after dropping a half-written last line if a crash left one.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from pathlib import Path
+from typing import Iterable
+
+from clothbench.errors import ClothbenchError
+
+PER_STEP_TRANSFERS = frozenset({"per-step"})  # transfer modes that move the state host<->device every step
+
+# Every column, in file order, with what it means. COLUMNS is the header.
+COLUMN_DOCS: dict[str, str] = {
+    "backend": "registry name (see `clothbench backends`)",
+    "peer": "true for a peer system (taichi, warp, numba), false for clothbench's own kernels",
+    "solver": "the integrator: 'verlet' (mass-spring, docs/semantics.md) or 'pbd' (XPBD, docs/pbd.md)",
+    "pbd_method": "pbd only: 'jacobi' or 'coloured' (Gauss-Seidel over 12 independent batches)",
+    "iterations": "pbd only: constraint passes per substep",
+    "substeps": "pbd only: substeps per step",
+    "mode": "the backend's own name for the settings that change speed or results",
+    "precision": "working precision: f32, or f64 (numpy only, the reference)",
+    "strict": "the strict option: bit-exact with numpy f32 (no FMA contraction, no fast math)",
+    "transfer": "transfer mode (opencl resident|per-step, cuda swap|copy); empty = the backend's default",
+    "local_size": "work-group / block size; empty = the runtime chooses",
+    "generic": "true = one kernel for every scene; false = the backend's default (specialised where it has one)",
+    "specialised_speedup": "generic rows only: ms/step of this generic kernel / ms/step of the same backend's specialised kernel (same grid, mode and sweep)",
+    "device": "what the work ran on, as the driver names it",
+    "scene": "scene name",
+    "grid": "n, particles per side",
+    "particles": "n*n",
+    "springs": "springs counted per particle, each seen from both ends (the chapter's count)",
+    "dt": "time step (s)",
+    "steps": "steps per timed chunk (S)",
+    "repeats": "timed chunks (R): the timed run simulates S*R steps after the warm-up",
+    "simulated_s": "simulated time of the timed run, S*R*dt (s)",
+    "status": "ok | unstable (blew up: NaN/Inf or runaway) | failed (raised); measurements are empty unless ok",
+    "note": "why a row is unstable or failed (one line)",
+    "ms_median": "median over the R chunks of wall-clock ms per step",
+    "ms_min": "fastest chunk, ms per step",
+    "ms_max": "slowest chunk, ms per step",
+    "ms_iqr": "inter-quartile range of the per-chunk ms per step",
+    "device_ms_median": "median device-timed ms per step (profiling events), where the backend has them",
+    "particles_per_s": "particles * 1000 / ms_median",
+    "ms_per_sim_s": "compute ms per simulated second, ms_median / dt (1000 = real time)",
+    "warmup_s": "build (kernel compile) plus warm-up steps, not timed (s)",
+    "finite": "the final state is finite",
+    "max_penetration_m": "deepest penetration of a particle into a collider at the end (m)",
+    "err_rms_m": "RMS distance of the final positions to the numpy float64 run of the same scene and S*R steps (m)",
+    "err_max_m": "largest such distance (m)",
+    "timed_region": "what the clock saw: 'steps' (upload and readback outside) or 'steps+transfers' (per-step transfer mode)",
+    "cpu": "CPU model",
+    "cores": "logical CPUs available to the process",
+    "python": "Python implementation and version",
+    "packages": "versions of the packages that can change a result (name=version ...)",
+    "env": "driver environment variables that were set (LP_NUM_THREADS, POCL_*, ...)",
+    "git_commit": "clothbench commit, '+dirty' if tracked files had changes",
+    "timestamp": "when the row was measured (UTC, ISO 8601)",
+}
+COLUMNS: tuple[str, ...] = tuple(COLUMN_DOCS)
+# What identifies a row: a sweep measures each key once, and --resume skips keys in the file.
+KEY_COLUMNS = (
+    "backend", "solver", "pbd_method", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
+)  # fmt: skip
+MEASUREMENT_COLUMNS = (
+    "ms_median", "ms_min", "ms_max", "ms_iqr", "device_ms_median", "particles_per_s", "ms_per_sim_s",
+    "warmup_s", "finite", "max_penetration_m", "err_rms_m", "err_max_m",
+)  # fmt: skip
+NOTE_MAX = 300  # characters
+
+
+def fmt(value) -> str:
+    """A CSV cell: '' for None, true/false for booleans, 6 significant digits for floats."""
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.6g}" if math.isfinite(value) else ""
+    return str(value)
+
+
+def one_line(text: str) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= NOTE_MAX else text[: NOTE_MAX - 1] + "…"
+
+
+def row_key(row: dict[str, str]) -> tuple[str, ...]:
+    return tuple(row.get(c, "") for c in KEY_COLUMNS)
+
+
+def csv_line(values: Iterable[str]) -> str:
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(list(values))
+    return buf.getvalue()
+
+
+class SweepFile:
+    """The sweep CSV, open for appending: one complete line per write, fsynced.
+
+    Holds an exclusive lock while open, so two sweeps never interleave rows in one file.
+    """
+
+    def __init__(self, path: str | os.PathLike, resume: bool = False):
+        self.path = Path(path)
+        self.rows: list[dict[str, str]] = []  # rows already in the file
+        self.dropped_bytes = 0  # a partial last line removed on resume
+        if not resume and self.path.exists() and self.path.stat().st_size > 0:
+            raise ClothbenchError(
+                f"{self.path} already exists: pass --resume to measure only the rows it lacks, "
+                "or choose another --out"
+            )
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+        except OSError as e:
+            raise ClothbenchError(f"cannot write {self.path}: {e.strerror}") from None
+        try:
+            self._lock()
+            self._load()
+        except BaseException:
+            os.close(self.fd)
+            raise
+
+    def _lock(self) -> None:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock, the rest still holds
+            return
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ClothbenchError(
+                f"another clothbench sweep is writing {self.path}: wait for it, or choose another --out"
+            ) from None
+
+    def _load(self) -> None:
+        data = self._read_all()
+        header = csv_line(COLUMNS).encode()
+        if not data or (b"\n" not in data and header.startswith(data)):  # new, or a torn header
+            os.ftruncate(self.fd, 0)
+            self._write(header.decode())
+            return
+        self._check_header(data[: data.find(b"\n") + 1] if b"\n" in data else data)
+        if not data.endswith(b"\n"):  # a write torn by a crash: keep whole lines only
+            keep = data.rfind(b"\n") + 1
+            os.ftruncate(self.fd, keep)
+            os.fsync(self.fd)
+            self.dropped_bytes = len(data) - keep
+            data = data[:keep]
+        records = list(csv.reader(io.StringIO(data.decode("utf-8"))))
+        for lineno, record in enumerate(records[1:], start=2):
+            if len(record) != len(COLUMNS):
+                raise ClothbenchError(
+                    f"{self.path}:{lineno}: {len(record)} fields, expected {len(COLUMNS)}: "
+                    "the file was changed by something other than clothbench sweep"
+                )
+            self.rows.append(dict(zip(COLUMNS, record)))
+
+    def _check_header(self, first_line: bytes) -> None:
+        """Refuse (before changing a byte) a file this version did not write."""
+        try:
+            header = tuple(next(csv.reader([first_line.decode("utf-8")]), []))
+        except UnicodeDecodeError:
+            raise ClothbenchError(f"{self.path} is not a clothbench sweep CSV (not UTF-8 text)") from None
+        if header == COLUMNS:
+            return
+        if "backend" not in header or "ms_median" not in header:
+            raise ClothbenchError(f"{self.path} is not a clothbench sweep CSV: choose another --out")
+        missing = [c for c in COLUMNS if c not in header]
+        extra = [c for c in header if c not in COLUMNS]
+        detail = "; ".join(
+            ([f"lacks {', '.join(missing)}"] if missing else []) + ([f"has {', '.join(extra)}"] if extra else [])
+        ) or "has them in another order"
+        raise ClothbenchError(
+            f"{self.path} has other columns than this clothbench writes ({detail}): "
+            "resume it with the version that wrote it, or sweep into a new --out"
+        )
+
+    def _read_all(self) -> bytes:
+        chunks, offset = [], 0
+        while chunk := os.pread(self.fd, 1 << 20, offset):
+            chunks.append(chunk)
+            offset += len(chunk)
+        return b"".join(chunks)
+
+    def _write(self, line: str) -> None:
+        data = line.encode("utf-8")
+        written = os.write(self.fd, data)  # one call: a regular file takes it whole
+        while written < len(data):  # (should a kernel ever split it, finish the line)
+            written += os.write(self.fd, data[written:])
+        os.fsync(self.fd)
+
+    def keys(self) -> set[tuple[str, ...]]:
+        return {row_key(r) for r in self.rows}
+
+    def append(self, row: dict[str, str]) -> None:
+        self._write(csv_line(row.get(c, "") for c in COLUMNS))
+        self.rows.append(row)
+
+    def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_sweep(path: str | os.PathLike, required: Iterable[str] = ()) -> list[dict[str, str]]:
+    """The rows of a sweep CSV (as strings), checking `required` columns are present.
+    A partial last line (a sweep still running, or killed mid-write) is ignored."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ClothbenchError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise ClothbenchError(f"{path} is a directory, expected a sweep CSV") from None
+    except UnicodeDecodeError:
+        raise ClothbenchError(f"{path} is not a clothbench sweep CSV (not UTF-8 text)") from None
+    except OSError as e:
+        raise ClothbenchError(f"cannot read {path}: {e.strerror}") from None
+    if text and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    reader = csv.DictReader(io.StringIO(text))
+    header = reader.fieldnames or []
+    if not header:
+        raise ClothbenchError(f"{path} is empty: expected a CSV written by `clothbench sweep`")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise ClothbenchError(
+            f"{path} lacks column{'s' if len(missing) > 1 else ''} {', '.join(missing)}: "
+            "expected a CSV written by `clothbench sweep`"
+        )
+    return list(reader)

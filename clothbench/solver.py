@@ -1,0 +1,159 @@
+"""The solver settings: how a scene is stepped, kept apart from what is simulated.
+
+A `Scene` (scene.py) is the model: the cloth, its constants, colliders and pins. A solver
+is the integrator and its settings: `Verlet` (docs/semantics.md) or `Pbd` (docs/pbd.md),
+each with its time step and how the run starts. The run length (steps) is a third thing,
+passed beside both; `scene.Setup` holds all three as a scene file describes them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from clothbench.errors import SceneError
+
+FLOAT32_MAX = 3.4028234663852886e38
+
+STARTS = ("rest", "second-order")
+SOLVERS = ("verlet", "pbd")
+PBD_METHODS = ("jacobi", "coloured")
+# What --solvers accepts: a solver, or pbd with its method ("pbd" alone: the file's method).
+SOLVER_SPECS = ("verlet", "pbd", *(f"pbd-{m}" for m in PBD_METHODS))
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _positive_int(value, name: str) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise SceneError(f"{name} must be an integer >= 1, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Stepping:
+    """What every solver has: the time step and how the run starts."""
+
+    dt: float = 5e-4  # s
+    start: str = "rest"  # or "second-order": x_prev = x + g dt^2 / 2
+
+    name = "?"
+
+    def __post_init__(self):
+        _validate_common(self)
+
+    @property
+    def spec(self) -> str:
+        """The solver as --solvers spells it."""
+        return self.name
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+    def initial_state(self, scene, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+        """(pos, prev) of `scene` as this solver starts it, computed in float64 and rounded
+        once, so every backend starts from the same bits."""
+        pos, prev = scene.initial_state(np.float64)
+        if self.start == "second-order":
+            # x_prev = x - v0*dt + a0*dt^2/2 with v0 = 0 and a0 = g (the flat sheet is at rest
+            # length, so springs add nothing): makes the start second-order accurate.
+            free = pos[:, 3] != 0.0
+            for axis in range(3):
+                prev[free, axis] = pos[free, axis] + 0.5 * scene.gravity[axis] * self.dt * self.dt
+        return pos.astype(dtype), prev.astype(dtype)
+
+
+@dataclass(frozen=True)
+class Verlet(Stepping):
+    """The chapter's mass-spring step with Verlet integration (docs/semantics.md)."""
+
+    name = "verlet"
+
+
+@dataclass(frozen=True)
+class Pbd(Stepping):
+    """Position Based Dynamics, XPBD form (docs/pbd.md)."""
+
+    method: str = "jacobi"  # or "coloured" Gauss-Seidel
+    iterations: int = 10  # constraint passes per substep
+    substeps: int = 1
+    relaxation: float = 1.5  # Jacobi over-relaxation of the averaged correction
+    compliance: tuple[float, float, float] | None = None  # m/N per kind; None: 1/stiffness
+
+    name = "pbd"
+
+    def __post_init__(self):
+        _validate_common(self)
+        if self.method not in PBD_METHODS:
+            raise SceneError(f"pbd method must be one of {', '.join(PBD_METHODS)}, got {self.method!r}")
+        _positive_int(self.iterations, "iterations")
+        _positive_int(self.substeps, "substeps")
+        if not _finite(self.relaxation) or not 0 < self.relaxation < 2:
+            raise SceneError(f"relaxation must be in (0, 2), got {self.relaxation!r}")
+        if self.compliance is not None:
+            c = self.compliance
+            if not isinstance(c, (list, tuple)) or len(c) != 3 or not all(_finite(v) for v in c):
+                raise SceneError(f"compliance must be three finite numbers, got {c!r}")
+            object.__setattr__(self, "compliance", tuple(float(v) for v in c))
+            if min(self.compliance) < 0:
+                raise SceneError(f"compliance must be >= 0, got {list(self.compliance)}")
+
+    @property
+    def spec(self) -> str:
+        return f"pbd-{self.method}"
+
+    def compliance_for(self, scene) -> tuple[float, float, float]:
+        """XPBD compliance (m/N) of structural, shear and bend constraints."""
+        if self.compliance is not None:
+            return self.compliance
+        if scene.stiffness == 0:
+            raise SceneError("the pbd solver needs stiffness > 0 or an explicit [pbd] compliance")
+        return (1.0 / scene.stiffness,) * 3
+
+
+Solver = Verlet | Pbd
+
+
+def _validate_common(s: Stepping) -> None:
+    if not _finite(s.dt):
+        raise SceneError(f"dt must be a finite number, got {s.dt!r}")
+    if s.dt <= 0:
+        raise SceneError(f"dt must be > 0, got {s.dt!r}")
+    if s.dt > FLOAT32_MAX:
+        raise SceneError(f"dt {s.dt!r} is too large for float32 (max {FLOAT32_MAX:.4g})")
+    if s.start not in STARTS:
+        raise SceneError(f"start must be one of {', '.join(STARTS)}, got {s.start!r}")
+
+
+def as_verlet(solver: Solver) -> Verlet:
+    """The Verlet solver with the same dt and start as `solver`."""
+    return Verlet(dt=solver.dt, start=solver.start)
+
+
+def as_pbd(solver: Solver, pbd: Pbd | None = None, method: str | None = None) -> Pbd:
+    """A PBD solver with `solver`'s dt and start, `pbd`'s settings (default: `solver`'s own
+    if it is one, else the defaults) and `method` where given."""
+    settings = pbd if pbd is not None else solver if isinstance(solver, Pbd) else Pbd()
+    changes = {"dt": solver.dt, "start": solver.start}
+    if method is not None:
+        changes["method"] = method
+    return settings.replace(**changes)
+
+
+def check_spec(spec: str) -> str:
+    if spec not in SOLVER_SPECS:
+        raise SceneError(f"unknown solver {spec!r} (known: {', '.join(SOLVER_SPECS)})")
+    return spec
+
+
+def solver_for_spec(spec: str, solver: Solver, pbd: Pbd | None = None) -> Solver:
+    """The solver a --solvers entry stands for, with `solver`'s dt and start; "pbd" alone
+    keeps the method of `pbd` (the scene file's [pbd] table)."""
+    name, _, method = check_spec(spec).partition("-")
+    if name == "verlet":
+        return as_verlet(solver)
+    return as_pbd(solver, pbd, method or None)
