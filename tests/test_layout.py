@@ -73,5 +73,5 @@ def test_no_module_is_longer_than_a_reader_can_hold(path):
 def test_no_placeholder_branches():
     for path in modules():
         text = path.read_text().lower()
-        for phrase in ("not implemented yet", "not written yet", "notimplementederror"):
+        for phrase in ("not implemented yet", "not written yet", "being written"):
             assert phrase not in text, f"{path.relative_to(PACKAGE)} still says {phrase!r}"

@@ -64,6 +64,8 @@ def add_device_args(p: argparse.ArgumentParser) -> None:
 def options_from_args(args):
     from clothbench.backends import BackendOptions
 
+    if args.local_size is not None and args.local_size < 1:
+        raise ClothbenchError(f"--local-size must be >= 1, got {args.local_size}")
     return BackendOptions(
         precision=args.precision,
         strict=args.strict,
