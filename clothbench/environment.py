@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import platform
+import shlex
+import socket
 import subprocess
 from datetime import datetime, timezone
 from functools import lru_cache
@@ -31,9 +33,18 @@ PACKAGES = (
     "numba",
 )
 
-# Environment variables that change how a driver runs (threads, device choice).
-ENV_VARS = ("LP_NUM_THREADS", "GALLIUM_DRIVER", "OMP_NUM_THREADS", "PYOPENCL_CTX", "CUDA_VISIBLE_DEVICES")
-ENV_PREFIXES = ("POCL_",)
+# Environment variables that change how a library or driver runs (thread pools, device
+# choice, JIT and compiler settings), by exact name or by prefix: OpenMP (and Intel's and
+# GNU's runtimes), Numba, MKL, OpenBLAS, llvmpipe, Mesa, PoCL, the OpenCL ICD loader,
+# pyopencl, CUDA's device list, CuPy, Taichi, Warp.
+ENV_VARS = ("GALLIUM_DRIVER", "CUDA_VISIBLE_DEVICES")
+ENV_PREFIXES = (
+    "OMP_", "KMP_", "GOMP_", "NUMBA_", "MKL_", "OPENBLAS_", "LP_", "MESA_", "POCL_", "OCL_ICD_",
+    "PYOPENCL_", "CUPY_", "TI_", "WARP_",
+)  # fmt: skip
+# Set by clothbench itself (peers/taichi.py, to keep Taichi from phoning home), and no
+# change to any result: not recorded, so a row does not depend on which probe ran first.
+ENV_IGNORED = frozenset({"TI_SKIP_VERSION_CHECK"})
 
 
 def cpu_model() -> str:
@@ -55,6 +66,65 @@ def cores() -> int:
         return os.cpu_count() or 0
 
 
+def host_name() -> str:
+    return socket.gethostname() or "unknown"
+
+
+def cpu_mhz() -> int | None:
+    """The CPU's clock in MHz: its maximum where the kernel says (cpufreq), else what
+    /proc/cpuinfo reports now; None where neither is readable."""
+    try:
+        return int(Path("/sys/devices/system/cpu/cpu0/cpufreq/cpuinfo_max_freq").read_text()) // 1000
+    except (OSError, ValueError):
+        pass
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("cpu MHz"):
+                    return round(float(line.split(":", 1)[1]))
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def cpu_scaling_enabled() -> bool | None:
+    """Whether CPU 0's frequency governor may change its clock (anything but 'performance'),
+    as Google Benchmark reports it; None where there is no cpufreq (e.g. a VM)."""
+    try:
+        governor = Path("/sys/devices/system/cpu/cpu0/cpufreq/scaling_governor").read_text().strip()
+    except OSError:
+        return None
+    return governor != "performance"
+
+
+def _count_cpus(cpu_list: str) -> int:
+    """How many CPUs a kernel CPU list such as '0-3,8' names."""
+    count = 0
+    for part in filter(None, cpu_list.strip().split(",")):
+        first, _, last = part.partition("-")
+        count += int(last or first) - int(first) + 1
+    return count
+
+
+def caches() -> list[dict]:
+    """CPU 0's caches as Google Benchmark lists them (type, level, size in bytes, how many
+    logical CPUs share it); [] where sysfs does not say."""
+    units = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
+    found = []
+    for index in sorted(Path("/sys/devices/system/cpu/cpu0/cache").glob("index*")):
+        try:
+            size = (index / "size").read_text().strip()
+            found.append({
+                "type": (index / "type").read_text().strip(),
+                "level": int((index / "level").read_text()),
+                "size": int(size[:-1]) * units[size[-1]] if size[-1:] in units else int(size),
+                "num_sharing": _count_cpus((index / "shared_cpu_list").read_text()),
+            })  # fmt: skip
+        except (OSError, ValueError):
+            continue
+    return found
+
+
 def python_version() -> str:
     return f"{platform.python_implementation()} {platform.python_version()}"
 
@@ -71,16 +141,15 @@ def package_versions() -> str:
 
 
 def driver_env() -> str:
-    """The driver environment variables that are set, as 'NAME=value' separated by spaces."""
-    names = sorted(
-        k for k in os.environ if k in ENV_VARS or any(k.startswith(p) for p in ENV_PREFIXES)
-    )
-    return " ".join(f"{k}={os.environ[k]}" for k in names)
+    """The set variables of ENV_VARS and ENV_PREFIXES as 'NAME=value' in name order, separated
+    by spaces, each value shell-quoted (shlex.split reads them back, spaces in a value included)."""
+    names = sorted(k for k in os.environ if k not in ENV_IGNORED and (k in ENV_VARS or k.startswith(ENV_PREFIXES)))
+    return " ".join(f"{k}={shlex.quote(os.environ[k])}" for k in names)
 
 
 def git_commit() -> str:
     """Short commit of the clothbench checkout, '+dirty' if tracked files changed; else 'unknown'."""
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[1]  # clothbench/environment.py -> the checkout
     if not (root / ".git").exists():
         return "unknown"
     env = dict(os.environ, GIT_OPTIONAL_LOCKS="0")  # never take the index lock from under a user

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from clothbench.errors import SceneError
-from clothbench.solver import FLOAT32_MAX, SOLVERS, Pbd, Solver, Verlet, solver_for_spec
+from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, solver_for_spec
 
 # The 12-spring stencil as (d_row, d_col), in the order every backend sums it.
 STRUCTURAL = ((0, -1), (0, 1), (-1, 0), (1, 0))
@@ -271,6 +271,30 @@ def _check_float32_range(s: Scene) -> None:
     for name, value in values.items():
         if abs(value) > FLOAT32_MAX:
             raise SceneError(f"{name} {value!r} is too large for float32 (max {FLOAT32_MAX:.4g})")
+        if value != 0 and abs(value) < FLOAT32_TINY:
+            raise SceneError(
+                f"{name} {value!r} is too small for float32 (it would be 0 or lose its precision; "
+                f"smallest normal {FLOAT32_TINY:.4g})"
+            )
+
+
+def check_float32_step(scene: Scene, solver: Solver) -> None:
+    """The products a float32 step forms from the scene's constants and dt: refused when
+    one overflows (inf inside the kernel) or a nonzero one underflows to 0."""
+    dt2 = solver.dt * solver.dt
+    terms = {
+        "stiffness * dt^2 / mass": scene.stiffness * dt2 / scene.mass if scene.mass else 0.0,
+        "damping * dt / mass": scene.damping * solver.dt / scene.mass if scene.mass else 0.0,
+        "gravity * dt^2": max(map(abs, scene.gravity)) * dt2,
+    }
+    for name, value in terms.items():
+        if not math.isfinite(value) or abs(value) > FLOAT32_MAX:
+            raise SceneError(f"{name} = {value:.3g} overflows float32 (max {FLOAT32_MAX:.4g}): use a smaller dt or constant")
+        if value != 0 and abs(value) < FLOAT32_TINY:
+            raise SceneError(
+                f"{name} = {value:.3g} underflows float32 (smallest normal {FLOAT32_TINY:.4g}): "
+                "the float32 step would lose it; use a larger dt or constant"
+            )
 
 
 # --- TOML -------------------------------------------------------------------------
@@ -329,6 +353,7 @@ class Setup:
             raise SceneError(f"steps must be an integer >= 1, got {self.steps!r}")
         if isinstance(self.solver, Pbd):
             self.solver.compliance_for(self.scene)  # refuses stiffness 0 without a compliance
+        check_float32_step(self.scene, self.solver)
 
     def solver_for(self, spec: str) -> Solver:
         """The solver a --solvers entry names, with this file's dt, start and [pbd] settings."""
@@ -410,7 +435,11 @@ def load_setup(name_or_path: str) -> Setup:
     if name_or_path.endswith(".toml") or path.exists():
         where = str(path)
         try:
-            text = path.read_text()
+            text = path.read_text(encoding="utf-8")
+        except IsADirectoryError:
+            raise SceneError(f"scene file {where} is a directory, expected a .toml file") from None
+        except UnicodeDecodeError as e:
+            raise SceneError(f"scene file {where} is not UTF-8 text (byte {e.start}): expected a .toml file") from None
         except OSError as e:
             raise SceneError(f"cannot read scene file {where}: {e.strerror}") from None
     else:

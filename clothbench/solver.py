@@ -17,6 +17,7 @@ import numpy as np
 from clothbench.errors import SceneError
 
 FLOAT32_MAX = 3.4028234663852886e38
+FLOAT32_TINY = 1.1754943508222875e-38  # smallest normal float32
 
 STARTS = ("rest", "second-order")
 SOLVERS = ("verlet", "pbd")
@@ -125,6 +126,14 @@ def _validate_common(s: Stepping) -> None:
         raise SceneError(f"dt must be > 0, got {s.dt!r}")
     if s.dt > FLOAT32_MAX:
         raise SceneError(f"dt {s.dt!r} is too large for float32 (max {FLOAT32_MAX:.4g})")
+    dt2 = float(np.float32(s.dt)) ** 2
+    if not dt2 >= FLOAT32_TINY:  # the step's dt^2 term: 0 (or denormal) in float32, the cloth never moves
+        raise SceneError(
+            f"dt {s.dt!r} is too small for float32: dt^2 = {s.dt * s.dt:.3g} is below its smallest normal "
+            f"{FLOAT32_TINY:.4g} (the cloth would never move)"
+        )
+    if dt2 > FLOAT32_MAX:
+        raise SceneError(f"dt {s.dt!r} is too large for float32: dt^2 overflows (max {FLOAT32_MAX:.4g})")
     if s.start not in STARTS:
         raise SceneError(f"start must be one of {', '.join(STARTS)}, got {s.start!r}")
 

@@ -299,3 +299,86 @@ def test_pbd_is_softer_at_few_iterations_and_damps_at_a_large_step():
     assert few.strain_ratio > 5 and many.strain_ratio < 1.5  # unresolved constraints stretch
     assert few.settle_speed < 0.05 and verlet.settle_speed < 0.05  # at rest when the strain is read
     assert many.energy_change < -0.1  # resolved constraints, still damped by the 1/60 s step
+
+
+# --- the figures (reports/accuracy_plots.py) -------------------------------------------------
+
+
+def accuracy_rows() -> list:
+    """Four dts of 14 backend modes, Verlet and PBD, every platform: more than a panel holds."""
+    from clothbench.analysis.convergence import AccuracyRow
+
+    modes = [("numpy", "f32"), ("numpy", "f64"), ("opencl", "strict"), ("opencl", "fast"), ("glsl", "strict"),
+             ("glsl-compute", "fast"), ("cuda", "swap"), ("taichi", "fast"), ("warp", "default"), ("numba", "fast")]
+    rows = []
+    for i, (backend, mode) in enumerate(modes):
+        for solver, method in [("verlet", "")] + ([("pbd", "jacobi"), ("pbd", "coloured")] if backend == "opencl" else []):
+            label = f"{backend} {mode}" + (f"/pbd-{method}/10it" if method else "")
+            for dt in (2e-3, 1e-3, 5e-4, 2.5e-4):
+                rows.append(AccuracyRow(
+                    scene="drape", grid=8, start="rest", damping=0.002, time_s=0.1, backend=backend, label=label,
+                    mode=mode, device="cpu", dt=dt, steps=round(0.1 / dt), solver=solver, pbd_method=method,
+                    ms_per_sim_s=(1 + i) * 1e-3 / dt * (10 if method else 1), disc_rms=dt * (1 + 0.1 * i),
+                    impl_rms=1e-7, order=1.0,
+                ))  # fmt: skip
+    return rows
+
+
+def test_accuracy_figures_split_by_platform_mark_peers_and_label_the_front(tmp_path):
+    from types import SimpleNamespace
+
+    from clothbench.reports.accuracy_plots import convergence_chart, plot_speed_vs_error, speed_vs_error_chart
+    from clothbench.reports.figures_common import FRONT_TOLERANCE, MAX_SERIES, pareto_front
+
+    result = SimpleNamespace(rows=accuracy_rows(), differences=[])
+    speed = speed_vs_error_chart(result)
+    titles = list(speed.panels)
+    assert titles == ["every run", "CPU (numpy)", "OpenCL", "GL", "CUDA", "peers"]
+    assert all(len(labels) <= MAX_SERIES for labels in speed.panels.values())
+    assert sum(len(v) for k, v in speed.panels.items() if k != "every run") == 14  # every line, once
+    assert set(speed.panels["peers"]) == {"taichi fast (peer)", "warp default (peer)", "numba fast (peer)"}
+    front = pareto_front(result.rows, cost=lambda r: r.ms_per_sim_s, error=lambda r: r.disc_rms,
+                         tolerance=FRONT_TOLERANCE)  # fmt: skip
+    assert speed.fronts["every run"] == [f"{r.label}, dt {r.dt * 1e3:.3g} ms" for r in front]
+    assert speed.fronts["every run"][0] == "numpy f32, dt 0.25 ms"  # the most accurate, at the smallest dt
+    drawn = {t.get_text() for t in speed.figure.axes[0].texts}
+    assert set(speed.fronts["every run"]) <= drawn
+    peers = speed.figure.axes[titles.index("peers")]
+    for line in peers.get_lines():
+        if not line.get_label().startswith("_") and "Pareto" not in line.get_label():
+            assert line.get_linestyle() == "--" and line.get_markerfacecolor() == "white"
+    opencl = speed.figure.axes[titles.index("OpenCL")]
+    styles = {line.get_label(): line.get_linestyle() for line in opencl.get_lines()}
+    assert styles["opencl fast"] == "-" and styles["opencl fast/pbd-jacobi/10it"] == "-."
+    convergence = convergence_chart(result)
+    assert list(convergence.panels) == titles[1:]  # no overview: a panel per platform
+    assert all(len(labels) <= MAX_SERIES for labels in convergence.panels.values())
+    plot_speed_vs_error(result, tmp_path / "acc-speed.png")
+    assert (tmp_path / "acc-speed.png").read_bytes()[:4] == b"\x89PNG"
+    assert "<svg" in (tmp_path / "acc-speed.svg").read_text()[:2000]
+
+
+def test_stability_map_has_a_panel_per_scene_with_pbd_as_its_worst_backend(tmp_path):
+    from clothbench.analysis.stability import StabilityRow
+    from clothbench.reports.accuracy_plots import plot_stability_map, stability_map_chart
+    from clothbench.reports.figures_common import MAX_SERIES
+
+    rows = []
+    for kind in ("flat", "crumpled"):
+        for k in (1000.0, 10000.0):
+            for backend, label in (("numpy", "numpy f32"), ("opencl", "opencl fast"), ("glsl", "glsl fast")):
+                rows.append(StabilityRow(kind, k, 0.002, 10, 300, backend, label, 0.06 / math.sqrt(k), 0.061 / math.sqrt(k),
+                                         None, 0.06 / math.sqrt(k), 0.04 / math.sqrt(k), 10))  # fmt: skip
+                dt = 0.1 if backend != "glsl" else 0.05  # one backend's PBD is worse: the panel shows that one
+                rows.append(StabilityRow(kind, k, 0.002, 10, 300, backend, f"{label}/pbd-jacobi/10it", dt, math.nan, None,
+                                         0.06 / math.sqrt(k), 0.04 / math.sqrt(k), 10, solver="pbd", pbd_method="jacobi",
+                                         iterations=10, capped=dt == 0.1, cap=0.1))  # fmt: skip
+    chart = stability_map_chart(rows)
+    assert list(chart.panels) == ["flat", "crumpled"]
+    assert all(len(labels) <= MAX_SERIES for labels in chart.panels.values())
+    assert chart.panels["flat"] == ["Verlet, CPU (numpy) (1 mode)", "Verlet, OpenCL (1 mode)", "Verlet, GL (1 mode)",
+                                    "PBD jacobi (10 it): smallest of 3 backend modes"]  # fmt: skip
+    pbd = next(line for line in chart.figure.axes[0].get_lines() if line.get_label().startswith("PBD jacobi"))
+    assert list(pbd.get_ydata()) == [0.05, 0.05]  # the worst backend, not the best
+    plot_stability_map(rows, tmp_path / "stab.png")
+    assert (tmp_path / "stab.png").exists() and (tmp_path / "stab.svg").exists()

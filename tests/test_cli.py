@@ -101,3 +101,68 @@ def test_blow_up_exits_3_naming_the_step(tmp_path, capsys):
     assert main(["run", "--scene", str(path)]) == 3
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "blew up at step" in err
+
+
+# --- install hints that install what they name ---------------------------------------
+
+# backend -> (the module its probe imports, the distribution that provides it)
+PYTHON_PACKAGES = {
+    "cuda": ("cupy", "cupy-cuda12x"),
+    "opencl": ("pyopencl", "pyopencl"),
+    "glsl": ("moderngl", "moderngl"),
+    "glsl-compute": ("moderngl", "moderngl"),
+    "taichi": ("taichi", "taichi"),
+    "warp": ("warp", "warp-lang"),
+    "numba": ("numba", "numba"),
+}
+
+
+def _requirement_names(requirements: list[str]) -> set[str]:
+    import re
+
+    return {re.match(r"[A-Za-z0-9._-]+", r).group(0).lower() for r in requirements}
+
+
+@pytest.mark.parametrize("backend", sorted(PYTHON_PACKAGES))
+def test_a_missing_package_is_named_with_the_pip_command_that_installs_it(backend, monkeypatch):
+    import importlib
+    import re
+    import shlex
+    import tomllib
+    from pathlib import Path
+
+    from clothbench.backends import BACKENDS
+
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
+    module, distribution = PYTHON_PACKAGES[backend]
+    monkeypatch.setitem(sys.modules, module, None)  # as if it were not installed: import fails
+    for name in ("ENABLE_TAICHI_HEADER_PRINT", "TI_SKIP_VERSION_CHECK"):  # taichi's probe sets these
+        monkeypatch.setenv(name, "x")
+    probe = importlib.import_module(BACKENDS[backend].verlet.partition(":")[0]).probe
+    reason = probe().reason
+    assert f"{module} not installed (pip install " in reason, reason
+    words = shlex.split(re.search(r"pip install ([^)]*)\)", reason).group(1))
+    installs: set[str] = set()
+    for word in words:
+        extras = re.fullmatch(r"clothbench\[([\w,-]+)\]", word)
+        if extras:  # an extra of clothbench's: it must exist and list the package
+            for extra in extras.group(1).split(","):
+                assert extra in project["optional-dependencies"], f"{word}: pyproject.toml has no extra {extra!r}"
+                installs |= _requirement_names(project["optional-dependencies"][extra])
+        else:  # a package by name: one of clothbench's own dependencies, so its version bound holds
+            assert word.lower() in _requirement_names(project["dependencies"]) | {"glcontext"}, word  # (moderngl's)
+            installs.add(word.lower())
+    assert distribution in installs, f"{reason!r} does not install {distribution}"
+
+
+def test_warp_says_nothing_about_a_missing_cuda_driver():
+    import importlib.util
+
+    if importlib.util.find_spec("warp") is None:
+        pytest.skip("warp is not installed (pip install 'clothbench[peers]')")
+    out = subprocess.run(
+        [sys.executable, "-m", "clothbench", "run", "--backend", "warp", "--grid", "8", "--steps", "2"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "Could not find or load the NVIDIA CUDA driver" not in out.stderr + out.stdout

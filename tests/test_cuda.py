@@ -243,7 +243,7 @@ def test_backend_compiles_the_kernel_the_way_it_loads_it(using):
     # cuda.compile_kernel is what CudaBackend runs before RawModule(path=...); it needs
     # no device, only cupy and the compiler. The every-kind defines hold commas, which nvcc
     # would split at without escaping.
-    pytest.importorskip("cupy", reason="cupy not installed (pip install -e '.[cuda]')")
+    pytest.importorskip("cupy", reason="cupy not installed (pip install 'clothbench[cuda]')")
     if using == "nvrtc" and not cuda._nvrtc_available():
         pytest.skip("libnvrtc not loadable (pip install nvidia-cuda-nvrtc-cu12)")
     if using == "nvcc" and not cuda._nvcc_available():
@@ -257,7 +257,7 @@ def test_backend_compiles_the_kernel_the_way_it_loads_it(using):
 
 
 def test_compiled_kernels_are_cached_by_their_specialisation():
-    pytest.importorskip("cupy", reason="cupy not installed (pip install -e '.[cuda]')")
+    pytest.importorskip("cupy", reason="cupy not installed (pip install 'clothbench[cuda]')")
     using = cuda.compiler() or pytest.skip("no CUDA compiler")
     before = cuda.compile_kernel.cache_info()
     first = cuda.compile_kernel(True, "80", using, "ptx", cuda.kernel_defines(sphere(20), VERLET))
@@ -875,7 +875,7 @@ def test_probe_reason_is_one_of_the_documented_ones():
     if a.usable:
         pytest.skip(f"a CUDA device is present: {a.device}")
     assert (
-        a.reason == "cupy not installed (pip install -e '.[cuda]')"
+        a.reason == "cupy not installed (pip install 'clothbench[cuda]')"
         or (a.reason.startswith("no CUDA device (cupy: ") and a.reason.endswith(")"))
         or a.reason.startswith("no CUDA compiler (")
     ), a.reason
@@ -906,9 +906,9 @@ def test_without_cupy_the_module_imports_and_says_how_to_install():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr
-    assert done.stdout.strip() == "cupy not installed (pip install -e '.[cuda]')"
+    assert done.stdout.strip() == "cupy not installed (pip install 'clothbench[cuda]')"
     assert done.stderr.strip() == (
-        "clothbench: error: cuda unavailable: cupy not installed (pip install -e '.[cuda]')"
+        "clothbench: error: cuda unavailable: cupy not installed (pip install 'clothbench[cuda]')"
     )
 
 

@@ -1,6 +1,6 @@
 """The peer backends (taichi, warp, numba) run the step of docs/semantics.md, checked
 against the NumPy reference. Each test skips with the registry's reason when its package
-is missing (pip install -e '.[peers]').
+is missing (pip install 'clothbench[peers]').
 
 What each peer gives against the NumPy float32 reference, measured:
 - strict (taichi fast_math=False, numba fastmath=False, warp's one kernel): bit for bit,
@@ -195,7 +195,7 @@ def test_missing_package_is_reported_with_the_install_command(name):
         f"print(availability({name!r}).reason)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == f"{name} not installed (pip install -e '.[peers]')"
+    assert out.stdout.strip() == f"{name} not installed (pip install 'clothbench[peers]')"
 
 
 def _small(scene_name):

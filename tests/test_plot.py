@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
-from pathlib import Path
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 
 from clothbench.cli import main
 from clothbench.harness.sweep_csv import COLUMNS, csv_line
-from clothbench.reports.plots import FILES, plot_sweep, scaling_exponent
+from clothbench.reports.figures_common import MAX_SERIES, figure_svg, pareto_front
+from clothbench.reports.plots import FILES, draw_sweep, plot_sweep, scaling_exponent
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -103,6 +106,119 @@ def test_plot_of_a_csv_missing_columns_fails_in_one_line_with_exit_2(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def many_variant_rows(**extra) -> list[dict[str, str]]:
+    """Every platform, 26 variants in all: OpenCL alone has 12 (8 Verlet, 4 PBD), GL 8."""
+    rows = []
+    for n in (32, 64, 128):
+        base = 1e-4 * n * n
+        for p in ("f32", "f64"):
+            rows.append(row(grid=n, mode=p, precision=p, ms=base * (2 if p == "f64" else 1),
+                            err_rms_m=0 if p == "f64" else 1e-6, **extra))  # fmt: skip
+        for strict in ("true", "false"):
+            for transfer in ("resident", "per-step"):
+                for generic in ("false", "true"):
+                    rows.append(row(grid=n, backend="opencl", device="pthread", strict=strict, transfer=transfer,
+                                    generic=generic, mode=f"{strict}/{transfer}/{generic}", err_rms_m=1.01e-6,
+                                    ms=base / (3 if strict == "false" else 2) * (2 if generic == "true" else 1),
+                                    **extra))  # fmt: skip
+            for method in ("jacobi", "coloured"):
+                rows.append(row(grid=n, backend="opencl", device="pthread", strict=strict, solver="pbd",
+                                pbd_method=method, mode=f"{strict}/pbd", ms=base * 10, **extra))  # fmt: skip
+        for backend in ("glsl", "glsl-compute"):
+            for strict in ("true", "false"):
+                for generic in ("false", "true"):
+                    rows.append(row(grid=n, backend=backend, device="llvmpipe", strict=strict, generic=generic,
+                                    mode=f"{strict}/{generic}", ms=base / 1.5, err_rms_m=0.9e-6, **extra))  # fmt: skip
+        rows.append(row(grid=n, backend="cuda", device="GPU", mode="swap", ms=base / 50, err_rms_m=1.2e-6, **extra))
+        for backend in ("taichi", "warp", "numba"):
+            rows.append(row(grid=n, backend=backend, peer="true", mode="default", ms=base / 1.2, **extra))
+    return rows
+
+
+def legend_lines(ax) -> dict:
+    """label -> the Line2D drawn for it (an errorbar's data line)."""
+    handles, labels = ax.get_legend_handles_labels()
+    return {label: getattr(h, "lines", (h,))[0] for h, label in zip(handles, labels)}
+
+
+def test_pareto_front_is_exactly_the_points_no_other_point_beats():
+    rng = np.random.default_rng(7)
+    points = [(float(c), float(e)) for c, e in rng.integers(1, 12, size=(60, 2))]  # ties on purpose
+    points += [(math.nan, 1.0), (1.0, math.inf)]  # not numbers: never on the front
+    front = pareto_front(points, cost=lambda p: p[0], error=lambda p: p[1])
+    finite = [p for p in points if all(map(math.isfinite, p))]
+    beaten = {p for p in finite for q in finite if q[0] <= p[0] and q[1] <= p[1] and q != p}
+    assert sorted(front) == sorted(p for p in finite if p not in beaten)
+    assert [p[1] for p in front] == sorted(p[1] for p in front)  # by increasing error
+    # by hand: (3, 3) is beaten by (2, 3); (5, 1) and the duplicate pair stay
+    hand = [(1, 9), (2, 3), (3, 3), (5, 1), (5, 1), (6, 2)]
+    assert pareto_front(hand, cost=lambda p: p[0], error=lambda p: p[1]) == [(5, 1), (5, 1), (2, 3), (1, 9)]
+    # with a 5 % tolerance an error 2 % better no longer saves a point 10x the cost
+    near = [(10.0, 1.00), (1.0, 1.02)]
+    assert pareto_front(near, cost=lambda p: p[0], error=lambda p: p[1]) == near
+    assert pareto_front(near, cost=lambda p: p[0], error=lambda p: p[1], tolerance=0.05) == [(1.0, 1.02)]
+
+
+def test_no_panel_carries_more_than_eight_series_and_every_variant_is_drawn_once(tmp_path):
+    report = draw_sweep(write_csv(tmp_path / "many.csv", many_variant_rows()))
+    for name in ("time_vs_grid", "throughput"):
+        panels = report.charts[name].panels
+        assert all(len(labels) <= MAX_SERIES for labels in panels.values()), panels
+        detail = [label for title, labels in panels.items() if "fastest" not in title for label in labels]
+        assert sorted(detail) == sorted(report.series[name]) and len(detail) == 26
+        assert list(panels)[1:] == ["CPU (numpy)", "OpenCL, Verlet", "OpenCL, PBD jacobi", "OpenCL, PBD coloured",
+                                    "GL", "CUDA", "peers"]  # fmt: skip
+        assert "fastest" in list(panels)[0]
+    assert all(len(platforms) <= MAX_SERIES for platforms in report.charts["speed_vs_error"].panels.values())
+
+
+def test_peers_are_dashed_with_hollow_markers_and_say_peer(tmp_path):
+    report = draw_sweep(write_csv(tmp_path / "many.csv", many_variant_rows()))
+    chart = report.charts["time_vs_grid"]
+    titles = list(chart.panels)
+    peers_ax, numpy_ax = chart.figure.axes[titles.index("peers")], chart.figure.axes[titles.index("CPU (numpy)")]
+    peers = legend_lines(peers_ax)
+    assert set(peers) == {"Taichi (peer)", "Warp (peer)", "Numba (peer)"}
+    for line in peers.values():
+        assert line.get_linestyle() == "--" and line.get_markerfacecolor() == "white"
+    for line in legend_lines(numpy_ax).values():
+        assert line.get_linestyle() == "-" and line.get_markerfacecolor() != "white"
+    # speed against error: a legend entry says which hollow points are peers
+    key = [t.get_text() for ax in report.charts["speed_vs_error"].figure.axes if ax.get_legend()
+           for t in ax.get_legend().get_texts()]  # fmt: skip
+    assert any("peer" in t for t in key) and any("Pareto front" in t for t in key)
+
+
+def test_speed_vs_error_labels_exactly_the_front_of_each_grid(tmp_path):
+    rows = [row(grid=n) for n in (32, 64)]  # numpy f32: 1e-6 m
+    rows += [row(grid=n, mode="f64", precision="f64", ms=3e-4 * n * n, err_rms_m=0) for n in (32, 64)]  # exact, slow
+    rows += [row(grid=n, backend="opencl", device="cl", ms=1e-5 * n * n, err_rms_m=5e-6) for n in (32, 64)]  # fast
+    rows += [row(grid=n, backend="glsl", device="gl", ms=2e-5 * n * n, err_rms_m=6e-6) for n in (32, 64)]  # beaten
+    rows.append(row(grid=64, backend="taichi", peer="true", ms=1e-6 * 64 * 64, err_rms_m=1e-3))  # cheapest at 64
+    report = draw_sweep(write_csv(tmp_path / "s.csv", rows))
+    fronts = report.charts["speed_vs_error"].fronts
+    assert fronts["32×32 (1,024 particles)"] == ["CPU (numpy) f64", "CPU (numpy) f32", "OpenCL"]
+    assert fronts["64×64 (4,096 particles)"] == ["CPU (numpy) f64", "CPU (numpy) f32", "OpenCL", "Taichi (peer)"]
+    texts = {t.get_text() for ax in report.charts["speed_vs_error"].figure.axes for t in ax.texts}
+    assert {"OpenCL", "Taichi (peer)", "CPU (numpy) f64"} <= texts and "GLSL" not in texts
+
+
+@pytest.mark.parametrize("with_bound", [True, False])
+def test_the_machine_bound_is_drawn_only_where_the_csv_has_it(tmp_path, with_bound):
+    columns = COLUMNS + (("bound_ms",) if with_bound else ())
+    rows = many_variant_rows(bound_ms="0.001") if with_bound else many_variant_rows()
+    report = draw_sweep(write_csv(tmp_path / "b.csv", rows, columns=columns))
+    for name in ("time_vs_grid", "throughput"):
+        bound_lines = [line for ax in report.charts[name].figure.axes for line in ax.get_lines()
+                       if line.get_label().startswith("machine bound")]  # fmt: skip
+        if with_bound:  # every panel, one line per device in it, across its grids
+            assert len(bound_lines) >= len(report.charts[name].panels)
+            assert all(len(line.get_xdata()) == 3 for line in bound_lines)
+        else:
+            assert bound_lines == []
+    assert "<svg" in figure_svg(report.charts["time_vs_grid"].figure)[:2000]
+
+
 def test_compare_prints_the_ratio_of_matching_rows(tmp_path, capsys):
     a = [row(grid=32, ms=2.0), row(grid=64, ms=8.0), row(grid=32, backend="glsl", mode="strict", strict="true", ms=1.0)]
     b = [row(grid=32, ms=1.0), row(grid=64, ms=4.0), row(grid=32, backend="glsl", mode="strict", strict="true", ms=3.0)]
@@ -127,9 +243,12 @@ def test_the_committed_sweep_plots_every_figure(tmp_path):
     committed = Path(__file__).resolve().parent.parent / "results" / "cpu-llvmpipe-pocl.csv"
     if not committed.exists():
         pytest.skip("no committed sweep in this checkout")
-    assert main(["plot", str(committed), "--out", str(tmp_path)]) == 0
+    report = plot_sweep(committed, tmp_path)
     for name in ("time_vs_grid", "throughput", "speed_vs_error", "local_size"):
         assert (tmp_path / f"{name}.png").stat().st_size > 10_000, name
+        assert (tmp_path / f"{name}.svg").exists(), name
+        assert all(len(labels) <= MAX_SERIES for labels in report.charts[name].panels.values()), name
+    assert all(report.charts["speed_vs_error"].fronts.values())  # a front in every grid's panel
 
 
 def test_readme_peer_table_matches_the_committed_sweep():

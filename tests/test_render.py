@@ -18,7 +18,8 @@ from clothbench.backends.gl import fragment as glsl
 from clothbench.backends.gl import compute as glsl_compute
 from clothbench.harness import simulate
 from clothbench.reports import render as render_module
-from clothbench.reports.render import RenderSettings, cloth_indices, frame_scene, render
+from clothbench.reports.meshes import cloth_indices
+from clothbench.reports.render import RenderSettings, frame_scene, render
 from clothbench.scene import load_scene
 from clothbench.solver import Pbd
 

@@ -4,7 +4,9 @@ nothing lost or duplicated when a sweep is killed and resumed."""
 from __future__ import annotations
 
 import csv
+import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -16,6 +18,7 @@ import pytest
 
 from clothbench.backends import BACKENDS, Availability, BackendEntry, Capabilities, availability
 from clothbench.backends.numpy.verlet import NumpyBackend
+from clothbench import environment
 from clothbench.cli import main
 from clothbench.harness import sweep as sweep_module
 from clothbench.harness.sweep_csv import COLUMNS, MEASUREMENT_COLUMNS, row_key
@@ -74,6 +77,16 @@ class NaNBackend(NumpyBackend):
         self.pos[0, 0, 0] = np.nan
 
 
+class InterruptedBackend(NumpyBackend):
+    """Stands for a Ctrl-C in the middle of a row."""
+
+    name = "fake-interrupt"
+    capabilities = Capabilities()
+
+    def advance(self, steps: int) -> None:
+        raise KeyboardInterrupt
+
+
 class PeerBackend(NumpyBackend):
     name = "fake-peer"
     capabilities = Capabilities()
@@ -89,26 +102,28 @@ class GenericBackend(NumpyBackend):
         super().advance(steps * (3 if self.options.generic else 1))
 
 
-@pytest.fixture
-def fake_backends(monkeypatch):
+def register_fake_backends(monkeypatch, *classes: type, peers: tuple[str, ...] = ()) -> None:
+    """Register each Backend class under its `name` for one test, usable on a "fake device"."""
     usable = types.ModuleType("clothbench.backends._fake_usable")
     usable.probe = lambda: Availability(True, device="fake device")
+    monkeypatch.setitem(sys.modules, usable.__name__, usable)
+    for cls in classes:
+        setattr(usable, cls.__name__, cls)
+        entry = BackendEntry(cls.name, f"{usable.__name__}:{cls.__name__}", peer=cls.name in peers)
+        monkeypatch.setitem(BACKENDS, cls.name, entry)
+    availability.cache_clear()
+
+
+@pytest.fixture
+def fake_backends(monkeypatch):
     absent = types.ModuleType("clothbench.backends._fake_absent")
     absent.probe = lambda: Availability(False, "no fake device on this machine")
-    for cls in (LocalSizeBackend, ExplodingBackend, NaNBackend, PeerBackend, GenericBackend):
-        setattr(usable, cls.__name__, cls)
-    monkeypatch.setitem(sys.modules, usable.__name__, usable)
     monkeypatch.setitem(sys.modules, absent.__name__, absent)
-    for name, module, cls, peer in (
-        ("fake-local", usable, "LocalSizeBackend", False),
-        ("fake-explode", usable, "ExplodingBackend", False),
-        ("fake-nan", usable, "NaNBackend", False),
-        ("fake-peer", usable, "PeerBackend", True),
-        ("fake-generic", usable, "GenericBackend", False),
-        ("fake-absent", absent, "Nothing", False),
-    ):
-        monkeypatch.setitem(BACKENDS, name, BackendEntry(name, f"{module.__name__}:{cls}", peer=peer))
-    availability.cache_clear()
+    monkeypatch.setitem(BACKENDS, "fake-absent", BackendEntry("fake-absent", f"{absent.__name__}:Nothing"))
+    register_fake_backends(
+        monkeypatch, LocalSizeBackend, ExplodingBackend, NaNBackend, PeerBackend, GenericBackend, InterruptedBackend,
+        peers=("fake-peer",),
+    )  # fmt: skip
     yield
     availability.cache_clear()
 
@@ -131,6 +146,9 @@ def test_sweep_of_two_tiny_grids_writes_every_column_and_one_row_per_variant_and
         assert (r["steps"], r["repeats"], r["solver"], r["timed_region"]) == ("3", "2", "verlet", "steps")
         assert float(r["simulated_s"]) == pytest.approx(6 * VERLET.dt)
         assert 0 < float(r["ms_min"]) <= float(r["ms_median"]) <= float(r["ms_max"])
+        chunks = [float(v) for v in r["chunk_ms"].split()]  # the R chunks, as measured
+        assert len(chunks) == 2 and (min(chunks), max(chunks)) == (float(r["ms_min"]), float(r["ms_max"]))
+        assert float(r["ms_median"]) == pytest.approx(np.median(chunks), rel=1e-5)
         assert float(r["particles_per_s"]) == pytest.approx(n * n * 1e3 / float(r["ms_median"]), rel=1e-5)
         assert r["cpu"] and r["python"] and "numpy=" in r["packages"] and r["timestamp"]
         # f64 is the reference itself; f32 differs from it by rounding only (6 steps, < 1 µm)
@@ -307,3 +325,117 @@ def test_pbd_methods_are_rows_of_their_own(tmp_path):
 def test_unknown_solver_is_one_line_exit_2(capsys):
     assert main(["sweep", "--solvers", "rk4", "--out", "x.csv"]) == 2
     assert "--solvers takes verlet, pbd, pbd-jacobi, pbd-coloured" in capsys.readouterr().err
+
+
+# --- the env column, the commit ------------------------------------------------------
+
+
+def test_env_records_every_variable_that_changes_results_in_name_order(tmp_path, monkeypatch):
+    for name in list(os.environ):
+        if name.startswith(environment.ENV_PREFIXES) or name in environment.ENV_VARS:
+            monkeypatch.delenv(name)
+    wanted = {
+        "OMP_NUM_THREADS": "1", "KMP_AFFINITY": "compact", "GOMP_SPINCOUNT": "0", "NUMBA_NUM_THREADS": "2",
+        "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "LP_NUM_THREADS": "4", "GALLIUM_DRIVER": "llvmpipe",
+        "MESA_GLSL_CACHE_DISABLE": "true", "POCL_DEBUG": "all", "OCL_ICD_VENDORS": "/etc/OpenCL/vendors",
+        "PYOPENCL_CTX": "0:0", "CUDA_VISIBLE_DEVICES": "", "CUPY_CACHE_DIR": "/tmp/cupy cache", "TI_ARCH": "cpu",
+        "WARP_CACHE_PATH": "/tmp/w",
+    }  # fmt: skip
+    for name, value in wanted.items():
+        monkeypatch.setenv(name, value)
+    monkeypatch.setenv("CLOTHBENCH_UNRELATED", "x")  # changes nothing: not recorded
+    monkeypatch.setenv("TI_SKIP_VERSION_CHECK", "ON")  # set by clothbench itself: not recorded
+    recorded = environment.driver_env()
+    names = [item.split("=", 1)[0] for item in shlex.split(recorded)]
+    assert names == sorted(wanted)
+    assert dict(item.split("=", 1) for item in shlex.split(recorded)) == wanted  # spaces and empties survive
+
+    environment.machine.cache_clear()  # the sweep reads the environment once per process
+    monkeypatch.setattr(environment, "git_commit", lambda: "abc")  # (and need not ask git here)
+    try:
+        out = tmp_path / "s.csv"
+        assert main(["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out)]) == 0
+    finally:
+        environment.machine.cache_clear()
+    assert {r["env"] for r in read_csv(out)} == {recorded}
+
+
+def test_git_commit_names_the_checkout():
+    if not (environment.Path(environment.__file__).resolve().parents[1] / ".git").exists():
+        pytest.skip("clothbench is not run from a git checkout")
+    commit = environment.git_commit()
+    assert commit != "unknown" and len(commit.removesuffix("+dirty")) == 12
+
+
+def test_resuming_a_file_from_before_chunk_ms_says_why_not(tmp_path, capsys):
+    out = tmp_path / "old.csv"
+    assert main(["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out)]) == 0
+    rows = read_csv(out)
+    old_columns = [c for c in COLUMNS if c != "chunk_ms"]
+    with open(out, "w", newline="") as f:
+        writer = csv.DictWriter(f, old_columns, extrasaction="ignore", lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    before = out.read_text()
+    capsys.readouterr()
+    assert main(["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "lacks chunk_ms" in err and "new --out" in err
+    assert out.read_text() == before
+
+
+# --- --json: Google Benchmark's format -----------------------------------------------
+
+
+def test_json_holds_every_row_in_google_benchmarks_format(tmp_path):
+    out, js = tmp_path / "s.csv", tmp_path / "s.json"
+    argv = ["sweep", "--backends", "numpy", "--grids", "8,12", "--steps", "3", "--repeat", "4"]
+    assert main([*argv, "--out", str(out), "--json", str(js)]) == 0
+    rows = read_csv(out)
+    doc = json.loads(js.read_text())
+    ctx = doc["context"]
+    assert {"date", "host_name", "num_cpus", "library_build_type"} <= set(ctx)
+    assert ctx["num_cpus"] == int(rows[0]["cores"]) and ctx["clothbench"]["cpu"] == rows[0]["cpu"]
+    assert ctx["clothbench"]["repeats"] == 4
+    runs = [b for b in doc["benchmarks"] if b["run_type"] == "iteration"]
+    medians = {b["run_name"]: b for b in doc["benchmarks"] if b["run_type"] == "aggregate"}
+    assert len(runs) == len(rows) == 4 and len({b["name"] for b in runs}) == 4
+    for run, row in zip(runs, rows):
+        assert (run["backend"], run["mode"], run["status"]) == (row["backend"], row["mode"], "ok")
+        assert run["grid"] == int(row["grid"])
+        assert run["time_unit"] == "ms" and run["iterations"] == 12 and run["threads"] == 1
+        assert "cpu_time" not in run  # not measured: left out rather than made up
+        chunks = [float(v) for v in row["chunk_ms"].split()]
+        assert run["chunk_ms"] == chunks and run["real_time"] == pytest.approx(np.mean(chunks))
+        assert run["err_rms_m"] == float(row["err_rms_m"]) and run["device"] == row["device"]
+        median = medians[run["name"]]
+        assert median["name"] == run["name"] + "_median" and median["aggregate_name"] == "median"
+        assert median["repetitions"] == 4 and median["real_time"] == pytest.approx(float(row["ms_median"]), rel=1e-5)
+
+
+def test_json_of_an_interrupted_sweep_is_valid_and_holds_the_finished_rows(tmp_path, fake_backends):
+    out, js = tmp_path / "s.csv", tmp_path / "s.json"
+    argv = ["sweep", "--backends", "numpy,fake-interrupt,fake-explode", "--grids", "8", *TINY]
+    assert main([*argv, "--out", str(out), "--json", str(js)]) == 130
+    finished = read_csv(out)
+    runs = [b for b in json.loads(js.read_text())["benchmarks"] if b["run_type"] == "iteration"]
+    assert [b["mode"] for b in runs] == [r["mode"] for r in finished] == ["f64", "f32"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.json"]  # no temporary file left
+
+    # resumed: the JSON again holds every row of the CSV, a failed one as GB writes an error
+    argv = ["sweep", "--backends", "numpy,fake-explode", "--grids", "8", *TINY, "--resume"]
+    assert main([*argv, "--out", str(out), "--json", str(js)]) == 0
+    runs = [b for b in json.loads(js.read_text())["benchmarks"] if b["run_type"] == "iteration"]
+    assert [b["backend"] for b in runs] == ["numpy", "numpy", "fake-explode"]
+    assert runs[2]["error_occurred"] is True and "CL_OUT_OF_RESOURCES" in runs[2]["error_message"]
+
+
+@pytest.mark.parametrize("where", ["a-file/s.json", ".", "s.csv"])
+def test_bad_json_path_is_one_line_exit_2_before_anything_is_measured(tmp_path, capsys, where):
+    (tmp_path / "a-file").write_text("")
+    out = tmp_path / "s.csv"
+    argv = ["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--out", str(out), "--json", str(tmp_path / where)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--json" in err
+    assert not out.exists()

@@ -22,8 +22,11 @@ from typing import Callable
 import numpy as np
 
 from clothbench.backends import BackendOptions, create_backend
+from clothbench.environment import cpu_model
 from clothbench.errors import ClothbenchError
 from clothbench.harness.energy import total_energy
+from clothbench.harness import faults
+from clothbench.harness.executor import fork_safe, runner
 from clothbench.harness.plan import Variant
 from clothbench.harness.simulate import position_error, reference, simulate
 from clothbench.harness.timing import run_timed
@@ -31,6 +34,7 @@ from clothbench.scene import Scene
 from clothbench.solver import Solver, as_verlet
 
 F64 = BackendOptions(precision="f64")
+EARLY_LEVELS = 4  # levels 0..3: what converged_reference always runs before it can stop
 
 
 def dt_levels(dt0: float, levels: int) -> list[float]:
@@ -78,6 +82,7 @@ def converged_reference(
     rtol: float = 0.02,
     max_levels: int = 5,
     on_level: Callable[[int, float], None] | None = None,
+    runs_at: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Reference:
     """The float64 state of `scene` stepped by `solver` at `time_s`, refined until it stops
     changing.
@@ -87,9 +92,12 @@ def converged_reference(
     successive extrapolations differ (max norm) by less than `rtol` times the smallest error it
     will be compared with: the float64 error of the finest measured dt. Not converged after
     `max_levels` halvings: the last extrapolation is returned with converged=False, and the
-    caller says so (errors smaller than `uncertainty` then mean nothing).
+    caller says so (errors smaller than `uncertainty` then mean nothing). `runs_at` holds
+    (pos, prev) of levels already run (run_accuracy runs the first ones side by side).
     """
-    runs = [reference(scene, solver.replace(dt=dt_finest), steps_for(time_s, dt_finest))[0]]
+    runs_at = runs_at or {}
+    steps0 = steps_for(time_s, dt_finest)
+    runs = [runs_at[0][0] if 0 in runs_at else reference(scene, solver.replace(dt=dt_finest), steps0)[0]]
     extrapolated: list[np.ndarray] = []
     order = float("nan")
     step = np.zeros_like(runs[0])  # the finest run's pos - prev
@@ -103,7 +111,7 @@ def converged_reference(
         dt = dt_finest / 2**level
         if on_level:
             on_level(level, dt)
-        pos, prev = simulate("numpy", scene, solver.replace(dt=dt), steps_for(time_s, dt), F64)
+        pos, prev = runs_at.get(level) or simulate("numpy", scene, solver.replace(dt=dt), steps_for(time_s, dt), F64)
         runs.append(pos)
         step = pos - prev
         if len(runs) < 3:
@@ -176,6 +184,8 @@ class AccuracyRow:
     order: float = float("nan")  # fitted over this backend/mode's rows, same in each
     order_points: int = 0  # how many of its dts the fit used (discretisation_dominates)
     in_fit: bool = False  # whether this row is one of them
+    stiffness: float = float("nan")  # k of the scene (N/m): the model a row's cost and error are of
+    cpu: str = ""  # the machine the cost was measured on
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -287,30 +297,57 @@ def _measure(
     v: Variant, scene: Scene, solver: Solver, time_s: float, ref: Reference, verlet_ref: Reference | None
 ) -> AccuracyRow:
     """One row: `v` stepped by `solver` to `time_s`, timed, against both references."""
+    return _against(*_run_row(v, scene, solver, time_s), scene, solver, ref, verlet_ref)
+
+
+def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float):
+    """The part of a row that needs no converged reference (so it can run beside them):
+    `v` stepped to `time_s`, timed, against float64 at the same dt. (row, pos, prev)."""
     steps = steps_for(time_s, solver.dt)
     row = AccuracyRow(
         scene.name, scene.grid, solver.start, scene.damping, time_s, v.backend, v.name, "?", "?",
         solver.dt, steps, solver.name, **pbd_fields(solver), ref_model=model_name(solver),
+        stiffness=scene.stiffness, cpu=cpu_model(),
     )
     try:
         with create_backend(v.backend, scene, solver, v.options) as b:
+            faults.inject(v.backend)
             result = run_timed(b, steps, raise_on_blowup=False)
     except Exception as e:  # a broken backend is a row saying so, not a dead command
         row.status = f"error: {type(e).__name__}: {e}"
-        return row
+        return row, None, None
     row.mode, row.device = result.mode, result.device
-    row.ref_dt, row.ref_converged, row.ref_uncertainty = ref.dt, ref.converged, ref.uncertainty
     row.ms_per_step = result.ms_per_step
     row.ms_per_sim_s = result.ms_per_step / solver.dt
     if result.blowup is not None:
         row.status = f"unstable at step {result.blowup.step}: {result.blowup.what}"
-        return row
+        return row, None, None
     row.impl_rms, row.impl_max = position_error(result.pos, reference(scene, solver, steps)[0])
-    row.disc_rms, row.disc_max = position_error(result.pos, ref.pos)
+    return row, result.pos, result.prev
+
+
+def _against(row: AccuracyRow, pos, prev, scene: Scene, solver: Solver, ref: Reference, verlet_ref) -> AccuracyRow:
+    """The row's errors against the converged references."""
+    if row.status.startswith("error:"):
+        return row
+    row.ref_dt, row.ref_converged, row.ref_uncertainty = ref.dt, ref.converged, ref.uncertainty
+    if pos is None:
+        return row
+    row.disc_rms, row.disc_max = position_error(pos, ref.pos)
     if verlet_ref is not None:
-        row.vs_verlet_rms, row.vs_verlet_max = position_error(result.pos, verlet_ref.pos)
-    row.strain, row.kinetic_j = bulk(result.pos, result.prev, scene, solver.dt)
+        row.vs_verlet_rms, row.vs_verlet_max = position_error(pos, verlet_ref.pos)
+    row.strain, row.kinetic_j = bulk(pos, prev, scene, solver.dt)
     return row
+
+
+def _measure_failed(v: Variant, scene: Scene, solver: Solver, time_s: float, why: str) -> AccuracyRow:
+    """The row of a run whose worker process crashed or timed out."""
+    steps = steps_for(time_s, solver.dt)
+    return AccuracyRow(
+        scene.name, scene.grid, solver.start, scene.damping, time_s, v.backend, v.name, "?", "?",
+        solver.dt, steps, solver.name, **pbd_fields(solver), ref_model=model_name(solver),
+        stiffness=scene.stiffness, cpu=cpu_model(), status=" ".join(why.split()),
+    )
 
 
 def run_accuracy(
@@ -320,6 +357,7 @@ def run_accuracy(
     time_s: float,
     on_progress: Callable[[str], None] | None = None,
     pbd_dts: list[float] | None = None,
+    executor=None,
 ) -> AccuracyResult:
     """Every variant at every dt to `time_s`: cost, implementation and discretisation error.
 
@@ -329,7 +367,9 @@ def run_accuracy(
     dt; when PBD is measured, Verlet's reference (with the first variant's start) is
     computed too (below min(dts)), every row's error against it is written (vs_verlet_*),
     and the distance between the converged answers of Verlet and each PBD model is returned
-    in `differences`."""
+    in `differences`. With an `executor` (harness/executor.py) the references, then the
+    rows, run as its tasks (in parallel over its jobs; every one in a worker process): a
+    row whose worker crashed or ran past the limit says so in its status."""
     note = on_progress or (lambda what: None)
     dts = sorted(dts, reverse=True)
     pbd_dts = sorted(pbd_dts or dts, reverse=True)
@@ -348,21 +388,56 @@ def run_accuracy(
     for v in variants:
         models.setdefault(model_key(scene, v.solver), (v.solver, levels(v.solver)[-1]))
     refs: dict[tuple, Reference] = {}
-    for key, (solver, finest) in models.items():
-        name = model_name(solver)
-        note(f"converged float64 reference: {name}")
-        refs[key] = converged_reference(
-            scene, solver, time_s, finest,
-            on_level=lambda lvl, dt, name=name: note(f"reference {name} dt/2^{lvl} = {dt:.3g} s"),
-        )
+    run = runner(executor)
+    pending, early = {}, {}
+    if executor is not None:  # the levels every reference runs, side by side (the finest first)
+        for key, (solver, finest) in models.items():
+            early[key] = {
+                lvl: run(simulate, "numpy", scene, solver.replace(dt=dt), steps_for(time_s, dt), F64)
+                for lvl, dt in ((lvl, finest / 2**lvl) for lvl in range(EARLY_LEVELS - 1, -1, -1))
+            }
+    else:
+        for key, (solver, finest) in models.items():
+            name = model_name(solver)
+            note(f"converged float64 reference: {name}")
+            on_level = lambda lvl, dt, name=name: note(f"reference {name} dt/2^{lvl} = {dt:.3g} s")  # noqa: E731
+            pending[key] = run(converged_reference, scene, solver, time_s, finest, on_level=on_level)
+    planned = []
+    for v in variants:
+        for dt in levels(v.solver):
+            solver = v.solver.replace(dt=dt)
+            safe = fork_safe(v.backend, v.solver.name)
+            planned.append((v, solver, run(_run_row, v, scene, solver, time_s, fork_safe=safe)))
+    for key, levels_run in early.items():  # then each reference from them, beside the rows
+        solver, finest = models[key]
+        note(f"converged float64 reference: {model_name(solver)}")
+        runs_at = {}
+        for lvl, got in levels_run.items():
+            status, value = got()
+            if status != "ok":
+                raise ClothbenchError(f"the float64 reference {model_name(solver)} {status}: {value}")
+            runs_at[lvl] = value
+        pending[key] = run(converged_reference, scene, solver, time_s, finest, runs_at=runs_at)
+    for key, got in pending.items():
+        status, value = got()
+        if status != "ok":
+            raise ClothbenchError(f"the float64 reference {model_name(models[key][0])} {status}: {value}")
+        refs[key] = value
     verlet_ref = refs.get(verlet_key)
     rows: list[AccuracyRow] = []
     for v in variants:
         ref = refs[model_key(scene, v.solver)]
         mine = []
-        for dt in levels(v.solver):
-            note(f"{v.backend} {v.solver.name} dt={dt:.3g}")
-            mine.append(_measure(v, scene, v.solver.replace(dt=dt), time_s, ref, verlet_ref))
+        for pv, solver, got in planned:
+            if pv is not v:
+                continue
+            note(f"{v.backend} {v.solver.name} dt={solver.dt:.3g}")
+            status, value = got()
+            if status != "ok":
+                row = _measure_failed(v, scene, solver, time_s, f"{status}: {value}")
+                mine.append(_against(row, None, None, scene, solver, ref, verlet_ref))
+            else:
+                mine.append(_against(*value, scene, solver, ref, verlet_ref))
         used = [r for r in mine if discretisation_dominates(r, ref)]
         order = fit_order([r.dt for r in used], [r.disc_rms for r in used])
         for r in mine:

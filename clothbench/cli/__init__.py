@@ -10,11 +10,11 @@ import os
 import sys
 
 from clothbench import __version__
-from clothbench.cli import accuracy, backends, plot, render, run, stability, sweep
+from clothbench.cli import accuracy, advise, backends, plot, render, report, run, stability, sweep, view
 from clothbench.cli.args import Parser
 from clothbench.errors import BlowUp, ClothbenchError
 
-COMMANDS = (run, backends, sweep, plot, accuracy, stability, render)
+COMMANDS = (run, backends, sweep, plot, report, accuracy, stability, advise, render, view)
 
 
 def build_parser() -> Parser:

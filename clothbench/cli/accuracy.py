@@ -10,7 +10,7 @@ import csv
 import math
 from pathlib import Path
 
-from clothbench.cli.args import int_list, solver_specs
+from clothbench.cli.args import add_row_args, check_row_args, int_list, sigterm_interrupts, solver_specs
 from clothbench.errors import ClothbenchError
 
 DEFAULT_LEVELS = 5  # 2 dt .. dt/8 around the scene's dt (docs/accuracy.md: why one coarser)
@@ -53,6 +53,7 @@ def register(subparsers) -> None:
         "writes <out>-artefacts.csv",
     )
     acc.add_argument("--out", help="CSV path (default results/accuracy-<scene>.csv); plots beside it")
+    add_row_args(acc, jobs=True)
     acc.set_defaults(func=cmd_accuracy)
 
 
@@ -122,19 +123,26 @@ def variants_for(spec: str, solvers: list):
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
+    """The whole file at once, by a rename: an interrupt leaves the old file or the new one."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
+    partial = path.with_name(f".{path.name}.partial")
+    with open(partial, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
+    partial.replace(path)
 
 
 def cmd_accuracy(args) -> int:
     from clothbench.analysis.convergence import dt_levels, model_name, run_accuracy
     from clothbench.reports.accuracy_plots import plot_convergence, plot_speed_vs_error
     from clothbench.reports.progress import LazyProgress
-    from clothbench.scene import load_setup
+    from clothbench.harness.executor import executor_for
+    from clothbench.harness.preflight import check_memory, check_writable
+    from clothbench.scene import check_float32_step, load_setup
 
+    sigterm_interrupts()
+    check_row_args(args)
     setup = load_setup(args.scene).replace(grid=args.grid)
     changes = {}
     if args.damping is not None:
@@ -155,6 +163,14 @@ def cmd_accuracy(args) -> int:
     time_s = args.time if args.time is not None else (0.2 if scene.spheres else 0.1)
     if not (math.isfinite(time_s) and time_s > 0):
         raise ClothbenchError(f"--time must be > 0, got {args.time}")
+    for solver in solvers:
+        for dt in pbd_dts if solver.name == "pbd" else dts:
+            check_float32_step(scene, solver.replace(dt=dt))
+    out = Path(args.out or f"results/accuracy-{scene.name}.csv")
+    outputs = [out, out.with_name(out.stem + "-speed.png"), out.with_name(out.stem + "-convergence.png")]
+    for path in outputs + ([out.with_name(out.stem + "-artefacts.csv")] if args.artefacts else []):
+        check_writable(path)  # before the run, not after it
+    check_memory([scene.grid], ("f64",), jobs=args.jobs)
     variants = variants_for(args.backends, solvers)
     models = {model_name(v.solver) for v in variants} | {"verlet"}
     total = sum(len(pbd_dts if v.solver.name == "pbd" else dts) for v in variants) + 6 * len(models)
@@ -166,12 +182,11 @@ def cmd_accuracy(args) -> int:
             done += 1
             progress.update(min(done, total), what)
 
-        result = run_accuracy(scene, variants, dts, time_s, on_progress=note, pbd_dts=pbd_dts)
+        with executor_for(args.scheduler, args.jobs, args.row_timeout) as executor:
+            result = run_accuracy(scene, variants, dts, time_s, on_progress=note, pbd_dts=pbd_dts, executor=executor)
 
-    out = Path(args.out or f"results/accuracy-{scene.name}.csv")
     write_csv(out, [r.as_dict() for r in result.rows])
-    speed_png = out.with_name(out.stem + "-speed.png")
-    conv_png = out.with_name(out.stem + "-convergence.png")
+    speed_png, conv_png = outputs[1], outputs[2]
     plot_speed_vs_error(result, speed_png)
     plot_convergence(result, conv_png)
     _print_accuracy(result, scene, base.start, time_s)

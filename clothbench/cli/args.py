@@ -111,3 +111,43 @@ def int_list(what: str, minimum: int):
         return values
 
     return parse
+
+
+def add_row_args(p: argparse.ArgumentParser, jobs: bool = False) -> None:
+    """What runs each row: a worker process with a time limit, and (for commands whose rows
+    only measure error) how many at once; --scheduler sends them to a Dask cluster."""
+    p.add_argument(
+        "--row-timeout",
+        type=float,
+        default=3600.0,
+        metavar="SECONDS",
+        help="a row still running after this long is killed and written as timeout (default 3600)",
+    )
+    if jobs:
+        p.add_argument(
+            "--jobs", type=int, default=1, help="rows that only measure error run this many at once (default 1)"
+        )
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="run the rows on this Dask distributed scheduler (default: $CLOTHBENCH_SCHEDULER, else here)",
+    )
+
+
+def check_row_args(args) -> None:
+    if not args.row_timeout > 0:
+        raise ClothbenchError(f"--row-timeout must be > 0 seconds, got {args.row_timeout}")
+    if getattr(args, "jobs", 1) < 1:
+        raise ClothbenchError(f"--jobs must be >= 1, got {args.jobs}")
+
+
+def sigterm_interrupts() -> None:
+    """SIGTERM as a Ctrl-C: the command keeps its finished rows, writes no partial one, exits 130."""
+    import signal
+    import threading
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, interrupt)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import zlib
 from pathlib import Path
 
 from clothbench.errors import ClothbenchError
@@ -13,7 +14,11 @@ COMPARE_REQUIRED = (
     "backend", "solver", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
     "mode", "status", "ms_median", "steps", "repeats", "dt",
 )  # fmt: skip
-SAME = 0.05  # ratios within 5% of 1 are shown as unchanged
+# Significance: a bootstrap of the ratio of medians over each row's timed chunks (chunk_ms),
+# seeded by the row's key so that the same two files always give the same intervals.
+CONFIDENCE = 0.95
+RESAMPLES = 4000
+MIN_CHUNKS = 5  # fewer per side: resampled medians take too few values for an interval to mean anything
 
 
 def register(subparsers) -> None:
@@ -30,12 +35,24 @@ def register(subparsers) -> None:
 
     c = subparsers.add_parser(
         "compare",
-        help="ratios of ms/step between two sweep CSVs, row by matching row",
+        help="ratios of ms/step between two sweep CSVs, row by matching row, with confidence intervals",
         description="For every row present in both sweeps (same backend, mode options, scene, grid and "
-        "local size), the ratio B/A of the median ms per step: below 1, B is faster.",
+        "local size), the ratio B/A of the median ms per step (below 1, B is faster) with its "
+        f"{CONFIDENCE:.0%} confidence interval: a seeded bootstrap ({RESAMPLES} resamples) of the ratio "
+        "of medians over the two rows' timed chunks (the chunk_ms column). A change is flagged only "
+        "where the interval excludes 1. Rows without chunk_ms (sweeps written before that column) or "
+        f"with fewer than {MIN_CHUNKS} chunks are compared as before and marked untested. The interval "
+        "sees the noise between chunks of one run, not between runs (load, clocks): --fail-above's "
+        "margin is for that.",
     )
     c.add_argument("a", help="the baseline sweep CSV")
     c.add_argument("b", help="the sweep to compare with it")
+    c.add_argument(
+        "--fail-above",
+        type=float,
+        metavar="RATIO",
+        help="exit 1 when a significant slowdown has B/A above RATIO (e.g. 1.10): a CI gate",
+    )
     c.set_defaults(func=cmd_compare)
 
 
@@ -60,7 +77,8 @@ def cmd_plot(args) -> int:
 
 
 def compare_rows(a_rows: list[dict], b_rows: list[dict]) -> tuple[list[dict], int, int]:
-    """(matched rows with ratio B/A where both are ok, rows only in A, rows only in B)."""
+    """(matched rows with ratio B/A where both are ok, and its interval where both have
+    enough chunks; rows only in A; rows only in B)."""
     from clothbench.harness.sweep_csv import row_key
 
     a = {row_key(r): r for r in a_rows}
@@ -70,29 +88,66 @@ def compare_rows(a_rows: list[dict], b_rows: list[dict]) -> tuple[list[dict], in
         rb = b.get(key)
         if rb is None:
             continue
-        ratio = None
+        m = {"a": ra, "b": rb, "ratio": None, "interval": None, "change": "n/a"}
         if ra["status"] == "ok" and rb["status"] == "ok":
             try:
-                ratio = float(rb["ms_median"]) / float(ra["ms_median"])
+                m["ratio"] = float(rb["ms_median"]) / float(ra["ms_median"])
             except (ValueError, ZeroDivisionError):
                 raise ClothbenchError(
                     f"ms_median {ra['ms_median']!r} / {rb['ms_median']!r} of {ra['backend']} n={ra['grid']} "
                     "is not a positive number: a row with status ok must have one"
                 ) from None
-        matched.append({"a": ra, "b": rb, "ratio": ratio})
+            chunks = _chunks(ra), _chunks(rb)
+            if min(map(len, chunks)) >= MIN_CHUNKS and min(map(min, chunks)) > 0:
+                m["interval"] = ratio_interval(*chunks, seed=zlib.crc32("|".join(key).encode()))
+                lo, hi = m["interval"]
+                m["change"] = "slower" if lo > 1 else "faster" if hi < 1 else "same"
+            else:
+                m["change"] = "untested"
+        matched.append(m)
     return matched, len(set(a) - set(b)), len(set(b) - set(a))
+
+
+def _chunks(row: dict) -> list[float]:
+    from clothbench.harness.sweep_csv import parse_chunks
+
+    try:
+        return parse_chunks(row.get("chunk_ms", ""))
+    except ValueError:
+        raise ClothbenchError(
+            f"chunk_ms {row['chunk_ms']!r} of {row['backend']} n={row['grid']} is not a list of numbers"
+        ) from None
+
+
+def ratio_interval(a: list[float], b: list[float], seed: int) -> tuple[float, float]:
+    """The CONFIDENCE percentile interval of median(b) / median(a), bootstrapped: both
+    samples resampled with replacement RESAMPLES times, from a generator seeded by `seed`."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    medians_a = np.median(rng.choice(np.asarray(a), size=(RESAMPLES, len(a))), axis=1)
+    medians_b = np.median(rng.choice(np.asarray(b), size=(RESAMPLES, len(b))), axis=1)
+    tail = (1 - CONFIDENCE) / 2
+    lo, hi = np.quantile(medians_b / medians_a, [tail, 1 - tail])
+    return float(lo), float(hi)
 
 
 def geometric_mean(values: list[float]) -> float:
     return math.exp(sum(math.log(v) for v in values) / len(values))
 
 
+CHANGE_STYLE = {"slower": "red", "faster": "green", "same": "default", "untested": "yellow", "n/a": "yellow"}
+
+
 def cmd_compare(args) -> int:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from clothbench.harness.sweep_csv import read_sweep
 
+    if args.fail_above is not None and not (math.isfinite(args.fail_above) and args.fail_above >= 1):
+        raise ClothbenchError(f"--fail-above must be a ratio >= 1 (e.g. 1.10), got {args.fail_above}")
     a_rows = read_sweep(args.a, COMPARE_REQUIRED)
     b_rows = read_sweep(args.b, COMPARE_REQUIRED)
     matched, only_a, only_b = compare_rows(a_rows, b_rows)
@@ -101,30 +156,60 @@ def cmd_compare(args) -> int:
             f"{args.a} and {args.b} have no row in common (same backend, mode options, scene, grid, local size)"
         )
     console = Console()
+    if not console.is_terminal:
+        console = Console(width=160)  # a CI log or a pipe: no reason to wrap at 80
     console.print(f"A: {args.a}  ({_machine(a_rows)})")
     console.print(f"B: {args.b}  ({_machine(b_rows)})")
     local = any(m["a"]["local_size"] for m in matched)
-    table = Table(title="ms per step, B / A (below 1: B is faster)")
-    for col in ("backend", "mode") + (("local",) if local else ()) + ("n", "A ms", "B ms", "B / A"):
-        table.add_column(col, justify="left" if col in ("backend", "mode") else "right")
+    table = Table(title=f"ms per step, B / A (below 1: B is faster), {CONFIDENCE:.0%} interval from the timed chunks")
+    cols = ("backend", "mode") + (("local",) if local else ()) + ("n", "A ms", "B ms", "B / A", "interval", "change")
+    for col in cols:
+        table.add_column(col, justify="left" if col in ("backend", "mode", "change") else "right")
     per_backend: dict[str, list[float]] = {}
     for m in matched:
         ra, rb, ratio = m["a"], m["b"], m["ratio"]
-        if ratio is None:
-            shown = "[yellow]n/a[/yellow]"
-        else:
+        style = CHANGE_STYLE[m["change"]]
+        if ratio is not None:
             per_backend.setdefault(ra["backend"], []).append(ratio)
-            colour = "green" if ratio < 1 - SAME else "red" if ratio > 1 + SAME else "default"
-            shown = f"[{colour}]{ratio:.2f}[/{colour}]"
-        lead = [ra["backend"], rb["mode"]] + ([ra["local_size"] or "auto"] if local else []) + [ra["grid"]]
-        table.add_row(*lead, _ms(ra), _ms(rb), shown)
+        shown = f"{ratio:.2f}" if ratio is not None else "n/a"
+        interval = f"{m['interval'][0]:.2f}-{m['interval'][1]:.2f}" if m["interval"] else ""
+        lead = [ra["backend"], escape(rb["mode"])] + ([ra["local_size"] or "auto"] if local else []) + [ra["grid"]]
+        change = f"[{style}]{m['change']}[/{style}]"
+        table.add_row(*lead, _ms(ra), _ms(rb), f"[{style}]{shown}[/{style}]", interval, change)
     console.print(table)
     for backend, ratios in per_backend.items():
         console.print(f"{backend}: geometric mean B/A {geometric_mean(ratios):.2f} over {len(ratios)} rows")
     everything = [r for rs in per_backend.values() for r in rs]
     if everything:
         console.print(f"all: geometric mean B/A {geometric_mean(everything):.2f} over {len(everything)} rows")
-    not_ok = sum(1 for m in matched if m["ratio"] is None)
+    _print_notes(console, matched, only_a, only_b)
+    gate = math.inf if args.fail_above is None else args.fail_above
+    failing = [m for m in matched if m["change"] == "slower" and m["ratio"] > gate]
+    for m in failing:
+        lo, hi = m["interval"]
+        console.print(
+            f"[red]slower than --fail-above {args.fail_above:g}[/red]: {_row_name(m['a'])}: "
+            f"B/A {m['ratio']:.2f} (interval {lo:.2f}-{hi:.2f})",
+            highlight=False,
+        )
+    return 1 if failing else 0
+
+
+def _print_notes(console, matched: list[dict], only_a: int, only_b: int) -> None:
+    changes = [m["change"] for m in matched]
+    significant = {c: changes.count(c) for c in ("slower", "faster") if c in changes}
+    console.print(
+        "significant changes: "
+        + (", ".join(f"{n} {c}" for c, n in significant.items()) or "none")
+        + f" (of {sum(m['interval'] is not None for m in matched)} rows tested)"
+    )
+    untested = changes.count("untested")
+    if untested:
+        console.print(
+            f"{untested} rows untested for significance: no chunk_ms column (a sweep older than it) "
+            f"or fewer than {MIN_CHUNKS} timed chunks (--repeat) in A or B"
+        )
+    not_ok = changes.count("n/a")
     if not_ok:
         console.print(f"{not_ok} matching rows are not ok in A or B (n/a): see their status and note columns")
     if only_a or only_b:
@@ -135,7 +220,11 @@ def cmd_compare(args) -> int:
             "note: the files were timed with different --steps/--repeat/--dt: "
             + "; ".join(f"{s} steps x {r} at dt {d}" for s, r, d in sorted(settings))
         )
-    return 0
+
+
+def _row_name(row: dict) -> str:
+    size = f" local {row['local_size']}" if row["local_size"] else ""
+    return f"{row['backend']} {row['mode']}{size} {row['scene']} n={row['grid']}"
 
 
 def _ms(row: dict) -> str:

@@ -7,7 +7,7 @@ import statistics
 import sys
 import time
 
-from clothbench.cli.args import add_backend_args, add_scene_args, options_from_args, setup_from_args
+from clothbench.cli.args import add_backend_args, add_scene_args, options_from_args, setup_from_args, sigterm_interrupts
 
 
 def register(subparsers) -> None:
@@ -31,10 +31,15 @@ def cmd_run(args) -> int:
     from clothbench.harness.energy import predicted_fast_impact
     from clothbench.reports.progress import LazyProgress
 
+    from clothbench.harness.preflight import check_memory, check_writable
+
+    sigterm_interrupts()
     check_name(args.backend)
     setup = setup_from_args(args)
     scene, solver, steps = setup.scene, setup.solver, setup.steps
     options = options_from_args(args)
+    save = check_writable(_npz(args.save), "--save") if args.save else None  # before the run, not after
+    check_memory([scene.grid], [args.precision])
     if warning := predicted_fast_impact(scene, solver):
         print(f"clothbench: warning: {warning}", file=sys.stderr)
     t0 = time.perf_counter()
@@ -49,11 +54,14 @@ def cmd_run(args) -> int:
             stages = backend.profile_stages(steps)
     for warning in result.warnings:
         print(f"clothbench: warning: {warning}", file=sys.stderr)
-    if args.save:
+    if save is not None:
         arrays = {"pos": result.pos, "prev": result.prev}
         if normals is not None:
             arrays["normals"] = normals
-        np.savez(args.save, **arrays)
+        partial = save.with_name(f".{save.name}.partial")
+        with open(partial, "wb") as f:  # an interrupt leaves the old file or the new one, never half
+            np.savez(f, **arrays)
+        partial.replace(save)
     if result.blowup is not None:
         raise result.blowup
     summary = {
@@ -87,3 +95,8 @@ def cmd_run(args) -> int:
 
         print_run(summary)
     return 0
+
+
+def _npz(path: str) -> str:
+    """The file np.savez writes for `path` (it adds .npz to a name without it)."""
+    return path if path.endswith(".npz") else path + ".npz"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from clothbench.cli.args import add_row_args, check_row_args, sigterm_interrupts
 from clothbench.cli.accuracy import add_pbd_args, floats, solvers_from_args, variants_for, write_csv
 from clothbench.errors import ClothbenchError
 
@@ -37,15 +38,20 @@ def register(subparsers) -> None:
         help="largest dt the PBD bisection tries, s (default 0.1): stable there reads 'stable up to the cap'",
     )
     st.add_argument("--out", help="CSV path (default results/stability.csv); the map beside it")
+    add_row_args(st, jobs=True)
     st.set_defaults(func=cmd_stability)
 
 
 def cmd_stability(args) -> int:
-    from clothbench.analysis.stability import PBD_CAP, STABILITY_SCENES, measure_stability_limit
+    from clothbench.analysis.stability import PBD_CAP, STABILITY_SCENES, measure_stability_limit, stability_scene
     from clothbench.reports.accuracy_plots import plot_stability_map
     from clothbench.reports.progress import LazyProgress
+    from clothbench.harness.executor import executor_for, fork_safe
+    from clothbench.harness.preflight import check_memory, check_writable
     from clothbench.solver import Pbd, Verlet
 
+    sigterm_interrupts()
+    check_row_args(args)
     ks = floats(args.stiffness, "--stiffness")
     kinds = [s.strip() for s in args.scenes.split(",") if s.strip()]
     for kind in kinds:
@@ -62,30 +68,44 @@ def cmd_stability(args) -> int:
         raise ClothbenchError(f"--cap must be > 0, got {args.cap}")
     solvers = solvers_from_args(args, Verlet(), Pbd())  # the dt is what is bisected
     check_60hz = any(s.name == "pbd" for s in solvers)
+    out = Path(args.out or "results/stability.csv")
+    png = out.with_suffix(".png")
+    for path in (out, png):
+        check_writable(path)  # before the bisections, not after them
+    check_memory([args.grid], ("f64",), jobs=args.jobs)
+    for kind in kinds:  # every scene's constants checked (float32 included) before any bisection
+        for k in ks:
+            stability_scene(kind, k, args.grid, args.damping)
     variants = variants_for(args.backends, solvers)
     rows = []
-    total = len(variants) * len(ks) * len(kinds)
-    with LazyProgress(total, "stability") as progress:
-        for v in variants:
-            for kind in kinds:
-                for k in ks:
-                    progress.update(len(rows), f"{v.backend} {v.solver.name} {kind} k={k:g}")
-                    try:
-                        rows.append(
-                            measure_stability_limit(
-                                v, kind, k, args.steps, args.grid, args.damping,
-                                cap=cap if v.solver.name == "pbd" else None, check_60hz=check_60hz,
-                            )
-                        )
-                    except ClothbenchError:
-                        raise
-                    except Exception as e:  # a broken backend is reported, the others still run
-                        print(f"{v.backend} {v.solver.name} {kind} k={k:g}: error: {type(e).__name__}: {e}")
+    cases = [(v, kind, k) for v in variants for kind in kinds for k in ks]
+    with LazyProgress(len(cases), "stability") as progress, executor_for(
+        args.scheduler, args.jobs, args.row_timeout
+    ) as executor:
+        futures = [
+            executor.submit(
+                measure_stability_limit, v, kind, k, args.steps, args.grid, args.damping,
+                cap=cap if v.solver.name == "pbd" else None, check_60hz=check_60hz,
+                fork_safe=fork_safe(v.backend, v.solver.name),
+            )
+            for v, kind, k in cases
+        ]  # fmt: skip
+        for done, ((v, kind, k), future) in enumerate(zip(cases, futures)):
+            progress.update(done, f"{v.backend} {v.solver.name} {kind} k={k:g}")
+            try:
+                outcome = future.result()
+            except ClothbenchError:
+                raise
+            except Exception as e:  # a broken backend is reported, the others still run
+                print(f"{v.backend} {v.solver.name} {kind} k={k:g}: error: {type(e).__name__}: {e}")
+                continue
+            if outcome.ok:
+                rows.append(outcome.value)
+            else:
+                print(f"{v.backend} {v.solver.name} {kind} k={k:g}: {outcome.status}: {outcome.note}")
     if not rows:
         raise ClothbenchError("no stability limit could be measured (every backend failed)")
-    out = Path(args.out or "results/stability.csv")
     write_csv(out, [r.as_dict() for r in rows])
-    png = out.with_suffix(".png")
     plot_stability_map(rows, png)
     _print_stability(rows)
     if len({_solver_model(r) for r in rows}) > 1 or check_60hz:

@@ -3,9 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
-from clothbench.cli.args import add_device_args, int_list, solver_specs
+from clothbench.cli.args import (
+    add_device_args,
+    add_row_args,
+    check_row_args,
+    int_list,
+    sigterm_interrupts,
+    solver_specs,
+)
 
 DEFAULT_GRIDS = "32,64,128,256"
 
@@ -15,9 +23,12 @@ soon as it is measured: an interrupted sweep keeps every finished row, and --res
 measures only the rows the file lacks. Each row: build and warm up, then R timed chunks
 of S steps (uploads and readbacks outside the clock, except in per-step transfer modes),
 then the final state against the numpy float64 run of the same scene and S*R steps.
-Backends that cannot run here are listed once as skipped, with the reason. Rows already
-in the file are kept whatever their status: delete a failed row's line to measure it
-again. `clothbench sweep --columns` says what every column means."""
+Backends that cannot run here are listed once as skipped, with the reason. Each row runs
+in a worker process: one that crashes (a signal, an abort, out of memory) is written as
+crashed, one past --row-timeout as timeout, and the sweep goes on. Rows already in the
+file are kept whatever their status; --retry-failed measures failed, crashed and timeout
+rows again. Ctrl-C or SIGTERM keeps every finished row and exits 130.
+`clothbench sweep --columns` says what every column means."""
 
 
 def register(subparsers) -> None:
@@ -66,13 +77,31 @@ def register(subparsers) -> None:
         "pbd-jacobi, pbd-coloured (default verlet)",
     )
     p.add_argument("--out", default="sweep.csv", help="the CSV to write (default sweep.csv)")
-    p.add_argument("--resume", action="store_true", help="add only the rows --out lacks (after an interruption)")
+    p.add_argument(
+        "--json",
+        metavar="FILE",
+        help="also write every row of --out to FILE in Google Benchmark's JSON format (clothbench's "
+        "fields beside GB's; no cpu_time), rewritten atomically after each row",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="add only the rows --out lacks (after an interruption); a file written before a column "
+        "was added (e.g. chunk_ms) cannot be resumed: sweep into a new --out",
+    )
+    p.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="resume, and measure again the rows the file holds as failed, crashed or timeout",
+    )
+    add_row_args(p)
     p.add_argument("--columns", action="store_true", help="print what every CSV column means, and exit")
     p.set_defaults(func=cmd_sweep)
 
 
 def cmd_sweep(args) -> int:
     from clothbench.backends import BackendOptions, resolve_names
+    from clothbench.harness.executor import SCHEDULER_ENV, executor_for
     from clothbench.harness.sweep import SweepSettings, run_sweep
     from clothbench.harness.sweep_csv import COLUMN_DOCS, KEY_COLUMNS
     from clothbench.reports.progress import LazyProgress
@@ -84,8 +113,14 @@ def cmd_sweep(args) -> int:
             print(f"{name:<{width}}  {doc}")
         print(f"\none row per key: {', '.join(KEY_COLUMNS)}")
         return 0
+    sigterm_interrupts()
+    check_row_args(args)
+    json_path = _check_json_path(args.json, args.out) if args.json else None
+    from clothbench.harness.preflight import check_memory
+
     names = resolve_names(args.backends)
     setup = load_setup(args.scene).replace(dt=args.dt)
+    check_memory(args.grids, ("f32", "f64"))
     scene = setup.scene
     settings = SweepSettings(
         setup=setup,
@@ -96,13 +131,26 @@ def cmd_sweep(args) -> int:
         local_sizes=tuple(args.local_sizes),
         solvers=solver_specs(args.solvers),
         generic=args.generic,
+        row_timeout=args.row_timeout,
     )
     bar: LazyProgress | None = None
     state: list = []  # the sweep's progress, once it has started
 
+    json_context: dict = {}  # the machine as the sweep starts, said in every rewrite of --json
+
+    def write_json() -> None:
+        if json_path is not None:
+            from clothbench.reports.benchmark_json import context, write_benchmark_json
+
+            if not json_context:
+                about = {"scene": scene.name, "steps": args.steps, "repeats": args.repeat, "dt": setup.solver.dt}
+                json_context.update(context(args.out, about))
+            write_benchmark_json(json_path, state[0].rows, json_context)
+
     def on_start(progress) -> None:
         nonlocal bar
         state.append(progress)
+        write_json()  # the rows already in the file (none in a new sweep)
         for name, reason in progress.plan.skipped:
             _note(f"skipped {name}: {reason}")
         if progress.dropped_bytes:
@@ -122,8 +170,14 @@ def cmd_sweep(args) -> int:
         if bar is not None:
             bar.update(done, description)
 
+    executor = None
+    if args.scheduler or os.environ.get(SCHEDULER_ENV):
+        executor = executor_for(args.scheduler, timeout=args.row_timeout)
     try:
-        progress = run_sweep(names, settings, args.out, args.resume, on_start, on_step)
+        progress = run_sweep(
+            names, settings, args.out, args.resume or args.retry_failed, on_start, on_step, lambda row: write_json(),
+            args.retry_failed, executor,
+        )
     except KeyboardInterrupt:
         if bar is not None:
             bar.close()
@@ -137,6 +191,8 @@ def cmd_sweep(args) -> int:
     finally:
         if bar is not None:
             bar.close()
+        if executor is not None:
+            executor.shutdown()
 
     if progress.measured:
         print_rows(progress.measured, title=f"clothbench sweep: {args.out}")
@@ -145,8 +201,21 @@ def cmd_sweep(args) -> int:
     _note(
         f"{len(progress.measured)} rows measured, {total} in {args.out}"
         + (f"; {len(bad)} not ok (see the status and note columns)" if bad else "")
+        + (f"; Google Benchmark JSON in {json_path}" if json_path else "")
     )
     return 0
+
+
+def _check_json_path(path: str, csv_path: str):
+    """--json's file, checked writable and not the CSV itself, before anything is measured."""
+    from pathlib import Path
+
+    from clothbench.errors import ClothbenchError
+    from clothbench.reports.benchmark_json import check_writable
+
+    if Path(path).resolve() == Path(csv_path).resolve():
+        raise ClothbenchError(f"--json {path} is the --out CSV: name another file")
+    return check_writable(path)
 
 
 def print_rows(rows: list[dict[str, str]], title: str) -> None:

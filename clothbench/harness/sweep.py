@@ -25,13 +25,17 @@ import numpy as np
 from clothbench import environment
 from clothbench.backends import BackendOptions, availability, create_backend
 from clothbench.errors import ClothbenchError
+from clothbench.harness import faults
+from clothbench.harness.executor import DEFAULT_ROW_TIMEOUT, Outcome, fork_safe, run_isolated, start_method
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.harness.simulate import position_error, reference
 from clothbench.harness.sweep_csv import (
     COLUMNS,
+    RETRY_STATUSES,
     PER_STEP_TRANSFERS,
     SweepFile,
     fmt,
+    fmt_chunks,
     one_line,
     row_key,
 )
@@ -111,6 +115,24 @@ def plan_sweep(
 # --- one row ---------------------------------------------------------------------------
 
 
+def base_row(row: PlannedRow, setup: Setup, steps: int, repeats: int) -> dict[str, str]:
+    """The row's columns known before it runs (the rest empty)."""
+    scene, solver = setup.scene, row.solver
+    out = dict.fromkeys(COLUMNS, "")
+    out.update(row.fields(scene.name))
+    out.update(
+        device=availability(row.backend).device,
+        particles=str(scene.particles),
+        springs=str(scene.springs),
+        dt=repr(solver.dt),
+        steps=str(steps),
+        repeats=str(repeats),
+        simulated_s=fmt(steps * repeats * solver.dt),
+        host=environment.host_name(),
+    )
+    return out
+
+
 def measure_row(
     row: PlannedRow,
     setup: Setup,
@@ -126,26 +148,20 @@ def measure_row(
     references = {} if references is None else references
     scene, solver = setup.scene, row.solver
     total = steps * repeats
-    out = dict.fromkeys(COLUMNS, "")
-    out.update(row.fields(scene.name))
-    out.update(
-        device=availability(row.backend).device,
-        particles=str(scene.particles),
-        springs=str(scene.springs),
-        dt=repr(solver.dt),
-        steps=str(steps),
-        repeats=str(repeats),
-        simulated_s=fmt(total * solver.dt),
-    )
+    out = base_row(row, setup, steps, repeats)
     try:
         t0 = time.perf_counter()
         backend = create_backend(row.backend, scene, solver, row.options)
         build_s = time.perf_counter() - t0
         with backend:
             out["mode"], out["device"] = backend.mode, backend.device
+            faults.inject(row.backend)
             result = run_timed(
                 backend, total, chunk=steps, on_progress=on_progress, raise_on_blowup=False, build_s=build_s
             )
+    except MemoryError as e:  # a Python-side allocation the machine could not hold
+        out.update(status="crashed", note=one_line(f"out of memory: {e}"), **environment.collect())
+        return out
     except Exception as e:  # any backend error is this row's result, not the sweep's end
         out.update(status="failed", note=one_line(f"{type(e).__name__}: {e}"), **environment.collect())
         return out
@@ -163,6 +179,7 @@ def measure_row(
         ms_min=fmt(spread["min"]),
         ms_max=fmt(spread["max"]),
         ms_iqr=fmt(spread["iqr"]),
+        chunk_ms=fmt_chunks(result.chunk_ms_per_step),
         device_ms_median=fmt(statistics.median(result.device_ms_per_step)) if result.device_ms_per_step else "",
         particles_per_s=fmt(scene.particles * 1e3 / ms) if ms > 0 else "",
         ms_per_sim_s=fmt(ms / solver.dt),
@@ -186,6 +203,70 @@ def measure_row(
     return out
 
 
+def _measure_in_child(row, setup, steps, repeats, known, on_progress=None):
+    """measure_row in a worker process: the row, and the reference state it found (if it is one)."""
+    references = {} if known is None else {(setup.scene, row.solver): known}
+    out = measure_row(row, setup, steps, repeats, references, on_progress=on_progress)
+    return out, references.get((setup.scene, row.solver)) if row.variant.is_reference else None
+
+
+def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: bool) -> dict[str, str]:
+    setup = settings.setups[row.grid]
+    if not settings.isolate:
+        return measure_row(row, setup, settings.steps, settings.repeats, references, on_progress=report)
+    key = (setup.scene, row.solver)
+    outcome = run_isolated(
+        _measure_in_child,
+        (row, setup, settings.steps, settings.repeats, references.get(key)),
+        timeout=settings.row_timeout,
+        on_progress=report or (lambda done: None),
+        method=start_method(fork_safe),
+    )
+    return _row_of(outcome, row, settings, references)
+
+
+def _row_of(outcome: Outcome, row: PlannedRow, settings, references: dict) -> dict[str, str]:
+    """The CSV row of a worker's outcome: its measurement, or crashed / timeout and why."""
+    setup = settings.setups[row.grid]
+    if not outcome.ok:
+        out = base_row(row, setup, settings.steps, settings.repeats)
+        out.update(status=outcome.status, note=one_line(outcome.note), **environment.collect())
+        if outcome.host:
+            out["host"] = outcome.host
+        return out
+    result, pos = outcome.value
+    if pos is not None:
+        references[(setup.scene, row.solver)] = pos
+    return result
+
+
+def _run_distributed(todo, settings, executor, keep, have, name, on_step, per_row) -> None:
+    """Every row to the cluster at once; each written as it returns, once per key."""
+    futures = {}
+    for row in todo:
+        setup = settings.setups[row.grid]
+        args = (row, setup, settings.steps, settings.repeats, None)
+        futures[executor.submit(_measure_in_child, *args, timing=True, timeout=settings.row_timeout)] = row
+    written = set(have)
+    for i, future in enumerate(executor.as_completed(list(futures))):
+        row = futures[future]
+        try:
+            outcome = future.result()
+        except Exception as e:  # the scheduler gave up on it (e.g. KilledWorker: it killed every worker it ran on)
+            outcome = Outcome("crashed", note=f"{type(e).__name__}: {e}")
+        result = _row_of(outcome, row, settings, {})
+        if row_key(result) in written:
+            continue
+        written.add(row_key(result))
+        keep(row, result)
+        if on_step:
+            on_step((i + 1) * per_row, f"{row.backend} n={row.grid} on {result.get('host', '?')} ({i + 1}/{len(todo)})")
+
+
+def _fork_safe(rows: list[PlannedRow]) -> bool:
+    return all(fork_safe(r.backend, r.solver.name) for r in rows)
+
+
 # --- the sweep -------------------------------------------------------------------------
 
 
@@ -199,8 +280,12 @@ class SweepSettings:
     local_sizes: tuple[int, ...] = ()
     solvers: tuple[str, ...] = ("verlet",)  # solver specs (solver.SOLVER_SPECS)
     generic: str = "no"  # no | yes | both (plan.GENERIC_CHOICES)
+    isolate: bool = True  # each row in a worker process (harness/executor.py)
+    row_timeout: float | None = DEFAULT_ROW_TIMEOUT  # seconds, per row (isolated rows only)
 
     def __post_init__(self):
+        if self.row_timeout is not None and not self.row_timeout > 0:
+            raise ClothbenchError(f"--row-timeout must be > 0 seconds, got {self.row_timeout}")
         if self.steps < 1:
             raise ClothbenchError(f"--steps must be >= 1 (steps per timed chunk), got {self.steps}")
         if self.repeats < 1:
@@ -218,10 +303,19 @@ class SweepProgress:
 
     plan: Plan
     todo: list[PlannedRow]
-    already: int  # rows found in the file
+    earlier: list[dict[str, str]]  # rows found in the file (--resume)
     dropped_bytes: int
     earlier_commits: set[str]
     measured: list[dict[str, str]] = field(default_factory=list)
+
+    @property
+    def already(self) -> int:
+        return len(self.earlier)
+
+    @property
+    def rows(self) -> list[dict[str, str]]:
+        """Every row in the file now, in file order."""
+        return self.earlier + self.measured
 
 
 def check_resumable(rows: list[dict[str, str]], s: SweepSettings, path: Path) -> None:
@@ -261,12 +355,18 @@ def run_sweep(
     on_start: Callable[[SweepProgress], None] | None = None,
     on_step: Callable[[int, str], None] | None = None,
     on_row: Callable[[dict[str, str]], None] | None = None,
+    retry_failed: bool = False,
+    executor=None,
 ) -> SweepProgress:
     """Measure every planned row not yet in `out`, appending each as it is measured.
 
     on_start(progress) once the plan is known (the same object then collects the measured
     rows, so a caller holding it can report after a Ctrl-C); on_step(steps_done, description)
-    as steps run; on_row(row) after each row is on the disk.
+    as steps run; on_row(row) after each row is on the disk. Rows run one at a time, each
+    in a worker process unless settings.isolate is false; `retry_failed` measures again the
+    rows the file holds as failed, crashed or timeout. With a Dask `executor`
+    (harness/dask_executor.py) every row is submitted at once as a timed task (one per
+    worker machine at a time) and written here, by this process alone, as it comes back.
     """
     plan = plan_sweep(
         names, settings.grids, settings.solver_settings, settings.base, settings.local_sizes, settings.generic
@@ -277,17 +377,32 @@ def run_sweep(
             + "; ".join(f"{name}: {reason}" for name, reason in plan.skipped)
             + ")"
         )
-    with SweepFile(out, resume=resume) as f:
+    fork_safe = _fork_safe(plan.rows)
+    with SweepFile(out, resume=resume, retry=RETRY_STATUSES if retry_failed else ()) as f:
         check_resumable(f.rows, settings, f.path)
         have = f.keys()
         name = settings.setup.scene.name
         todo = [r for r in plan.rows if r.key(name) not in have]
         commits = {r["git_commit"] for r in f.rows} - {environment.machine()["git_commit"]}
-        progress = SweepProgress(plan, todo, len(f.rows), f.dropped_bytes, commits)
+        progress = SweepProgress(plan, todo, list(f.rows), f.dropped_bytes, commits)
         if on_start:
             on_start(progress)
         references: dict = {}
         per_row = settings.steps * settings.repeats
+
+        def keep(row: PlannedRow, result: dict[str, str]) -> None:
+            if row.options.generic and result["status"] == "ok":
+                twin = _specialised_twin(result, f.rows + progress.measured)
+                if twin is not None:
+                    result["specialised_speedup"] = fmt(float(result["ms_median"]) / float(twin["ms_median"]))
+            f.append(result)
+            progress.measured.append(result)
+            if on_row:
+                on_row(result)
+
+        if executor is not None and getattr(executor, "where", "local") != "local":
+            _run_distributed(todo, settings, executor, keep, have, name, on_step, per_row)
+            todo = []
         for i, row in enumerate(todo):
             size = f" local {row.options.local_size}" if row.options.local_size else ""
             solver = f" {row.solver.spec}" if row.solver.name != "verlet" else ""
@@ -299,17 +414,7 @@ def run_sweep(
                 def report(done, before=i * per_row, what=description):
                     on_step(before + done, what)
 
-            result = measure_row(
-                row, settings.setups[row.grid], settings.steps, settings.repeats, references, on_progress=report
-            )
-            if row.options.generic and result["status"] == "ok":
-                twin = _specialised_twin(result, f.rows + progress.measured)
-                if twin is not None:
-                    result["specialised_speedup"] = fmt(float(result["ms_median"]) / float(twin["ms_median"]))
-            f.append(result)
-            progress.measured.append(result)
-            if on_row:
-                on_row(result)
+            keep(row, _measure(row, settings, references, report, fork_safe))
         if on_step:
-            on_step(len(todo) * per_row, "done")
+            on_step(len(progress.todo) * per_row, "done")
     return progress

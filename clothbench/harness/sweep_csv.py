@@ -44,12 +44,15 @@ COLUMN_DOCS: dict[str, str] = {
     "steps": "steps per timed chunk (S)",
     "repeats": "timed chunks (R): the timed run simulates S*R steps after the warm-up",
     "simulated_s": "simulated time of the timed run, S*R*dt (s)",
-    "status": "ok | unstable (blew up: NaN/Inf or runaway) | failed (raised); measurements are empty unless ok",
+    "status": "ok | unstable (blew up: NaN/Inf or runaway) | failed (raised) | crashed (its worker process died: "
+    "a signal, an abort, out of memory) | timeout (ran past --row-timeout); measurements are empty unless ok",
     "note": "why a row is unstable or failed (one line)",
     "ms_median": "median over the R chunks of wall-clock ms per step",
     "ms_min": "fastest chunk, ms per step",
     "ms_max": "slowest chunk, ms per step",
     "ms_iqr": "inter-quartile range of the per-chunk ms per step",
+    "chunk_ms": "every chunk's ms per step, space-separated, in the order measured (R values; "
+    "compare's confidence intervals are drawn from them)",
     "device_ms_median": "median device-timed ms per step (profiling events), where the backend has them",
     "particles_per_s": "particles * 1000 / ms_median",
     "ms_per_sim_s": "compute ms per simulated second, ms_median / dt (1000 = real time)",
@@ -61,9 +64,12 @@ COLUMN_DOCS: dict[str, str] = {
     "timed_region": "what the clock saw: 'steps' (upload and readback outside) or 'steps+transfers' (per-step transfer mode)",
     "cpu": "CPU model",
     "cores": "logical CPUs available to the process",
+    "host": "the machine the row ran on (its host name; a Dask worker's for a sweep on a cluster)",
     "python": "Python implementation and version",
     "packages": "versions of the packages that can change a result (name=version ...)",
-    "env": "driver environment variables that were set (LP_NUM_THREADS, POCL_*, ...)",
+    "env": "environment variables set when measured that change how a library or driver runs "
+    "(threads, device choice, JIT settings: OMP_*, NUMBA_*, LP_*, POCL_*, CUDA_VISIBLE_DEVICES, ...), "
+    "NAME=value in name order, values shell-quoted",
     "git_commit": "clothbench commit, '+dirty' if tracked files had changes",
     "timestamp": "when the row was measured (UTC, ISO 8601)",
 }
@@ -73,10 +79,11 @@ KEY_COLUMNS = (
     "backend", "solver", "pbd_method", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
 )  # fmt: skip
 MEASUREMENT_COLUMNS = (
-    "ms_median", "ms_min", "ms_max", "ms_iqr", "device_ms_median", "particles_per_s", "ms_per_sim_s",
-    "warmup_s", "finite", "max_penetration_m", "err_rms_m", "err_max_m",
+    "ms_median", "ms_min", "ms_max", "ms_iqr", "chunk_ms", "device_ms_median", "particles_per_s",
+    "ms_per_sim_s", "warmup_s", "finite", "max_penetration_m", "err_rms_m", "err_max_m",
 )  # fmt: skip
 NOTE_MAX = 300  # characters
+RETRY_STATUSES = ("failed", "crashed", "timeout")  # what --retry-failed measures again
 
 
 def fmt(value) -> str:
@@ -88,6 +95,17 @@ def fmt(value) -> str:
     if isinstance(value, float):
         return f"{value:.6g}" if math.isfinite(value) else ""
     return str(value)
+
+
+def fmt_chunks(values: Iterable[float]) -> str:
+    """The chunk_ms cell: each value as fmt writes it, space-separated."""
+    return " ".join(fmt(float(v)) for v in values)
+
+
+def parse_chunks(cell: str) -> list[float]:
+    """The values of a chunk_ms cell ([] for an empty one, as in CSVs older than the column);
+    ValueError if a value is not a number."""
+    return [float(v) for v in cell.split()]
 
 
 def one_line(text: str) -> str:
@@ -111,10 +129,13 @@ class SweepFile:
     Holds an exclusive lock while open, so two sweeps never interleave rows in one file.
     """
 
-    def __init__(self, path: str | os.PathLike, resume: bool = False):
+    def __init__(self, path: str | os.PathLike, resume: bool = False, retry: Iterable[str] = ()):
         self.path = Path(path)
+        self.retry = frozenset(retry)
         self.rows: list[dict[str, str]] = []  # rows already in the file
         self.dropped_bytes = 0  # a partial last line removed on resume
+        if self.path.is_dir():
+            raise ClothbenchError(f"--out {self.path} is a directory: name a CSV file")
         if not resume and self.path.exists() and self.path.stat().st_size > 0:
             raise ClothbenchError(
                 f"{self.path} already exists: pass --resume to measure only the rows it lacks, "
@@ -128,9 +149,27 @@ class SweepFile:
         try:
             self._lock()
             self._load()
+            if self.retry and any(r["status"] in self.retry for r in self.rows):
+                self._drop_retried()
         except BaseException:
             os.close(self.fd)
             raise
+
+    def _drop_retried(self) -> None:
+        """--retry-failed: the file without its failed/crashed/timeout rows, replaced in one
+        rename (a crash leaves the old file or the new one, never half of either)."""
+        keep = [r for r in self.rows if r["status"] not in self.retry]
+        tmp = self.path.with_name(self.path.name + ".retry-tmp")
+        text = csv_line(COLUMNS) + "".join(csv_line(r.get(c, "") for c in COLUMNS) for r in keep)
+        with open(tmp, "w", encoding="utf-8", newline="") as t:
+            t.write(text)
+            t.flush()
+            os.fsync(t.fileno())
+        os.replace(tmp, self.path)
+        os.close(self.fd)
+        self.fd = os.open(self.path, os.O_RDWR | os.O_APPEND)
+        self._lock()
+        self.rows = keep
 
     def _lock(self) -> None:
         try:

@@ -37,7 +37,7 @@ from clothbench.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 
-_INSTALL = "pip install -e '.[peers]'"
+_INSTALL = "pip install 'clothbench[peers]'"
 _ARCHS = ("cpu", "cuda")
 
 

@@ -16,6 +16,10 @@ kernel cache (~/.cache/warp). On the CPU a launch runs on one thread.
 
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
+
 import numpy as np
 
 from clothbench.errors import ClothbenchError
@@ -24,7 +28,10 @@ from clothbench.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 
-_INSTALL = "pip install -e '.[peers]'"
+_INSTALL = "pip install 'clothbench[peers]'"
+# What Warp's native library prints wherever libcuda is missing: on a CPU-only machine that
+# is every run, and `clothbench backends` already says where warp runs.
+_NO_DRIVER_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
 _KERNEL = None  # the step, defined on first use so clothbench imports without warp
 
 
@@ -39,10 +46,36 @@ def _import_warp():
     return wp
 
 
+def _init_quietly(wp) -> None:
+    """wp.init() without _NO_DRIVER_WARNING. Warp has no setting for it: its C++ core
+    fprintf's it to stderr while loading the driver (native/cuda_util.cpp, init_cuda_driver),
+    before any Python-level log level applies. So file descriptor 2 is pointed at a temporary
+    file while Warp initialises, and whatever else it wrote there is passed on to stderr."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to keep clean
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        lines = captured.read().decode("utf-8", "replace").splitlines(keepends=True)
+    rest = "".join(line for line in lines if _NO_DRIVER_WARNING not in line)
+    if rest:
+        sys.stderr.write(rest)
+
+
 def probe() -> Availability:
     try:
         wp = _import_warp()
-        wp.init()
+        _init_quietly(wp)
     except ModuleNotFoundError as e:
         if e.name == "warp":
             return Availability(False, f"warp not installed ({_INSTALL})")
@@ -169,7 +202,7 @@ class WarpBackend(Backend):
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
         wp = self._wp = _import_warp()
-        wp.init()
+        _init_quietly(wp)
         name = options.device or _default_device(wp)
         try:
             self._device = wp.get_device(name)

@@ -1,12 +1,20 @@
-"""The plots of `clothbench accuracy` and `clothbench stability` (analysis/), drawn on
-matplotlib Figures without pyplot, as reports/plots.py draws the sweep's.
+"""The figures of `clothbench accuracy` and `clothbench stability` (analysis/), drawn as
+reports/plots.py draws the sweep's (reports/figures_common.py: small multiples of at most
+MAX_SERIES series, peers dashed and hollow, the Pareto front, PNG and SVG).
 
 1. speed_vs_error: cost (ms per simulated second) against the error to the converged
-   reference of each line's own model, dt halved along each line.
-2. convergence: error against dt per backend, mode and solver, with the fitted order.
-3. stability_map: the largest stable dt against k, measured and linearised.
+   reference of each line's own model, dt halved along each line. A first panel holds every
+   run, coloured by platform, with the Pareto front labelled (the runs no other run beats on
+   both cost and error); then a panel per platform, a line per backend mode and solver, the
+   front drawn thin in each to read the distance from it.
+2. convergence: error against dt, a panel per platform, with the fitted order in each label
+   and slopes 1 and 2 to read by.
+3. stability_map: the largest stable dt against k, a panel per scene (flat, stretched,
+   crumpled): the linearised bound, Verlet's measured limit per platform, PBD's per method.
 
-Verlet lines are solid with round markers; PBD dashed, square (Jacobi) or diamond (coloured).
+Verlet lines are solid, PBD dash-dotted with square (Jacobi) or diamond (coloured) markers,
+peers dashed with hollow markers. The *_chart functions return the drawn Chart; the plot_*
+functions write it as PNG at the path given and SVG beside it.
 """
 
 from __future__ import annotations
@@ -14,166 +22,303 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import matplotlib
-from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from clothbench.analysis.lattice import damping_rate, dt_limit, gershgorin_omega, omega_max
 from clothbench.analysis.stability import DT_60HZ, STRETCH
+from clothbench.reports.figures_common import (
+    FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, PEERS, PLATFORM_COLORS, Chart, draw_front, fit_labels,
+    is_peer, panel_axes, panel_legend, pareto_front, platform_of, platform_rank, save_figure, series_style,
+    small_multiples, titled_figure,
+)  # fmt: skip
 from clothbench.scene import Scene
 
-
-def _figure(size: tuple[float, float]) -> tuple[Figure, object]:
-    fig = Figure(figsize=size)
-    return fig, fig.add_subplot()
+DPI = 110
+SOLVER_MARKERS = {"verlet": "o", "jacobi": "s", "coloured": "D"}
 
 
-def _save(fig: Figure, path: Path) -> None:
-    """Write a finished figure, its folder made if missing."""
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+def _model(r) -> str:
+    return "Verlet" if r.solver != "pbd" else f"PBD {r.pbd_method}"
 
 
-def _by_label(rows):
+def _label(r) -> str:
+    return r.label + (" (peer)" if is_peer(r.backend) else "")
+
+
+def _drawable(rows) -> list:
+    return [r for r in rows if r.status == "ok" and r.disc_rms > 0 and r.ms_per_sim_s > 0]
+
+
+def _lines(rows) -> list[tuple[str, list]]:
+    """(label, rows by dt) per backend mode and solver, in first-seen order."""
     groups: dict[str, list] = {}
     for r in rows:
-        groups.setdefault(r.label, []).append(r)
-    return groups
+        groups.setdefault(_label(r), []).append(r)
+    return [(label, sorted(rs, key=lambda r: r.dt)) for label, rs in groups.items()]
 
 
-def _style(rows, i: int = 0) -> dict:
-    """Verlet: solid lines, round markers; PBD: dashed, square (Jacobi) or diamond
-    (coloured) markers, so the two solvers read apart at a glance. Colours from tab20 (20
-    distinct; neighbours, e.g. a backend's two modes, are a dark and a light shade)."""
+def _line_style(rows, i: int) -> dict:
     r = rows[0]
-    colour = matplotlib.colormaps["tab20"](i % 20)
-    if r.solver != "pbd":
-        return {"linestyle": "-", "marker": "o", "color": colour}
-    return {"linestyle": "--", "marker": "s" if r.pbd_method == "jacobi" else "D", "markersize": 5, "color": colour}
+    style = series_style(i, peer=is_peer(r.backend), pbd=r.solver == "pbd")
+    if r.solver == "pbd":
+        style["marker"] = SOLVER_MARKERS.get(r.pbd_method, "^")
+    return style
+
+
+def _platform_panels(rows) -> list[tuple[str, list[tuple[str, list]]]]:
+    """(title, lines) per panel: by platform when the lines do not fit in one."""
+    return small_multiples(_lines(rows), lambda line: platform_of(line[1][0].backend), lambda line: _model(line[1][0]))
+
+
+def _accuracy_figure(title: str, panels: int, overview: bool, footer: str = ""):
+    cols = 1 if panels == 1 else 3 if overview or panels > 4 else 2
+    cells = panels + (1 if overview else 0)  # axes; the overview spans two columns
+    rows = math.ceil((cells + (1 if overview else 0)) / cols)
+    fig, body = titled_figure(title, 10.5 if cols == 1 else 4.9 * cols, (6.0 if cols == 1 else 4.6 * rows) + 0.4,
+                              footer)  # fmt: skip
+    axes, _ = panel_axes(body, cells, cols, wide_first=overview)
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.grid(True, which="both", alpha=0.3)
+    return fig, body, axes
+
+
+def speed_vs_error_chart(result) -> Chart:
+    """Cost against error, every run with its Pareto front and a panel per platform; with
+    both solvers, a vertical line per PBD model at its converged distance from Verlet's."""
+    rows = _drawable(result.rows)
+    panels = _platform_panels(rows)
+    overview = len(panels) > 1
+    r0 = result.rows[0]
+    solvers = " and ".join(dict.fromkeys(r.solver for r in result.rows))
+    fig, body, axes = _accuracy_figure(
+        f"Speed against error: {r0.scene} {r0.grid}×{r0.grid}, {solvers}; dt halved along each line",
+        len(panels), overview,
+    )
+    body.supxlabel(f"RMS position error at t = {r0.time_s:g} s against the converged float64 answer of its own "
+                   "model (m)", fontsize=9)  # fmt: skip
+    body.supylabel("cost (ms of compute per simulated second)", fontsize=9)
+    chart = Chart(fig)
+    front = pareto_front(rows, cost=lambda r: r.ms_per_sim_s, error=lambda r: r.disc_rms, tolerance=FRONT_TOLERANCE)
+    points = [(r.disc_rms, r.ms_per_sim_s, f"{_label(r)}, dt {r.dt * 1e3:.3g} ms") for r in front]
+    labels = []
+    if overview:
+        ax = axes[0]
+        chart.panels["every run"] = _every_run(ax, rows)
+        chart.fronts["every run"] = [p[2] for p in points]
+        labels = draw_front(ax, points)
+        distances = _model_differences(ax, result.differences, annotate=True)
+        panel_legend(ax, ncol=3, handles=_every_run_key(rows) + distances)
+        ax.set_title("every run, and the Pareto front", fontsize=9)
+    for ax, (title, lines) in zip(axes[1:] if overview else axes, panels):
+        for i, (label, rs) in enumerate(lines):
+            ax.plot([r.disc_rms for r in rs], [r.ms_per_sim_s for r in rs], label=label, **_line_style(rs, i))
+        chart.panels[title or "every run"] = [label for label, _ in lines]
+        if overview:
+            ax.step([p[0] for p in points], [p[1] for p in points], where="post", color=FRONT_COLOR, linewidth=0.8,
+                    alpha=0.5, zorder=1, label="Pareto front of every run")  # fmt: skip
+        else:
+            chart.fronts["every run"] = [p[2] for p in points]
+            labels = draw_front(ax, points)
+        _model_differences(ax, result.differences, annotate=not overview)
+        ax.set_title(title, fontsize=9)
+        panel_legend(ax)
+    fit_labels(fig, labels)
+    return chart
+
+
+def _every_run(ax, rows) -> list[str]:
+    """Every run a point, colour: platform, marker: solver (hollow: a peer); the series drawn."""
+    drawn = []
+    for platform in _platforms(rows):
+        for solver, marker in SOLVER_MARKERS.items():
+            pts = [r for r in rows if platform_of(r.backend) == platform and (r.pbd_method or "verlet") == solver]
+            if not pts:
+                continue
+            color = PLATFORM_COLORS.get(platform, "black")
+            face = "white" if platform == PEERS else color
+            ax.plot([r.disc_rms for r in pts], [r.ms_per_sim_s for r in pts], linestyle="none", marker=marker,
+                    markersize=5, color=color, alpha=0.8, markerfacecolor=face)  # fmt: skip
+            drawn.append(f"{platform}, {_model(pts[0])}")
+    return drawn
+
+
+def _platforms(rows) -> list[str]:
+    return sorted({platform_of(r.backend) for r in rows}, key=platform_rank)
+
+
+def _every_run_key(rows) -> list[Line2D]:
+    platforms = _platforms(rows)
+    solvers = [s for s in SOLVER_MARKERS if any((r.pbd_method or "verlet") == s for r in rows)]
+    handles = [
+        Line2D([], [], color=PLATFORM_COLORS.get(p, "black"), marker="o", linestyle="none",
+               markerfacecolor="white" if p == PEERS else PLATFORM_COLORS.get(p, "black"),
+               label="peers (not clothbench)" if p == PEERS else p)
+        for p in platforms
+    ]  # fmt: skip
+    if len(solvers) > 1:
+        handles += [Line2D([], [], color="0.45", marker=SOLVER_MARKERS[s], linestyle="none",
+                           label="Verlet" if s == "verlet" else f"PBD {s}") for s in solvers]  # fmt: skip
+    handles.append(Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8,
+                          label=FRONT_LEGEND))  # fmt: skip
+    return handles
+
+
+def _model_differences(ax, differences, annotate: bool) -> list:
+    """A dotted vertical line per PBD model at its converged answer's distance from
+    Verlet's, named and labelled for a legend (annotate); the labelled lines."""
+    labelled = []
+    for i, d in enumerate(differences):
+        line = ax.axvline(d.rms, color="grey", lw=1, alpha=0.6, linestyle=(0, (1, 2 + i)))
+        if annotate:
+            line.set_label(f"{_model_name(d.b)}: its converged answer is {d.rms * 1e3:.2g} mm (RMS) from Verlet's")
+            ax.annotate(_model_name(d.b), (d.rms, 0.98), xycoords=("data", "axes fraction"), xytext=(2, 0),
+                        textcoords="offset points", fontsize=6.5, alpha=0.75, ha="left", va="top",
+                        rotation=90)  # fmt: skip
+            labelled.append(line)
+    return labelled
+
+
+def _model_name(model: str) -> str:
+    """'pbd-jacobi/10it, relaxation 1.5' -> 'pbd-jacobi/10it'."""
+    return model.split(",")[0]
 
 
 def plot_speed_vs_error(result, path: Path) -> None:
-    """Cost (ms per simulated second) against error to the converged reference, log-log; with
-    both solvers, a vertical line per PBD model at its converged distance from Verlet's."""
-    fig, ax = _figure((10.5, 6))
-    for i, (label, rows) in enumerate(_by_label(result.rows).items()):
-        ok = [r for r in rows if r.status == "ok" and r.disc_rms > 0]
-        if ok:
-            ax.loglog([r.disc_rms for r in ok], [r.ms_per_sim_s for r in ok], label=label, **_style(ok, i))
-    for i, d in enumerate(result.differences):
-        ax.axvline(d.rms, color="grey", lw=1, alpha=0.6, linestyle=(0, (1, 2 + i)))
-        ax.annotate(
-            f"{d.b.split(' ')[0].split(',')[0]} vs verlet\n(converged models)", (d.rms, 0.98),
-            xycoords=("data", "axes fraction"), fontsize=7, alpha=0.7, ha="right", va="top", rotation=90,
-        )
+    save_figure(speed_vs_error_chart(result).figure, path, dpi=DPI)
+
+
+def convergence_chart(result) -> Chart:
+    """Error against dt per backend mode and solver with its fitted order, a panel per
+    platform; solid/dash-dotted: against the converged answer, dotted: rounding."""
+    rows = _drawable(result.rows)
+    panels = _platform_panels(rows)
     r0 = result.rows[0]
-    ax.set_xlabel(f"RMS position error at t = {r0.time_s:g} s vs the converged float64 answer of its own model (m)")
-    ax.set_ylabel("cost (ms of compute per simulated second)")
-    solvers = " and ".join(dict.fromkeys(r.solver for r in result.rows))
-    ax.set_title(
-        f"speed against error: {r0.scene} {r0.grid}x{r0.grid}, {solvers}; dt halved along each line", fontsize=10
+    unstable = sorted({r.dt for r in result.rows if r.status.startswith("unstable")})
+    notes = [
+        "solid (Verlet), dash-dotted (PBD), dashed (peers): against the converged float64 answer of its own model; "
+        "dotted, same colour: against float64 at the same dt (rounding)"
+    ]
+    if unstable:
+        solvers = ", ".join(sorted({r.solver for r in result.rows if r.status.startswith("unstable")}))
+        notes.append(f"unstable (not drawn) at dt >= {unstable[0]:.3g} s on {solvers}")
+    fig, body, axes = _accuracy_figure(
+        f"Convergence: {r0.scene} {r0.grid}×{r0.grid}, start={r0.start}, b={r0.damping:g}", len(panels), False,
+        "\n".join(notes),
     )
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _save(fig, path)
+    body.supxlabel("dt (s)", fontsize=9)
+    body.supylabel(f"RMS position error at t = {r0.time_s:g} s (m)", fontsize=9)
+    chart = Chart(fig)
+    dts = sorted({r.dt for r in rows})
+    top = max((r.disc_rms for r in rows), default=1.0)
+    for ax, (title, lines) in zip(axes, panels):
+        for i, (label, rs) in enumerate(lines):
+            order = rs[0].order
+            shown = f"order {order:.2f}" if math.isfinite(order) else "order n/a"
+            style = _line_style(rs, i)
+            ax.plot([r.dt for r in rs], [r.disc_rms for r in rs], label=f"{label} ({shown})", **style)
+            ax.plot([r.dt for r in rs], [r.impl_rms for r in rs], ":", alpha=0.6, color=style["color"])
+        chart.panels[title or "every run"] = [label for label, _ in lines]
+        if dts:
+            lo, hi = dts[0], dts[-1]
+            for p in (1, 2):
+                ax.plot([lo, hi], [top * (lo / hi) ** p, top], "k--", alpha=0.3, lw=1)
+                ax.annotate(f"slope {p}", (lo, top * (lo / hi) ** p), fontsize=7, alpha=0.6)
+        ax.set_title(title, fontsize=9)
+        panel_legend(ax, ncol=1 if len(panels) > 1 else 2)
+    return chart
 
 
 def plot_convergence(result, path: Path) -> None:
-    """Error against dt per backend/mode with its fitted order, and slopes 1 and 2 to read by."""
-    fig, ax = _figure((10.5, 6))
-    all_dts = sorted({r.dt for r in result.rows})
-    for i, (label, rows) in enumerate(_by_label(result.rows).items()):
-        ok = [r for r in rows if r.status == "ok" and r.disc_rms > 0]
-        if not ok:
+    save_figure(convergence_chart(result).figure, path, dpi=DPI)
+
+
+def stability_map_chart(rows) -> Chart:
+    """Largest stable dt against k, a panel per scene: the bound that applies (and the
+    Gershgorin one), Verlet measured per platform (a platform's modes side by side), PBD per
+    method as the smallest over its backends (an arrow: stable at the cap, the limit is
+    higher), lines at the cap and at 1/60 s."""
+    r0 = rows[0]
+    kinds = list(dict.fromkeys(r.kind for r in rows))
+    fig, body = titled_figure(f"Stability map: {r0.grid}×{r0.grid}, {r0.steps} steps, b = {r0.damping:g}",
+                              max(7.0, 5.0 * len(kinds)), 6.2)  # fmt: skip
+    body.supxlabel("spring stiffness k (N/m), m = 0.01 kg", fontsize=9)
+    body.supylabel("largest stable dt (s)", fontsize=9)
+    axes, _ = panel_axes(body, len(kinds), cols=3)
+    chart = Chart(fig)
+    ks = sorted({r.stiffness for r in rows})
+    kk = [ks[0] / 1.6, ks[-1] * 1.6]
+    m = Scene().mass  # every stability scene uses the default particle mass
+    beta = damping_rate(Scene(damping=r0.damping))
+    caps = sorted({r.cap for r in rows if r.solver == "pbd" and r.cap})
+    for ax, kind in zip(axes, kinds):
+        mine = [r for r in rows if r.kind == kind]
+        if kind == "stretched":
+            ax.loglog(kk, [dt_limit(omega_max(k, m, STRETCH), beta) for k in kk], "k-.", lw=1,
+                      label=f"bound: lattice at {STRETCH}x stretch")  # fmt: skip
+        else:
+            what = "bound: flat lattice 2/ω"
+            what += ", for scale (a crumpled sheet has none)" if kind == "crumpled" else ""
+            ax.loglog(kk, [dt_limit(omega_max(k, m), beta) for k in kk], "k-", lw=1, label=what)
+        ax.loglog(kk, [dt_limit(gershgorin_omega(k, m), beta) for k in kk], "k:", lw=1, label="Gershgorin 24 k/m")
+        chart.panels[kind] = _stability_points(ax, mine)
+        for c in caps:
+            ax.axhline(c, color="tab:green", lw=1, ls="--", alpha=0.6)
+            ax.annotate(f"PBD cap {c:g} s (arrow: stable there)", (kk[0], c), xytext=(4, -3),
+                        textcoords="offset points", fontsize=6.5, va="top", color="tab:green")  # fmt: skip
+        ax.axhline(DT_60HZ, color="grey", lw=1, ls=(0, (4, 4)), alpha=0.7)
+        ax.annotate("dt = 1/60 s", (kk[0], DT_60HZ), xytext=(4, 2), textcoords="offset points", fontsize=6.5,
+                    va="bottom", color="grey")  # fmt: skip
+        ax.set_xlim(*kk)
+        ax.set_title(kind, fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+        panel_legend(ax, ncol=1)
+    if caps:
+        axes[0].set_ylim(top=max(caps) * 3)
+    return chart
+
+
+def _stability_points(ax, rows) -> list[str]:
+    """Verlet: every backend mode a hollow marker in its platform's colour, a platform's
+    modes side by side around k; PBD: per method the smallest limit over the backends."""
+    verlet = [r for r in rows if r.solver != "pbd"]
+    platforms = _platforms(verlet)
+    drawn = []
+    for j, platform in enumerate(platforms):
+        pts = [r for r in verlet if platform_of(r.backend) == platform]
+        shift = 1.07 ** (j - (len(platforms) - 1) / 2)
+        modes = len({r.label for r in pts})
+        label = f"Verlet, {'peers' if platform == PEERS else platform} ({modes} mode{'s' * (modes > 1)})"
+        color = PLATFORM_COLORS.get(platform, "black")
+        ax.loglog([r.stiffness * shift for r in pts], [r.dt_stable for r in pts], "o", color=color, fillstyle="none",
+                  markersize=6, alpha=0.8, label=label, linestyle="none")
+        drawn.append(label)
+    pbd = [r for r in rows if r.solver == "pbd"]
+    for method, marker, color in (("jacobi", "P", "tab:purple"), ("coloured", "X", "tab:brown")):
+        mine = [r for r in pbd if r.pbd_method == method]
+        if not mine:
             continue
-        order = ok[0].order
-        shown = f"order {order:.2f}" if math.isfinite(order) else "order n/a"
-        style = _style(ok, i)
-        line = ax.loglog([r.dt for r in ok], [r.disc_rms for r in ok], label=f"{label} ({shown})", **style)[0]
-        ax.loglog([r.dt for r in ok], [r.impl_rms for r in ok], ":", alpha=0.6, color=line.get_color())
-    top = max((r.disc_rms for r in result.rows if r.status == "ok" and r.disc_rms > 0), default=1.0)
-    lo, hi = all_dts[0], all_dts[-1]
-    for p in (1, 2):
-        ax.loglog([lo, hi], [top * (lo / hi) ** p, top], "k--", alpha=0.3, lw=1)
-        ax.annotate(f"slope {p}", (lo, top * (lo / hi) ** p), fontsize=8, alpha=0.6)
-    unstable = sorted({r.dt for r in result.rows if r.status.startswith("unstable")})
-    if unstable:
-        ax.annotate(
-            f"unstable (not drawn) at dt >= {unstable[0]:.3g} s on " + ", ".join(
-                sorted({r.solver for r in result.rows if r.status.startswith("unstable")})
-            ),
-            (0.02, 0.02), xycoords="axes fraction", fontsize=7,
-        )
-    r0 = result.rows[0]
-    ax.set_xlabel("dt (s)")
-    ax.set_ylabel(f"RMS position error at t = {r0.time_s:g} s (m)")
-    ax.set_title(
-        f"convergence: {r0.scene} {r0.grid}x{r0.grid}, start={r0.start}, b={r0.damping:g}\n"
-        "solid (Verlet), dashed (PBD): vs the converged float64 answer of its own model;\n"
-        "dotted: vs float64 at the same dt (rounding)",
-        fontsize=9,
-    )
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _save(fig, path)
+        worst = [min((r for r in mine if r.stiffness == k), key=lambda r: r.dt_stable)
+                 for k in sorted({r.stiffness for r in mine})]  # fmt: skip
+        shift = 1.12 if method == "coloured" else 1 / 1.12
+        its = "/".join(map(str, sorted({r.iterations for r in mine})))
+        label = f"PBD {method} ({its} it): smallest of {len({r.label for r in mine})} backend modes"
+        ax.loglog([r.stiffness * shift for r in worst], [r.dt_stable for r in worst], marker, color=color,
+                  markersize=8, alpha=0.85, label=label, linestyle="none")  # fmt: skip
+        for r in worst:
+            if r.capped:
+                ax.annotate("", (r.stiffness * shift, r.dt_stable * 1.8), (r.stiffness * shift, r.dt_stable * 1.1),
+                            arrowprops=dict(arrowstyle="->", color=color, alpha=0.7))  # fmt: skip
+        drawn.append(label)
+    return drawn
 
 
 def plot_stability_map(rows, path: Path) -> None:
-    """Largest stable dt against k: measured per scene and backend/mode, and the bounds; PBD
-    as filled markers (at the cap when stable there), with lines at the cap and 1/60 s."""
-    fig, ax = _figure((10, 5.5))
-    ks = sorted({r.stiffness for r in rows})
-    kk = [ks[0] / 1.5, ks[-1] * 1.5]
-    m = Scene().mass  # every stability scene uses the default particle mass
-    beta = damping_rate(Scene(damping=rows[0].damping))
-    ax.loglog(kk, [dt_limit(omega_max(k, m), beta) for k in kk], "k-", lw=1, label="flat lattice 2/omega")
-    ax.loglog(kk, [dt_limit(omega_max(k, m, STRETCH), beta) for k in kk], "k-.", lw=1, label=f"lattice at {STRETCH}x stretch")
-    ax.loglog(kk, [dt_limit(gershgorin_omega(k, m), beta) for k in kk], "k:", lw=1, label="Gershgorin 24 k/m")
-    # one colour per scene, one marker per backend/mode: backends that agree overlap
-    colours = {"flat": "tab:blue", "stretched": "tab:orange", "crumpled": "tab:red"}
-    verlet = [r for r in rows if r.solver != "pbd"]
-    pbd = [r for r in rows if r.solver == "pbd"]
-    labels = list(dict.fromkeys(r.label for r in verlet))
-    markers = "os^vD<>ph*"
-    kinds = list(dict.fromkeys(r.kind for r in rows))
-    for kind in kinds:
-        for i, label in enumerate(labels):
-            rs = [r for r in verlet if r.kind == kind and r.label == label]
-            ax.loglog([r.stiffness for r in rs], [r.dt_stable for r in rs], markers[i % len(markers)],
-                      color=colours.get(kind, "k"), fillstyle="none", markersize=7, alpha=0.7)
-        ax.plot([], [], "o", color=colours.get(kind, "k"), label=f"measured: {kind}")
-    for i, label in enumerate(labels):
-        ax.plot([], [], markers[i % len(markers)], color="grey", fillstyle="none", label=label)
-    if pbd:
-        pbd_markers = {"jacobi": "P", "coloured": "X"}
-        # scene x method side by side around k, so points that coincide stay visible
-        slots = list(dict.fromkeys((r.kind, r.pbd_method) for r in pbd))
-        shift = {slot: 1.1 ** (j - (len(slots) - 1) / 2) for j, slot in enumerate(slots)}
-        for r in pbd:
-            x = r.stiffness * shift[(r.kind, r.pbd_method)]
-            ax.loglog([x], [r.dt_stable], pbd_markers.get(r.pbd_method, "*"),
-                      color=colours.get(r.kind, "k"), markersize=8, alpha=0.8)
-            if r.capped:
-                ax.annotate("", (x, r.dt_stable * 1.8), (x, r.dt_stable * 1.1),
-                            arrowprops=dict(arrowstyle="->", color=colours.get(r.kind, "k"), alpha=0.6))
-        for method, mk in pbd_markers.items():
-            if any(r.pbd_method == method for r in pbd):
-                its = sorted({r.iterations for r in pbd if r.pbd_method == method})
-                ax.plot([], [], mk, color="grey", label=f"PBD {method} ({'/'.join(map(str, its))} it), every backend")
-        caps = sorted({r.cap for r in pbd if r.cap})
-        for c in caps:
-            ax.axhline(c, color="tab:green", lw=1, ls="--", alpha=0.6)
-            ax.annotate(f"PBD cap {c:g} s (arrow: stable there, the limit is higher)", (kk[0], c / 1.25),
-                        fontsize=7, va="top", ha="left", color="tab:green")
-        ax.set_ylim(top=max(caps or [DT_60HZ]) * 3)
-    ax.axhline(DT_60HZ, color="grey", lw=1, ls=(0, (4, 4)), alpha=0.7)
-    ax.annotate("dt = 1/60 s", (kk[0], DT_60HZ), fontsize=7, va="bottom", color="grey")
-    ax.set_xlabel("spring stiffness k (N/m), m = 0.01 kg")
-    ax.set_ylabel("largest stable dt (s)")
-    ax.set_title(f"stability map: {rows[0].grid}x{rows[0].grid}, {rows[0].steps} steps, b = {rows[0].damping:g}")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _save(fig, path)
+    save_figure(stability_map_chart(rows).figure, path, dpi=DPI)
 
 
-__all__ = ["plot_speed_vs_error", "plot_convergence", "plot_stability_map"]
+__all__ = [
+    "plot_speed_vs_error", "plot_convergence", "plot_stability_map",
+    "speed_vs_error_chart", "convergence_chart", "stability_map_chart",
+]  # fmt: skip

@@ -26,6 +26,7 @@ import numpy as np
 
 from clothbench.backends import BackendOptions, capabilities, create_backend
 from clothbench.backends.gl import context as gl_context
+from clothbench.reports.meshes import cloth_indices, cylinder_mesh, perpendicular, sphere_mesh
 from clothbench.errors import ClothbenchError
 from clothbench.harness.normals import grid_normals
 from clothbench.scene import Scene
@@ -49,62 +50,6 @@ HANG = 1.5  # a sheet hanging from a pin reaches this many times its side below 
 FLOOR_DROP = 0.003  # m, the floor patch is drawn this far below its plane, for the same reason
 
 OUTPUT_KINDS = "a .png (the last frame), a .gif (every frame) or a folder/ (one PNG per frame)"
-
-
-# --- geometry ----------------------------------------------------------------------------
-
-
-def cloth_indices(n: int) -> np.ndarray:
-    """Triangles of the n x n grid as particle indices, two per quad split along its
-    (r, c)-(r+1, c+1) diagonal, wound counter-clockwise seen from the side the normals of
-    docs/normals.md point to (so the front face is that side)."""
-    r, c = np.divmod(np.arange((n - 1) * (n - 1)), n - 1)
-    i = r * n + c
-    lower = np.stack([i, i + n, i + n + 1], axis=1)  # (r,c), (r+1,c), (r+1,c+1)
-    upper = np.stack([i, i + n + 1, i + 1], axis=1)  # (r,c), (r+1,c+1), (r,c+1)
-    return np.concatenate([lower, upper]).astype(np.uint32)
-
-
-def sphere_mesh(segments: int = 48, rings: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """A unit sphere: (vertices as (x, y, z, nx, ny, nz), triangle indices)."""
-    theta = np.linspace(0, math.pi, rings + 1)[:, None]
-    phi = np.linspace(0, 2 * math.pi, segments + 1)[None, :]
-    p = np.stack(
-        [np.sin(theta) * np.cos(phi), np.cos(theta) * np.ones_like(phi), np.sin(theta) * np.sin(phi)], axis=-1
-    ).reshape(-1, 3)
-    return np.hstack([p, p]).astype(np.float32), _grid_triangles(rings, segments)
-
-
-def cylinder_mesh(segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
-    """A capped cylinder of radius 1 around the z axis from z = 0 to z = 1."""
-    a = np.linspace(0, 2 * math.pi, segments + 1)
-    ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
-    side = [np.hstack([ring + (0, 0, z), ring]) for z in (0.0, 1.0)]
-    vertices = [np.vstack(side)]
-    indices = [_grid_triangles(1, segments)]
-    for z, nz in ((0.0, -1.0), (1.0, 1.0)):  # the caps: a centre and a ring each
-        base = sum(len(v) for v in vertices)
-        cap = np.vstack([[0.0, 0.0, z], ring + (0, 0, z)])
-        vertices.append(np.hstack([cap, np.tile([0.0, 0.0, nz], (len(cap), 1))]))
-        k = np.arange(1, segments + 1)
-        indices.append(base + np.stack([np.zeros_like(k), k, k + 1], axis=1))
-    return np.vstack(vertices).astype(np.float32), np.vstack(indices).astype(np.uint32)
-
-
-def _grid_triangles(rows: int, cols: int) -> np.ndarray:
-    """Two triangles per cell of a (rows + 1) x (cols + 1) vertex grid."""
-    r, c = np.divmod(np.arange(rows * cols), cols)
-    i = r * (cols + 1) + c
-    j = i + cols + 1
-    return np.concatenate([np.stack([i, j, i + 1], 1), np.stack([i + 1, j, j + 1], 1)]).astype(np.uint32)
-
-
-def _perpendicular(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors completing the unit vector u to an orthonormal basis."""
-    helper = np.eye(3)[int(np.argmin(np.abs(u)))]
-    e1 = np.cross(u, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(u, e1)
 
 
 def scene_bounds(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -248,7 +193,7 @@ class Renderer:
             mesh = vao(*cylinder_mesh())
             for c in self.scene.cylinders:
                 u = np.array(c.axis)
-                e1, e2 = _perpendicular(u)
+                e1, e2 = perpendicular(u)
                 r, trim = c.radius * COLLIDER_SHRINK, c.radius * (1 - COLLIDER_SHRINK)
                 model = np.eye(4)
                 model[:3, 0], model[:3, 1], model[:3, 2] = e1 * r, e2 * r, u * (c.length - 2 * trim)
@@ -260,7 +205,7 @@ class Renderer:
             square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
             for p in self.scene.planes:
                 nrm = np.array(p.unit_normal)
-                e1, e2 = _perpendicular(nrm)
+                e1, e2 = perpendicular(nrm)
                 centre = (lo + hi) / 2
                 centre = centre - nrm * (np.dot(centre - p.point, nrm) + FLOOR_DROP)  # onto the plane
                 corners = centre + half * (square[:, :1] * e1 + square[:, 1:] * e2)
@@ -322,7 +267,10 @@ class Renderer:
             state = gl_context.DrawableState(self.gl, *self.uploaded)
         return self.draw_state(state)
 
-    def _draw(self, cloth_vao) -> np.ndarray:
+    wireframe = False  # draw the cloth's triangles as lines (the viewer's W key)
+
+    def _render(self, cloth_vao) -> None:
+        """Draw the colliders and the cloth into the multisampled framebuffer."""
         ctx, cam = self.gl.ctx, self.camera
         light = np.array(LIGHT) / np.linalg.norm(LIGHT)
         self.fbo.use()
@@ -344,7 +292,15 @@ class Renderer:
         program["n"].value = self.n
         program["checks"].value = float(CHECKS)
         program["colour_a"].value, program["colour_b"].value = CLOTH_COLOURS
-        cloth_vao.render()
+        ctx.wireframe = self.wireframe
+        try:
+            cloth_vao.render()
+        finally:
+            ctx.wireframe = False
+
+    def _draw(self, cloth_vao) -> np.ndarray:
+        self._render(cloth_vao)
+        ctx = self.gl.ctx
         ctx.copy_framebuffer(self.resolved, self.fbo)  # resolve the multisampling
         w, h = self.size
         data = self.resolved.read(components=3, alignment=1)

@@ -41,8 +41,8 @@ KERNEL_FILE = "verlet_cloth.cu"
 KERNEL_NAME = "verlet_step"
 TRANSFERS = ("swap", "copy")  # the first is the default
 AUTO_BLOCK = 256  # threads per block when --local-size is not given
-INSTALL_HINT = "cupy not installed (pip install -e '.[cuda]')"
-NO_COMPILER = "no CUDA compiler (pip install nvidia-cuda-nvrtc-cu12, or put nvcc on PATH)"
+INSTALL_HINT = "cupy not installed (pip install 'clothbench[cuda]')"
+NO_COMPILER = "no CUDA compiler (pip install 'clothbench[cuda]' for NVRTC, or put nvcc on PATH)"
 
 
 def compile_options(strict: bool) -> tuple[str, ...]:

@@ -27,7 +27,7 @@ from clothbench.solver import Solver
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
 
-INSTALL_HINT = "install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for OSMesa"
+INSTALL_HINT = "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for --gl osmesa"  # README
 MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs
 DEFAULT_LOCAL_SIZE = 64  # 64 to 1024 measured the same at n = 256 on llvmpipe; 32 and less slower
 MAX_GROUPS_X = 65535  # GL guarantees this many work groups per dimension, no more
@@ -223,6 +223,10 @@ def get_device(gl: str = "egl") -> GLDevice:
 
 def probe(min_version: int = 330) -> Availability:
     """Can a GL backend needing OpenGL `min_version` (e.g. 430 for compute) run here?"""
+    try:
+        import moderngl  # noqa: F401  (a dependency of clothbench's, as glcontext is)
+    except ModuleNotFoundError as e:
+        return Availability(False, f"{e.name} not installed (pip install moderngl glcontext)")
     try:
         device = get_device("egl")
     except GLUnavailable as e:

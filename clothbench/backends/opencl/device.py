@@ -13,7 +13,9 @@ from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import collider_rows
 
-INSTALL_HINT = "pip install pyopencl pocl-binary-distribution"
+INSTALL_HINT = "pip install pyopencl pocl-binary-distribution"  # both are clothbench's own dependencies
+# README's "System packages": PoCL's wheel has an LLVM too old for recent CPUs, Debian's has not
+NO_PLATFORM_HINT = "pip install pocl-binary-distribution, or apt-get install pocl-opencl-icd, or a vendor's driver"
 
 # A kernel every working OpenCL C compiler builds: the probe's test that a device can compile.
 _PROBE_SOURCE = "__kernel void clothbench_probe(__global float *a) { a[get_global_id(0)] = 1.0f; }"
@@ -50,7 +52,7 @@ def _platforms() -> list:
         platforms = []
     if not platforms:
         raise ClothbenchError(
-            f"no OpenCL platform found ({INSTALL_HINT} for PoCL's CPU device, or install a vendor driver)"
+            f"no OpenCL platform found ({NO_PLATFORM_HINT})"
         )
     return platforms
 

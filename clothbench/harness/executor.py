@@ -1,0 +1,324 @@
+"""Rows in worker processes: a crash, an out-of-memory kill or a hang costs one row, not the
+run; and the executor (the `concurrent.futures` interface) that runs many rows.
+
+`run_isolated(fn, ...)` runs one call in a fresh child process with a time limit and returns
+an Outcome: the value, or `crashed` (the child died: a signal, an abort, the kernel's
+out-of-memory killer) or `timeout` (it ran past the limit and was killed), with what
+happened in one line. A KeyboardInterrupt in the child, or a Ctrl-C / SIGTERM in the parent,
+kills the child and raises KeyboardInterrupt in the parent: nothing half-done comes back.
+
+`LocalExecutor(jobs)` is a `concurrent.futures.Executor` whose every task runs through
+run_isolated. A task submitted with `timing=True` runs alone (no other task, timed or not,
+shares the machine while it runs); other tasks (error-only work: references, bisections,
+accuracy runs) run `jobs` at a time. `executor_for(scheduler, jobs)` is that, or the Dask
+distributed one (harness/dask_executor.py) for `--scheduler tcp://HOST:PORT`.
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from concurrent.futures import Executor, Future
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from clothbench.harness import faults
+
+DEFAULT_ROW_TIMEOUT = 3600.0  # seconds; --row-timeout
+SCHEDULER_ENV = "CLOTHBENCH_SCHEDULER"
+START_METHOD_ENV = "CLOTHBENCH_START_METHOD"
+
+
+@dataclass
+class Outcome:
+    status: str  # ok | crashed | timeout
+    value: Any = None
+    note: str = ""
+    wall_s: float = 0.0
+    host: str = ""  # where it ran (set by executors that run tasks elsewhere)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+class RowError(Exception):
+    """What the child raised, re-raised in the parent (the original when it pickles)."""
+
+
+def signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
+def crash_note(exitcode: int | None) -> str:
+    if exitcode is None:
+        return "the worker process vanished"
+    if exitcode < 0:
+        name = signal_name(-exitcode)
+        hint = {
+            "SIGKILL": " (the kernel's out-of-memory killer sends this when the machine runs out of memory)",
+            "SIGABRT": " (an abort in native code: a driver or library assertion)",
+            "SIGSEGV": " (a segmentation fault in native code)",
+            "SIGBUS": " (a bus error in native code)",
+        }.get(name, "")
+        return f"the worker process was killed by {name}{hint}"
+    return f"the worker process exited with status {exitcode} before returning a result"
+
+
+# --- one call in a child ----------------------------------------------------------------------
+
+
+def start_method(fork_safe: bool = True) -> str:
+    """'fork' where the parent holds no driver state a child could inherit half-made (the
+    child then sees everything the parent registered), else 'forkserver' (a clean process)."""
+    chosen = os.environ.get(START_METHOD_ENV)
+    methods = multiprocessing.get_all_start_methods()
+    if chosen:
+        return chosen
+    if "fork" not in methods:
+        return "spawn"
+    return "fork" if fork_safe else "forkserver"
+
+
+def fork_safe(backend: str, solver: str = "verlet") -> bool:
+    """Whether a forked child can run `backend`: numpy's own steppers (and their subclasses)
+    touch no driver state the parent may hold; any other backend gets a clean process."""
+    from clothbench.backends import backend_class
+    from clothbench.backends.numpy.verlet import NumpyBackend
+
+    try:
+        return issubclass(backend_class(backend, solver), NumpyBackend)
+    except Exception:
+        return False
+
+
+def _die_with_parent() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except Exception:  # not Linux: a child outlives a parent killed by SIGKILL, nothing worse
+        pass
+
+
+def _child(conn, fn, args, kwargs, progress: bool) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the parent's to handle
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent()
+    faulthandler.disable()  # a crash is the row's note, not a stack dump on the terminal
+    if progress:
+        kwargs = dict(kwargs, on_progress=lambda done: conn.send(("progress", done)))
+    try:
+        faults.arm()
+        value = fn(*args, **kwargs)
+    except KeyboardInterrupt:
+        conn.send(("interrupt", None))
+        return
+    except BaseException as e:
+        try:
+            conn.send(("raise", e))
+        except Exception:
+            conn.send(("raise", RowError(f"{type(e).__name__}: {e}")))
+        return
+    conn.send(("ok", value))
+
+
+def _kill(process) -> None:
+    if process.is_alive():
+        process.kill()
+    process.join(5)
+
+
+def run_isolated(
+    fn: Callable,
+    args: tuple = (),
+    kwargs: dict | None = None,
+    timeout: float | None = DEFAULT_ROW_TIMEOUT,
+    on_progress: Callable[[int], None] | None = None,
+    method: str | None = None,
+    live: set | None = None,
+) -> Outcome:
+    """fn(*args, **kwargs) in a child process (see the module's doc). `on_progress`, when
+    given, is passed to fn as its on_progress keyword, and called here with what it reports."""
+    ctx = multiprocessing.get_context(method or start_method())
+    receive, send = ctx.Pipe(duplex=False)
+    process = ctx.Process(target=_child, args=(send, fn, args, kwargs or {}, on_progress is not None), daemon=True)
+    t0 = time.monotonic()
+    process.start()
+    send.close()
+    if live is not None:
+        live.add(process)
+    try:
+        while True:
+            left = None if timeout is None else timeout - (time.monotonic() - t0)
+            if left is not None and left <= 0:
+                _kill(process)
+                return Outcome("timeout", note=f"ran past the {timeout:g} s limit and was killed",
+                               wall_s=time.monotonic() - t0)  # fmt: skip
+            if not receive.poll(left if left is None else min(left, 1.0)):
+                if not process.is_alive() and not receive.poll(0):
+                    process.join()
+                    return Outcome("crashed", note=crash_note(process.exitcode), wall_s=time.monotonic() - t0)
+                continue
+            try:
+                kind, value = receive.recv()
+            except EOFError:  # the child died without a word
+                process.join(5)
+                return Outcome("crashed", note=crash_note(process.exitcode), wall_s=time.monotonic() - t0)
+            if kind == "progress":
+                if on_progress is not None:
+                    on_progress(value)
+                continue
+            process.join(5)
+            if kind == "interrupt":
+                raise KeyboardInterrupt
+            if kind == "raise":
+                raise value
+            return Outcome("ok", value, wall_s=time.monotonic() - t0)
+    finally:
+        _kill(process)
+        receive.close()
+        if live is not None:
+            live.discard(process)
+
+
+# --- many calls -------------------------------------------------------------------------------
+
+
+class _TimingLock:
+    """Timed tasks exclusive, untimed tasks shared (a readers-writer lock, writers first)."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._shared = 0
+        self._exclusive = False
+        self._waiting = 0
+
+    def acquire(self, exclusive: bool) -> None:
+        with self._cond:
+            if exclusive:
+                self._waiting += 1
+                self._cond.wait_for(lambda: not self._exclusive and self._shared == 0)
+                self._waiting -= 1
+                self._exclusive = True
+            else:
+                self._cond.wait_for(lambda: not self._exclusive and self._waiting == 0)
+                self._shared += 1
+
+    def release(self, exclusive: bool) -> None:
+        with self._cond:
+            if exclusive:
+                self._exclusive = False
+            else:
+                self._shared -= 1
+            self._cond.notify_all()
+
+
+class LocalExecutor(Executor):
+    """Tasks in child processes on this machine: `jobs` untimed at a time, timed ones alone.
+
+    submit(fn, *args, **kwargs) returns a Future of an Outcome (never of fn's exception
+    for a crash or a timeout: those are Outcomes; an exception fn raised is the Future's).
+    Keywords `timing` (bool), `timeout` (seconds) and `fork_safe` are the executor's own.
+    """
+
+    where = "local"
+
+    def __init__(self, jobs: int = 1, timeout: float | None = DEFAULT_ROW_TIMEOUT):
+        if jobs < 1:
+            raise ValueError(f"jobs must be >= 1, got {jobs}")
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.jobs = jobs
+        self.timeout = timeout
+        self._lock = _TimingLock()
+        self._pool = ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="clothbench-row")
+        self._live: set = set()  # the worker processes running now
+        self._closing = False
+
+    def submit(
+        self, fn, /, *args, timing: bool = False, timeout: float | None = -1.0, fork_safe: bool = True, **kwargs
+    ) -> Future:
+        limit = self.timeout if timeout == -1.0 else timeout
+        method = start_method(fork_safe)
+
+        def task():
+            self._lock.acquire(timing)
+            try:
+                if self._closing:
+                    return Outcome("crashed", note="the run was interrupted before this task started")
+                return run_isolated(fn, args, kwargs, timeout=limit, method=method, live=self._live)
+            finally:
+                self._lock.release(timing)
+
+        return self._pool.submit(task)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    @staticmethod
+    def as_completed(futures):
+        from concurrent.futures import as_completed
+
+        return as_completed(futures)
+
+    def kill_all(self) -> None:
+        """An interrupt: no task starts now, every worker process running is killed."""
+        self._closing = True
+        for process in list(self._live):
+            if process.is_alive():
+                process.kill()
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None:
+            self.kill_all()
+            self.shutdown(wait=True, cancel_futures=True)
+            return False
+        self.shutdown(wait=True)
+        return False
+
+
+def runner(executor: Executor | None):
+    """run(fn, *args, fork_safe=, **kwargs) -> a callable giving (status, value or note):
+    fn called here at once without an executor, else submitted as the executor's error-only
+    task (in parallel over its jobs; None keywords are dropped)."""
+
+    def run(fn, *args, fork_safe: bool = True, **kwargs):
+        if executor is None:
+            value = fn(*args, **kwargs)
+            return lambda: ("ok", value)
+        kwargs = {k: v for k, v in kwargs.items() if v is not None}
+        future = executor.submit(fn, *args, timing=False, fork_safe=fork_safe, **kwargs)
+
+        def get():
+            outcome = future.result()
+            return (outcome.status, outcome.value if outcome.ok else outcome.note)
+
+        return get
+
+    return run
+
+
+def executor_for(scheduler: str | None = None, jobs: int = 1, timeout: float | None = DEFAULT_ROW_TIMEOUT) -> Executor:
+    """The executor a command runs its rows on: Dask distributed at `scheduler` (or
+    $CLOTHBENCH_SCHEDULER), else local processes."""
+    scheduler = scheduler or os.environ.get(SCHEDULER_ENV) or None
+    if scheduler:
+        from clothbench.harness.dask_executor import DaskExecutor
+
+        return DaskExecutor(scheduler, timeout=timeout)
+    return LocalExecutor(jobs, timeout=timeout)
+
+
+__all__ = [
+    "DEFAULT_ROW_TIMEOUT", "LocalExecutor", "Outcome", "RowError", "crash_note", "executor_for", "fork_safe",
+    "run_isolated", "runner",
+    "start_method",
+]  # fmt: skip

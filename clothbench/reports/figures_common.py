@@ -1,0 +1,345 @@
+"""What every clothbench figure shares (reports/plots.py draws the sweep's, reports/
+accuracy_plots.py the accuracy and stability runs'): small multiples of at most MAX_SERIES
+series a panel, split by platform; peers drawn apart from clothbench's own backends (dashed
+lines, hollow markers, "(peer)" in the legend); the Pareto front of cost against error,
+drawn and labelled; log axes labelled in plain numbers; every figure written as PNG and SVG.
+
+Figures are matplotlib Figures on the Agg canvas, never pyplot: nothing global, no display.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import textwrap
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, TypeVar
+
+from matplotlib import rc_context
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
+
+from clothbench.backends import BACKENDS
+
+T = TypeVar("T")
+
+MAX_SERIES = 8  # more lines than this in one panel and a reader stops telling them apart
+
+PEERS = "peers"
+PLATFORM_OF = {"numpy": "CPU (numpy)", "opencl": "OpenCL", "glsl": "GL", "glsl-compute": "GL", "cuda": "CUDA"}
+PLATFORM_ORDER = ("CPU (numpy)", "OpenCL", "GL", "CUDA", PEERS)
+PLATFORM_COLORS = {"CPU (numpy)": "#404040", "OpenCL": "#1f77b4", "GL": "#2ca02c", "CUDA": "#d62728", PEERS: "#ff7f0e"}
+# distinct at a glance and in print; a panel's series take them in order
+PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f",
+           "#bcbd22")  # fmt: skip
+MARKERS = ("o", "s", "D", "^", "v", "<", ">", "p", "h", "*")
+FRONT_COLOR = "black"
+# float32 rounding moves equally correct kernels' errors a few per cent apart: closer than
+# this, two errors count as equal on the drawn fronts, and the cheaper point wins
+FRONT_TOLERANCE = 0.05
+FRONT_LEGEND = "Pareto front: no other point both cheaper and more accurate (errors within 5 % count as equal)"
+BOUND_COLOR = "0.55"
+REPRODUCIBLE = {"svg.hashsalt": "clothbench"}  # SVG element ids from this, not from a random salt
+
+
+@dataclass
+class Chart:
+    """A drawn figure and what is on it: each panel's series labels (title -> labels, in
+    drawing order) and, where a Pareto front is drawn, its points' labels (panel -> labels,
+    by increasing error)."""
+
+    figure: Figure
+    panels: dict[str, list[str]] = field(default_factory=dict)
+    fronts: dict[str, list[str]] = field(default_factory=dict)
+
+
+def is_peer(backend: str) -> bool:
+    """A system users would pick instead of clothbench (the registry's peer flag)."""
+    entry = BACKENDS.get(backend)
+    return bool(entry and entry.peer)
+
+
+def platform_of(backend: str, peer: bool | None = None) -> str:
+    """The panel a backend's series go to: numpy, OpenCL, GL (fragment and compute), CUDA,
+    or peers."""
+    if is_peer(backend) if peer is None else peer:
+        return PEERS
+    return PLATFORM_OF.get(backend, backend)
+
+
+def platform_rank(platform: str) -> int:
+    """Where a platform's panel goes: PLATFORM_ORDER, then any other."""
+    return PLATFORM_ORDER.index(platform) if platform in PLATFORM_ORDER else len(PLATFORM_ORDER)
+
+
+def series_style(index: int, *, peer: bool = False, pbd: bool = False, color: str | None = None) -> dict:
+    """Line style of a panel's index-th series: clothbench's kernels solid with filled markers,
+    the PBD solver dash-dotted, peers dashed with hollow markers."""
+    color = color or PALETTE[index % len(PALETTE)]
+    return dict(
+        color=color,
+        marker=MARKERS[index % len(MARKERS)],
+        linestyle="--" if peer else ("-." if pbd else "-"),
+        markerfacecolor="white" if peer else color,
+        markersize=5,
+        linewidth=1.4,
+    )
+
+
+def small_multiples(
+    series: list[T], platform: Callable[[T], str], model: Callable[[T], str] | None = None
+) -> list[tuple[str, list[T]]]:
+    """(title, series) panels of at most MAX_SERIES each: one panel when they all fit; else a
+    panel per platform (in PLATFORM_ORDER), a platform with too many split per solver model
+    where `model` tells them apart, and what is still too many in chunks."""
+    if len(series) <= MAX_SERIES:
+        return [("", list(series))]
+    panels = []
+    for name, members in _grouped(series, platform, platform_rank):
+        parts = [(name, members)]
+        if len(members) > MAX_SERIES and model is not None:
+            parts = [(f"{name}, {m}", ms) for m, ms in _grouped(members, model, lambda _: 0)]
+        for title, ms in parts:
+            chunks = [ms[i : i + MAX_SERIES] for i in range(0, len(ms), MAX_SERIES)]
+            for k, chunk in enumerate(chunks):
+                panels.append((title if len(chunks) == 1 else f"{title} ({k + 1}/{len(chunks)})", chunk))
+    return panels
+
+
+def _grouped(items: list[T], key: Callable[[T], str], rank: Callable[[str], int]) -> list[tuple[str, list[T]]]:
+    """(key, items) groups by rank(key), in first-seen order within a rank."""
+    groups: dict[str, list[T]] = {}
+    for item in items:
+        groups.setdefault(key(item), []).append(item)
+    return sorted(groups.items(), key=lambda kv: rank(kv[0]))
+
+
+def pareto_front(
+    items: Iterable[T], cost: Callable[[T], float], error: Callable[[T], float], tolerance: float = 0.0
+) -> list[T]:
+    """The items no other item beats on both cost and error (lower is better in each: at
+    least as good in both and better in one), by increasing error. With a `tolerance`,
+    errors within that fraction of each other count as equal, so a cheaper item beats one
+    that is only within rounding noise more accurate. Items whose cost or error is not a
+    finite number are left out; two items equal in both are both kept."""
+    points = [(error(i), cost(i), i) for i in items]
+    points = [p for p in points if math.isfinite(p[0]) and math.isfinite(p[1])]
+    slack = 1.0 + tolerance
+
+    def beats(a, b) -> bool:
+        as_good = a[0] <= b[0] * slack and a[1] <= b[1]
+        return as_good and (a[1] < b[1] or a[0] * slack < b[0])
+
+    front = [p for p in points if not any(beats(q, p) for q in points)]
+    return [p[2] for p in sorted(front, key=lambda p: (p[0], p[1]))]
+
+
+def draw_front(ax, points: list[tuple[float, float, str]], labelled: bool = True) -> list:
+    """The front through (error, cost, label) points, by increasing error, as the staircase of
+    the best cost reachable at each error, its points ringed and (labelled) named at their
+    lower left, a region no measured point can be in (it would beat the front point). Returns
+    the labels, for fit_labels."""
+    if not points:
+        return []
+    xs, ys = [p[0] for p in points], [p[1] for p in points]
+    ax.step(xs, ys, where="post", color=FRONT_COLOR, linewidth=1.1, alpha=0.75, zorder=4, label="Pareto front")
+    ax.plot(xs, ys, linestyle="none", marker="o", markersize=9, markerfacecolor="none",
+            markeredgecolor=FRONT_COLOR, markeredgewidth=1.0, zorder=5)  # fmt: skip
+    if not labelled:
+        return []
+    return [
+        ax.annotate(label, (x, y), xytext=LABEL_OFFSET, textcoords="offset points", ha="right", va="top",
+                    fontsize=6.5, zorder=6, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+        for x, y, label in points
+    ]  # fmt: skip
+
+
+LABEL_OFFSET = (-5.0, -4.0)  # points: a front label's top right corner, from its point
+
+
+def fit_labels(fig: Figure, labels: list) -> None:
+    """Move draw_front's labels apart: each one that overlaps a label before it goes down
+    (still lower left of its point, so still on no other point), and the axes grow down and
+    left until every label is inside. The layout is run first, so positions are final."""
+    if not labels:
+        return
+    for _ in range(5):
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        placed = []
+        for label in labels:
+            label.xyann = LABEL_OFFSET
+            box = label.get_window_extent(renderer)
+            for _ in range(len(labels) * 4):
+                clash = next((p for p in placed if box.overlaps(p)), None)
+                if clash is None:
+                    break
+                down = (box.y1 - clash.y0 + 2) * 72 / fig.dpi
+                label.xyann = (label.xyann[0], label.xyann[1] - down)
+                box = label.get_window_extent(renderer)
+            placed.append(box)
+        if not _grow_to_fit(labels, placed):
+            return
+
+
+def _grow_to_fit(labels: list, boxes: list) -> bool:
+    """Widen the labels' axes down and left (once per group of shared axes) where a label
+    falls outside; whether any was widened."""
+    need: dict[tuple, list] = {}  # shared x axes, shared y axes -> [axes, left px, below px]
+    for label, box in zip(labels, boxes):
+        ax = label.axes
+        frame = ax.get_window_extent()
+        key = (_siblings(ax.get_shared_x_axes(), ax), _siblings(ax.get_shared_y_axes(), ax))
+        entry = need.setdefault(key, [ax, 0.0, 0.0])
+        entry[1] = max(entry[1], (frame.x0 - box.x0 + 8) / frame.width)
+        entry[2] = max(entry[2], (frame.y0 - box.y0 + 8) / frame.height)
+    grown = False
+    for ax, left, below in need.values():
+        if left > 0:
+            ax.set_xlim(*_widened(ax.get_xlim(), left, ax.get_xscale() == "log"))
+        if below > 0:
+            ax.set_ylim(*_widened(ax.get_ylim(), below, ax.get_yscale() == "log"))
+        grown = grown or left > 0 or below > 0
+    return grown
+
+
+def _siblings(grouper, ax) -> tuple[int, ...]:
+    return tuple(sorted(id(a) for a in grouper.get_siblings(ax)))
+
+
+def _widened(lim: tuple[float, float], fraction: float, log: bool) -> tuple[float, float]:
+    """Limits whose lower end moves out far enough that what sat at the old lower end now sits
+    `fraction` of the axes in (the span grows by fraction / (1 - fraction))."""
+    lo, hi = lim
+    grow = min(fraction, 0.5) / (1 - min(fraction, 0.5))
+    if log:
+        return lo / (hi / lo) ** grow, hi
+    return lo - (hi - lo) * grow, hi
+
+
+def draw_bound_lines(ax, rows: list, x: Callable, y: Callable) -> bool:
+    """The machine's bound (the rows' `bound_ms`, where a sweep measured it) as a grey line per
+    device across its grids; nothing when no row has one. Whether a line was drawn."""
+    by_device: dict[str, dict] = {}
+    for r in rows:
+        if r.bound_ms:
+            by_device.setdefault(r.device, {}).setdefault(x(r), []).append(y(r))
+    for device, points in by_device.items():
+        xs = sorted(points)
+        label = "machine bound" + (f" ({device})" if len(by_device) > 1 else "")
+        ax.plot(xs, [min(points[v]) for v in xs], color=BOUND_COLOR, linewidth=2.4, alpha=0.7,
+                linestyle=(0, (6, 2)), zorder=1, label=label)  # fmt: skip
+    return bool(by_device)
+
+
+def new_figure(width: float, height: float) -> Figure:
+    """A Figure on the Agg canvas (so labels can be measured before saving), laid out by
+    constrained layout."""
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def titled_figure(title: str, width: float, body_height: float, footer: str = ""):
+    """(figure, body): a figure with a bold title, and under the body (what panels go in, a
+    subfigure laid out on its own) the footer's lines, small and grey."""
+    foot_height = 0.12 * (footer.count("\n") + 1) + 0.1 if footer else 0.0
+    fig = new_figure(width, body_height + foot_height)
+    body = fig
+    if footer:
+        body, foot = fig.subfigures(2, 1, height_ratios=[body_height, foot_height])
+        foot.text(0.006, 0.92, footer, fontsize=6.5, color="0.35", va="top")
+    body.suptitle(title, fontsize=13, fontweight="bold")
+    return fig, body
+
+
+def panel_axes(body, count: int, cols: int = 3, wide_first: bool = False, key: bool = False):
+    """(axes, key axes or None): `count` axes sharing both axes, `cols` to a row; with
+    wide_first the first spans two columns (an overview before the per-platform panels).
+    With key, an axes without axes for a legend shared by every panel: the empty cells of
+    the last row, or a row of its own when there are none."""
+    cols = max(1, min(cols, count + (1 if wide_first else 0)))
+    cells = count + (1 if wide_first and cols > 1 else 0)
+    rows = math.ceil(cells / cols)
+    spare = rows * cols - cells
+    extra = key and not spare
+    grid = body.add_gridspec(rows + extra, cols, height_ratios=[1.0] * rows + [0.18] * extra)
+    axes, cell = [], 0
+    for i in range(count):
+        span = 2 if (i == 0 and wide_first and cols > 1) else 1
+        r, c = divmod(cell, cols)
+        axes.append(body.add_subplot(grid[r, c : c + span], sharex=axes[0] if axes else None,
+                                     sharey=axes[0] if axes else None))  # fmt: skip
+        cell += span
+    key_axes = None
+    if key:
+        key_axes = body.add_subplot(grid[rows, :] if extra else grid[rows - 1, cols - spare :])
+        key_axes.axis("off")
+    return axes, key_axes
+
+
+def key_legend(key_axes, handles: list) -> None:
+    """The legend every panel shares, in the key axes panel_axes made: as many columns as
+    the key spans panels, long labels wrapped to fit."""
+    span = len(key_axes.get_subplotspec().colspan)
+    for h in handles:
+        h.set_label(textwrap.fill(h.get_label(), 50))
+    key_axes.legend(handles=handles, loc="center", ncol=min(len(handles), span), fontsize=7.5, frameon=False,
+                    handlelength=2.4)  # fmt: skip
+
+
+def plain_log_labels(ax, axis) -> None:
+    """Label a log axis 0.1, 1, 10 (not 10^-1), and at 2 and 5 between when it spans little."""
+
+    def span() -> float:
+        lo, hi = ax.get_ylim() if axis is ax.yaxis else ax.get_xlim()
+        return math.log10(hi / lo) if lo > 0 and hi > 0 else 99.0
+
+    def minor(v, _pos) -> str:
+        if v <= 0 or span() > 2.5:
+            return ""
+        mantissa = v / 10 ** math.floor(math.log10(v) + 1e-9)
+        return f"{v:g}" if round(mantissa) in (2, 5) and abs(mantissa - round(mantissa)) < 1e-6 else ""
+
+    axis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+    axis.set_minor_formatter(FuncFormatter(minor))
+
+
+def panel_legend(ax, ncol: int | None = None, handles: list | None = None) -> None:
+    """The panel's legend under it, where it covers no data: its labelled lines, or `handles`;
+    in `ncol` columns, by default two, or one when a label is too long for two side by side."""
+    if handles is None:
+        handles, _ = ax.get_legend_handles_labels()
+    if ncol is None:
+        ncol = 1 if max((len(h.get_label()) for h in handles), default=0) > 48 else 2
+    for h in handles:
+        if hasattr(h, "set_label"):
+            h.set_label(textwrap.fill(h.get_label(), 60))
+    if handles:
+        ax.legend(handles=handles, fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=ncol,
+                  frameon=False, handlelength=2.6, columnspacing=1.2)  # fmt: skip
+
+
+def save_figure(fig: Figure, path: Path, dpi: int = 150) -> list[Path]:
+    """Write `fig` as PNG at `path` (its suffix made .png) and as SVG beside it, the folder
+    made if missing; the two paths. No date and SVG ids from a fixed salt: a figure drawn again from the same
+    data writes the same bytes, so regenerated figures change in git only where they changed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    written = []
+    with rc_context(REPRODUCIBLE):
+        for ext in (".png", ".svg"):
+            target = path.with_suffix(ext)
+            fig.savefig(target, dpi=dpi if ext == ".png" else None, metadata={"Date": None} if ext == ".svg" else None)
+            written.append(target)
+    return written
+
+
+def figure_svg(fig: Figure) -> str:
+    """The figure as SVG text (for a page that inlines its figures), as save_figure writes it."""
+    buffer = io.StringIO()
+    with rc_context(REPRODUCIBLE):
+        fig.savefig(buffer, format="svg", metadata={"Date": None})
+    return buffer.getvalue()

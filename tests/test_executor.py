@@ -1,0 +1,163 @@
+"""Every row in a worker process: a crash, an out-of-memory kill or a hang costs that row
+(crashed / timeout, with what happened), never the sweep; --resume leaves such rows alone
+unless --retry-failed; the local executor runs timed tasks alone and the others in parallel."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from clothbench.backends import Capabilities
+from clothbench.backends.numpy.verlet import NumpyBackend
+from clothbench.cli import main
+from clothbench.harness.executor import LocalExecutor, run_isolated
+from clothbench.harness.sweep_csv import MEASUREMENT_COLUMNS, row_key
+
+from test_sweep import TINY, read_csv, register_fake_backends
+
+
+def _fake(name: str) -> type:
+    return type(name.replace("-", "_"), (NumpyBackend,), {"name": name, "capabilities": Capabilities()})
+
+
+FAKES = [_fake(n) for n in ("fake-abort", "fake-hang", "fake-segv", "fake-oom", "fake-memory", "fake-fine")]
+FAULT = "fake-abort:abort,fake-hang:hang,fake-segv:segv,fake-oom:kill,fake-memory:memory"
+BACKENDS = ",".join(c.name for c in FAKES) + ",numpy"
+
+
+@pytest.fixture
+def faulty(monkeypatch):
+    register_fake_backends(monkeypatch, *FAKES)
+    monkeypatch.setenv("CLOTHBENCH_FAULT", FAULT)
+
+
+def test_crashes_and_hangs_are_rows_and_every_other_row_is_measured(tmp_path, faulty, capsys):
+    out = tmp_path / "s.csv"
+    args = ["sweep", "--backends", BACKENDS, "--grids", "8", *TINY, "--row-timeout", "3", "--out", str(out)]
+    t0 = time.monotonic()
+    assert main(args) == 0
+    assert time.monotonic() - t0 < 60  # the hang cost its limit, not for ever
+    rows = {r["backend"] + r["precision"]: r for r in read_csv(out)}
+    assert len(rows) == 8  # 6 fakes + numpy f32 and f64
+    assert rows["fake-abortf32"]["status"] == "crashed" and "SIGABRT" in rows["fake-abortf32"]["note"]
+    assert rows["fake-segvf32"]["status"] == "crashed" and "SIGSEGV" in rows["fake-segvf32"]["note"]
+    oom = rows["fake-oomf32"]
+    assert oom["status"] == "crashed" and "SIGKILL" in oom["note"] and "out-of-memory" in oom["note"]
+    assert rows["fake-memoryf32"]["status"] == "crashed" and "out of memory" in rows["fake-memoryf32"]["note"]
+    assert rows["fake-hangf32"]["status"] == "timeout" and "3 s limit" in rows["fake-hangf32"]["note"]
+    for bad in ("fake-abort", "fake-hang", "fake-segv", "fake-oom", "fake-memory"):
+        r = rows[bad + "f32"]
+        assert all(r[c] in ("", "false") for c in MEASUREMENT_COLUMNS), r
+        assert r["grid"] == "8" and r["cpu"] and r["timestamp"]  # what and where, all the same
+    for good in ("fake-finef32", "numpyf32", "numpyf64"):
+        assert rows[good]["status"] == "ok" and float(rows[good]["ms_median"]) > 0
+    assert float(rows["numpyf32"]["err_rms_m"]) > 0  # the f64 row's reference came back from its worker
+    assert "not ok" in capsys.readouterr().err
+
+
+def test_resume_keeps_crashed_rows_unless_retry_failed(tmp_path, faulty, monkeypatch, capsys):
+    out = tmp_path / "s.csv"
+    args = ["sweep", "--backends", "fake-abort,fake-fine", "--grids", "8", *TINY, "--row-timeout", "20", "--out", str(out)]
+    assert main(args) == 0
+    assert [r["status"] for r in read_csv(out)] == ["crashed", "ok"]
+    assert main([*args, "--resume"]) == 0  # nothing to measure: the crashed row stays as it is
+    assert [r["status"] for r in read_csv(out)] == ["crashed", "ok"]
+    assert "0 rows to measure" in capsys.readouterr().err
+    monkeypatch.delenv("CLOTHBENCH_FAULT")  # the driver fixed
+    assert main([*args, "--retry-failed"]) == 0
+    rows = read_csv(out)
+    assert sorted(r["status"] for r in rows) == ["ok", "ok"]
+    assert len({row_key(r) for r in rows}) == len(rows) == 2  # measured again, not added twice
+    assert not list(tmp_path.glob("*.retry-tmp"))
+
+
+def test_bad_row_timeout_is_one_line(capsys):
+    assert main(["sweep", "--backends", "numpy", "--row-timeout", "0"]) == 2
+    assert "--row-timeout must be > 0" in capsys.readouterr().err
+
+
+def _sleep_then(value, seconds):
+    time.sleep(seconds)
+    return value, os.getpid(), time.monotonic()
+
+
+def _raise():
+    raise ValueError("from the child")
+
+
+def test_run_isolated_returns_raises_and_times_out():
+    outcome = run_isolated(_sleep_then, ("x", 0))
+    assert outcome.ok and outcome.value[0] == "x" and outcome.value[1] != os.getpid()
+    with pytest.raises(ValueError, match="from the child"):
+        run_isolated(_raise)
+    assert run_isolated(_sleep_then, ("x", 30), timeout=0.5).status == "timeout"
+
+
+def test_local_executor_runs_untimed_tasks_together_and_timed_ones_alone():
+    with LocalExecutor(jobs=2) as ex:
+        t0 = time.monotonic()
+        untimed = [ex.submit(_sleep_then, i, 1.0) for i in range(2)]
+        assert [f.result().value[0] for f in untimed] == [0, 1]
+        both = time.monotonic() - t0
+        t0 = time.monotonic()
+        timed = [ex.submit(_sleep_then, i, 1.0, timing=True) for i in range(2)]
+        ends = sorted(f.result().value[2] for f in timed)
+        alone = time.monotonic() - t0
+    assert both < 1.9  # side by side
+    assert alone >= 2.0 and ends[1] - ends[0] >= 0.9  # one after the other
+
+
+# --- accuracy and stability rows through the executor ------------------------------------------
+
+
+def _accuracy_inputs():
+    from clothbench.harness.plan import plan_variants
+    from clothbench.scene import load_setup
+
+    setup = load_setup("drape").replace(grid=6)
+    variants, _ = plan_variants(["numpy"], [setup.solver])
+    return setup.scene, variants, [2 * setup.solver.dt, setup.solver.dt]
+
+
+def test_accuracy_over_two_jobs_gives_the_numbers_of_one_process():
+    from clothbench.analysis.convergence import run_accuracy
+
+    scene, variants, dts = _accuracy_inputs()
+    plain = run_accuracy(scene, variants, dts, 0.02)
+    with LocalExecutor(jobs=2) as ex:
+        spread = run_accuracy(scene, variants, dts, 0.02, executor=ex)
+    timing = {"ms_per_step", "ms_per_sim_s"}
+    strip = lambda rows: [{k: v for k, v in r.as_dict().items() if k not in timing} for r in rows]  # noqa: E731
+    assert strip(plain.rows) == strip(spread.rows)
+    assert all(r.status == "ok" for r in spread.rows)
+
+
+def test_an_accuracy_row_that_crashes_says_so_and_the_others_are_measured(faulty):
+    from clothbench.analysis.convergence import run_accuracy
+    from clothbench.harness.plan import plan_variants
+
+    from clothbench.scene import load_setup
+
+    scene, _, dts = _accuracy_inputs()
+    variants, _ = plan_variants(["fake-abort", "fake-fine"], [load_setup("drape").solver])
+    with LocalExecutor(jobs=2) as ex:
+        result = run_accuracy(scene, variants, dts, 0.02, executor=ex)
+    status = {(r.backend, r.dt): r.status for r in result.rows}
+    assert all(s.startswith("crashed") and "SIGABRT" in s for (b, _), s in status.items() if b == "fake-abort")
+    assert all(s == "ok" for (b, _), s in status.items() if b == "fake-fine")
+    assert len(status) == 4
+
+
+def test_accuracy_and_stability_cli_take_jobs(tmp_path, capsys):
+    acc = tmp_path / "a.csv"
+    assert main(["accuracy", "--backends", "numpy", "--grid", "6", "--levels", "2", "--time", "0.02", "--jobs", "2",
+                 "--out", str(acc)]) == 0  # fmt: skip
+    assert acc.read_text().count("\n") == 1 + 4  # f32 and f64 at 2 dts
+    st = tmp_path / "s.csv"
+    assert main(["stability", "--backends", "numpy", "--grid", "8", "--steps", "100", "--scenes", "flat",
+                 "--stiffness", "1000,10000", "--jobs", "2", "--out", str(st)]) == 0  # fmt: skip
+    assert st.read_text().count("\n") == 1 + 4
+    assert main(["accuracy", "--backends", "numpy", "--jobs", "0"]) == 2
+    assert "--jobs must be >= 1" in capsys.readouterr().err

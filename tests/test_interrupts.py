@@ -1,0 +1,112 @@
+"""Ctrl-C (SIGINT) or SIGTERM in the middle of a row of a real `clothbench sweep` process:
+exit 130, every finished row kept, no partial one, and --resume completes the sweep to the
+same rows as one never interrupted."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from clothbench.harness.sweep_csv import row_key
+
+from test_sweep import read_csv
+
+ARGS = ["sweep", "--backends", "numpy", "--grids", "8,12", "--steps", "3", "--repeat", "2"]
+
+
+def _clothbench(*args, env=None, **kw):
+    return [sys.executable, "-c", "import sys; from clothbench.cli import main; sys.exit(main(sys.argv[1:]))", *args]
+
+
+def _data_rows(path) -> int:
+    try:
+        return max(0, path.read_text().count("\n") - 1)
+    except FileNotFoundError:
+        return 0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_mid_row_keeps_finished_rows_and_resume_completes(tmp_path, sig):
+    out = tmp_path / "s.csv"
+    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:slow")  # every row takes >= 2 s
+    proc = subprocess.Popen(_clothbench(*ARGS, "--out", str(out)), env=env, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while _data_rows(out) < 1 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert _data_rows(out) == 1, proc.poll()
+    time.sleep(0.7)  # the second row is running in its worker now
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "--resume" in err
+    rows = read_csv(out)  # whole lines only (read_csv checks), the finished row kept
+    assert len(rows) == 1 and rows[0]["status"] == "ok"
+
+    done = subprocess.run(_clothbench(*ARGS, "--out", str(out), "--resume"), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    whole = tmp_path / "whole.csv"
+    assert subprocess.run(_clothbench(*ARGS, "--out", str(whole)), capture_output=True).returncode == 0
+    resumed, uninterrupted = read_csv(out), read_csv(whole)
+    assert len(resumed) == len(uninterrupted) == 4
+    assert sorted(map(row_key, resumed)) == sorted(map(row_key, uninterrupted))
+    assert all(r["status"] == "ok" for r in resumed)
+
+
+def _children(pid: int) -> list[str]:
+    """Every child of `pid`, whichever of its threads started it."""
+    found = []
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
+    for task in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                found += f.read().split()
+        except OSError:
+            pass
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("command", ["accuracy", "stability"])
+def test_a_signal_in_accuracy_or_stability_exits_130_and_writes_no_partial_file(tmp_path, command, sig):
+    out = tmp_path / "out.csv"
+    args = {
+        "accuracy": ["accuracy", "--backends", "numpy", "--grid", "6", "--levels", "2", "--time", "0.02", "--jobs", "2"],
+        "stability": ["stability", "--backends", "numpy", "--grid", "16", "--steps", "20000", "--scenes", "flat",
+                      "--stiffness", "1000,10000,100000"],
+    }[command]  # fmt: skip
+    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang")  # accuracy rows never end; stability is long anyway
+    proc = subprocess.Popen(_clothbench(*args, "--out", str(out)), env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not _children(proc.pid) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)  # its rows' worker processes are running
+    assert _children(proc.pid), proc.poll()
+    time.sleep(0.5)
+    workers = _children(proc.pid)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert not out.exists() and not list(tmp_path.iterdir())  # nothing partial, nothing left over
+    time.sleep(0.2)
+    assert not [w for w in workers if os.path.exists(f"/proc/{w}") and open(f"/proc/{w}/stat").read().split()[2] != "Z"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_in_run_exits_130_and_saves_nothing_partial(tmp_path, sig):
+    save = tmp_path / "s.npz"
+    args = ["run", "--backend", "numpy", "--grid", "32", "--steps", "100000000", "--save", str(save)]
+    proc = subprocess.Popen(_clothbench(*args), stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    time.sleep(4)  # imported, stepping
+    assert proc.poll() is None
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert not list(tmp_path.iterdir())
