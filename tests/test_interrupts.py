@@ -4,6 +4,7 @@ same rows as one never interrupted."""
 
 from __future__ import annotations
 
+import csv
 import os
 import signal
 import subprocess
@@ -75,7 +76,7 @@ def _children(pid: int) -> list[str]:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 @pytest.mark.parametrize("command", ["accuracy", "stability"])
-def test_a_signal_in_accuracy_or_stability_exits_130_and_writes_no_partial_file(tmp_path, command, sig):
+def test_a_signal_in_accuracy_or_stability_exits_130_and_writes_no_partial_row(tmp_path, command, sig):
     out = tmp_path / "out.csv"
     args = {
         "accuracy": ["accuracy", "--backends", "numpy", "--grid", "6", "--levels", "2", "--time", "0.02", "--jobs", "2"],
@@ -94,7 +95,9 @@ def test_a_signal_in_accuracy_or_stability_exits_130_and_writes_no_partial_file(
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
-    assert not out.exists() and not list(tmp_path.iterdir())  # nothing partial, nothing left over
+    assert list(tmp_path.iterdir()) == [out]  # the CSV (its header, any finished row), nothing else
+    text = out.read_text()
+    assert text.endswith("\n") and len({len(r) for r in csv.reader(text.splitlines())}) == 1  # whole rows
     time.sleep(0.2)
     assert not [w for w in workers if os.path.exists(f"/proc/{w}") and open(f"/proc/{w}/stat").read().split()[2] != "Z"]
 
@@ -110,3 +113,64 @@ def test_a_signal_in_run_exits_130_and_saves_nothing_partial(tmp_path, sig):
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err
     assert not list(tmp_path.iterdir())
+
+
+STUDIES = {
+    "accuracy": ["accuracy", "--backends", "numpy", "--grid", "6", "--levels", "2", "--time", "0.02"],
+    "stability": ["stability", "--backends", "numpy", "--grid", "12", "--steps", "1500", "--scenes", "flat",
+                  "--stiffness", "1000,3000,10000"],
+}  # fmt: skip
+TIMED = {"ms_per_step", "ms_per_sim_s"}  # accuracy's cost columns: the clock, not the result
+
+
+def _study_rows(path):
+    with open(path, newline="") as f:
+        return [{k: v for k, v in r.items() if k not in TIMED} for r in csv.DictReader(f)]
+
+
+@pytest.mark.parametrize("command", ["accuracy", "stability"])
+def test_an_interrupted_study_keeps_its_finished_rows_and_resume_completes_it(tmp_path, command):
+    from clothbench.cli import main
+
+    out = tmp_path / "part.csv"
+    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:slow")  # accuracy rows take 2 s each
+    proc = subprocess.Popen(_clothbench(*STUDIES[command], "--out", str(out)), env=env,
+                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if out.exists() and out.read_text().count("\n") >= 2:  # the header and a finished row
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "finished before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "--resume" in err and "Traceback" not in err
+    kept = _study_rows(out)
+    text = out.read_text()
+    assert text.endswith("\n") and len({len(r) for r in csv.reader(text.splitlines())}) == 1
+    assert main([*STUDIES[command], "--out", str(out)]) == 2  # an existing file wants --resume
+    assert main([*STUDIES[command], "--out", str(out), "--resume"]) == 0
+    whole = tmp_path / "whole.csv"
+    assert main([*STUDIES[command], "--out", str(whole)]) == 0
+    resumed, expected = _study_rows(out), _study_rows(whole)
+    assert 1 <= len(kept) < len(expected)
+    assert resumed == expected  # every row once, in the plan's order, derived columns included
+    other = [*STUDIES[command], "--out", str(out), "--resume", "--grid", "13"]
+    assert main(other) == 2  # measured with other settings: refused
+
+
+def test_accuracy_resume_keeps_crashed_rows_and_retry_failed_measures_them_again(tmp_path, monkeypatch):
+    from clothbench.cli import main
+
+    out = tmp_path / "acc.csv"
+    args = [*STUDIES["accuracy"], "--out", str(out)]
+    monkeypatch.setenv("CLOTHBENCH_FAULT", "numpy:abort")  # every row's worker aborts
+    assert main(args) == 0
+    assert {r["status"].split(":")[0] for r in _study_rows(out)} == {"crashed"}
+    monkeypatch.delenv("CLOTHBENCH_FAULT")
+    assert main([*args, "--resume"]) == 0
+    assert {r["status"].split(":")[0] for r in _study_rows(out)} == {"crashed"}  # left alone
+    assert main([*args, "--retry-failed"]) == 0
+    rows = _study_rows(out)
+    assert len(rows) == 4 and {r["status"] for r in rows} == {"ok"} and all(r["order"] != "" for r in rows)

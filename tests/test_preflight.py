@@ -127,3 +127,82 @@ def test_stability_stiffness_float32_breaks_is_one_line_before_work(k, words, ca
     args[args.index("--stiffness") + 1] = f"1000,{k}"
     assert main(args) == 2
     _one_line_error(capsys, *words)
+
+
+# Every command's bad input, one line and exit 2 before any work: {bin} a binary file, {dir} a
+# folder, {missing} no file, {blocked} a path under a file (it cannot be written), {sweep} a
+# good sweep CSV. The commands run/sweep/accuracy/stability have the tests above as well.
+REFUSALS = [
+    ("plot {bin}", "not UTF-8"),
+    ("plot {dir}", "is a directory"),
+    ("plot {missing}", "no such file"),
+    ("plot {sweep} --out {blocked}", "cannot"),
+    ("report {bin}", "not UTF-8"),
+    ("report {dir}", "is a directory"),
+    ("report {missing}", "no such file"),
+    ("report {sweep} --out {blocked}.html", "cannot write"),
+    ("compare {bin} {sweep}", "not UTF-8"),
+    ("compare {sweep} {bin}", "not UTF-8"),
+    ("compare {sweep} {dir}", "is a directory"),
+    ("compare {sweep} {missing}", "no such file"),
+    ("render --backend numpy --frames 1 --out {blocked}.png", "cannot write"),
+    ("render --backend numpy --frames 1 --out {blocked}/", "cannot write"),
+    ("render --backend numpy --frames 1 --out {dir}/x.txt", "--out must be"),
+    ("render --backend numpy --frames 1 --out {dir}/r.png --dt 1e-30", "too small for float32"),
+    ("render --backend numpy --frames 1 --out {dir}/r.png --dt 1e39", "too large for float32"),
+    ("render --backend numpy --frames 1 --out {dir}/r.png --grid 100000", "needs about"),
+    ("render --backend numpy --frames 1 --out {dir}/r.png --scene {bin}", "not UTF-8"),
+    ("render --backend numpy --frames 1 --out {dir}/r.png --scene {dir}", "is a directory"),
+    ("render --backend numpy --frames 1 --out {dir}/r.png --scene {missing}", "unknown scene"),
+    ("view --headless --backend numpy --frames 1 --screenshot /proc/clothbench-x.png", "cannot write"),
+    ("view --headless --backend numpy --frames 1 --record {blocked}.gif", "no folder"),
+    ("view --headless --backend numpy --frames 1 --save {dir}", "takes a .npz"),
+    ("view --headless --backend numpy --frames 1 --dt 1e-30", "too small for float32"),
+    ("view --headless --backend numpy --frames 1 --dt 1e39", "too large for float32"),
+    ("view --headless --backend numpy --frames 1 --grid 100000", "needs about"),
+    ("view --headless --backend numpy --frames 1 --scene {bin}", "not UTF-8"),
+    ("view --headless --backend numpy --frames 1 --scene {dir}", "is a directory"),
+    ("advise --max-error 1e-3 --csv {bin}", "not UTF-8"),
+    ("advise --max-error 1e-3 --csv {dir}", "directory"),
+    ("advise --max-error 1e-3 --csv {missing}", "No such file"),
+    ("advise --max-error 1e-3 --scene {bin}", "not UTF-8"),
+    ("advise --max-error 1e-3 --run --backends numpy --out {blocked}.csv", "cannot write"),
+    ("accuracy --backends numpy --grid 4 --levels 2 --time 0.01 --scene {bin}", "not UTF-8"),
+    ("stability --backends numpy --grid 8 --steps 100 --scenes flat --out {blocked}.csv", "cannot write"),
+    ("sweep --backends numpy --grids 4 --steps 3 --repeat 1 --scene {dir}", "is a directory"),
+    ("run --backend numpy --grid 4 --steps 3 --scene {missing}", "unknown scene"),
+]
+
+
+@pytest.mark.parametrize("line, words", REFUSALS, ids=[r[0].split()[0] + ": " + r[0] for r in REFUSALS])
+def test_every_command_refuses_bad_input_in_one_line(line, words, tmp_path, capsys):
+    from pathlib import Path
+
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(bytes(range(256)) * 4)
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    sweep = Path(__file__).parents[1] / "results" / "cpu-llvmpipe-pocl.csv"
+    names = dict(bin=binary, dir=folder, missing=tmp_path / "missing.csv", blocked=blocker / "out", sweep=sweep)
+    argv = [part.format(**names) for part in line.split()]
+    assert main(argv) == 2
+    _one_line_error(capsys, words)
+    assert not [p for p in folder.iterdir()], "a refused command wrote something"
+
+
+def test_advise_refuses_an_accuracy_run_written_as_measured_but_not_finished(tmp_path, capsys):
+    import csv
+
+    from clothbench.analysis.convergence import AccuracyRow
+    from clothbench.cli.study_files import early_cells
+
+    row = early_cells(AccuracyRow("drape", 32, "rest", 0.002, 0.1, "numpy", "numpy f32", "f32", "cpu", 0.001, 100))
+    path = tmp_path / "acc.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        w.writeheader()
+        w.writerow(row)
+    assert main(["advise", "--max-error", "1e-3", "--csv", str(path)]) == 2
+    _one_line_error(capsys, "unfinished", "--resume")

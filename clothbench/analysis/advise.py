@@ -88,11 +88,13 @@ def read_accuracy_csv(path: str | Path) -> AccuracyRun:
     """The rows of a `clothbench accuracy` CSV, or one line saying why it is not one."""
     path = Path(path)
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8") as f:
             reader = csv.DictReader(f)
             columns = reader.fieldnames or []
             records = list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error) as e:
+    except UnicodeDecodeError:
+        raise ClothbenchError(f"{path} is not a clothbench accuracy CSV (not UTF-8 text)") from None
+    except (OSError, csv.Error) as e:
         raise ClothbenchError(f"cannot read {path}: {getattr(e, 'strerror', None) or e}") from None
     missing = [c for c in REQUIRED if c not in columns]
     if missing:
@@ -105,6 +107,8 @@ def read_accuracy_csv(path: str | Path) -> AccuracyRun:
     kinds = {f.name: f.type for f in dataclasses.fields(AccuracyRow)}
     rows = []
     for n, record in enumerate(records, start=2):  # line 1 is the header
+        if record.get("in_fit") == "" and record.get("status") is not None:  # written as measured, not fitted
+            raise ClothbenchError(f"{path} is an unfinished accuracy run: finish it with clothbench accuracy --resume")
         try:
             rows.append(AccuracyRow(**{k: _parse(v, kinds[k]) for k, v in record.items() if k in kinds}))
         except (TypeError, ValueError) as e:

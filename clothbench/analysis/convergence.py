@@ -358,6 +358,8 @@ def run_accuracy(
     on_progress: Callable[[str], None] | None = None,
     pbd_dts: list[float] | None = None,
     executor=None,
+    skip: Callable[[Variant, Solver], bool] | None = None,
+    on_row: Callable[[AccuracyRow], None] | None = None,
 ) -> AccuracyResult:
     """Every variant at every dt to `time_s`: cost, implementation and discretisation error.
 
@@ -369,7 +371,8 @@ def run_accuracy(
     and the distance between the converged answers of Verlet and each PBD model is returned
     in `differences`. With an `executor` (harness/executor.py) the references, then the
     rows, run as its tasks (in parallel over its jobs; every one in a worker process): a
-    row whose worker crashed or ran past the limit says so in its status."""
+    row whose worker crashed or ran past the limit says so in its status. Rows `skip` names
+    are not run (--resume: the file has them); `on_row` gets each row as it is measured."""
     note = on_progress or (lambda what: None)
     dts = sorted(dts, reverse=True)
     pbd_dts = sorted(pbd_dts or dts, reverse=True)
@@ -402,13 +405,7 @@ def run_accuracy(
             note(f"converged float64 reference: {name}")
             on_level = lambda lvl, dt, name=name: note(f"reference {name} dt/2^{lvl} = {dt:.3g} s")  # noqa: E731
             pending[key] = run(converged_reference, scene, solver, time_s, finest, on_level=on_level)
-    planned = []
-    for v in variants:
-        for dt in levels(v.solver):
-            solver = v.solver.replace(dt=dt)
-            safe = fork_safe(v.backend, v.solver.name)
-            planned.append((v, solver, run(_run_row, v, scene, solver, time_s, fork_safe=safe)))
-    for key, levels_run in early.items():  # then each reference from them, beside the rows
+    for key, levels_run in early.items():  # then each reference from them, the rows beside them
         solver, finest = models[key]
         note(f"converged float64 reference: {model_name(solver)}")
         runs_at = {}
@@ -418,6 +415,14 @@ def run_accuracy(
                 raise ClothbenchError(f"the float64 reference {model_name(solver)} {status}: {value}")
             runs_at[lvl] = value
         pending[key] = run(converged_reference, scene, solver, time_s, finest, runs_at=runs_at)
+    planned = []
+    for v in variants:
+        for dt in levels(v.solver):
+            solver = v.solver.replace(dt=dt)
+            if skip is not None and skip(v, solver):
+                continue
+            safe = fork_safe(v.backend, v.solver.name)
+            planned.append((v, solver, run(_run_row, v, scene, solver, time_s, fork_safe=safe)))
     for key, got in pending.items():
         status, value = got()
         if status != "ok":
@@ -438,6 +443,8 @@ def run_accuracy(
                 mine.append(_against(row, None, None, scene, solver, ref, verlet_ref))
             else:
                 mine.append(_against(*value, scene, solver, ref, verlet_ref))
+            if on_row is not None:
+                on_row(mine[-1])
         used = [r for r in mine if discretisation_dominates(r, ref)]
         order = fit_order([r.dt for r in used], [r.disc_rms for r in used])
         for r in mine:

@@ -11,6 +11,9 @@ import math
 from pathlib import Path
 
 from clothbench.cli.args import add_row_args, check_row_args, int_list, sigterm_interrupts, solver_specs
+from clothbench.cli.study_files import (
+    accuracy_file, accuracy_key, add_resume_args, early_cells, finish_accuracy, say_interrupted,
+)  # fmt: skip
 from clothbench.errors import ClothbenchError
 
 DEFAULT_LEVELS = 5  # 2 dt .. dt/8 around the scene's dt (docs/accuracy.md: why one coarser)
@@ -52,7 +55,10 @@ def register(subparsers) -> None:
         "undamped) against Verlet for 3/10/30/100 iterations and dt 1/60..1/240 (numpy f64); "
         "writes <out>-artefacts.csv",
     )
-    acc.add_argument("--out", help="CSV path (default results/accuracy-<scene>.csv); plots beside it")
+    acc.add_argument(
+        "--out", help="CSV path (default results/accuracy-<scene>.csv; each row written as measured); plots beside it"
+    )
+    add_resume_args(acc, "resume, and measure again the rows the file holds as error, crashed or timeout")
     add_row_args(acc, jobs=True)
     acc.set_defaults(func=cmd_accuracy)
 
@@ -134,7 +140,7 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def cmd_accuracy(args) -> int:
-    from clothbench.analysis.convergence import dt_levels, model_name, run_accuracy
+    from clothbench.analysis.convergence import dt_levels, model_name, run_accuracy, steps_for
     from clothbench.reports.accuracy_plots import plot_convergence, plot_speed_vs_error
     from clothbench.reports.progress import LazyProgress
     from clothbench.harness.executor import executor_for
@@ -172,20 +178,33 @@ def cmd_accuracy(args) -> int:
         check_writable(path)  # before the run, not after it
     check_memory([scene.grid], ("f64",), jobs=args.jobs)
     variants = variants_for(args.backends, solvers)
-    models = {model_name(v.solver) for v in variants} | {"verlet"}
-    total = sum(len(pbd_dts if v.solver.name == "pbd" else dts) for v in variants) + 6 * len(models)
-    done = 0
-    with LazyProgress(total, "accuracy") as progress:
+    levels = lambda v: sorted(pbd_dts if v.solver.name == "pbd" else dts, reverse=True)  # noqa: E731
+    planned = [(v, v.solver.replace(dt=dt)) for v in variants for dt in levels(v)]
+    for _, solver in planned:
+        steps_for(time_s, solver.dt)  # a bad --time refused before the file is touched
+    with accuracy_file(out, planned, scene, time_s, base.start, pbd.start, args.resume, args.retry_failed) as f:
+        have = f.keys()
+        models = {model_name(v.solver) for v in variants} | {"verlet"}
+        total = sum(1 for v, s in planned if accuracy_key(v, s) not in have) + 6 * len(models)
+        done = 0
+        try:
+            with LazyProgress(total, "accuracy") as progress:
 
-        def note(what: str) -> None:
-            nonlocal done
-            done += 1
-            progress.update(min(done, total), what)
+                def note(what: str) -> None:
+                    nonlocal done
+                    done += 1
+                    progress.update(min(done, total), what)
 
-        with executor_for(args.scheduler, args.jobs, args.row_timeout) as executor:
-            result = run_accuracy(scene, variants, dts, time_s, on_progress=note, pbd_dts=pbd_dts, executor=executor)
+                with executor_for(args.scheduler, args.jobs, args.row_timeout) as executor:
+                    result = run_accuracy(
+                        scene, variants, dts, time_s, on_progress=note, pbd_dts=pbd_dts, executor=executor,
+                        skip=lambda v, s: accuracy_key(v, s) in have, on_row=lambda row: f.append(early_cells(row)),
+                    )  # fmt: skip
+        except KeyboardInterrupt:
+            say_interrupted(f)
+            raise
+        result.rows = finish_accuracy(f, planned, result.rows)
 
-    write_csv(out, [r.as_dict() for r in result.rows])
     speed_png, conv_png = outputs[1], outputs[2]
     plot_speed_vs_error(result, speed_png)
     plot_convergence(result, conv_png)

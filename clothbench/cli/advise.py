@@ -108,6 +108,11 @@ def _measure_here(args, setup, out: Path):
     parser = Parser(prog="clothbench")
     accuracy.register(parser.add_subparsers(dest="command", parser_class=Parser))
     acc_args = parser.parse_args(argv)
+    from clothbench.harness.preflight import check_writable
+
+    check_writable(out, "--out")  # before saying it measures
+    if out.exists() and out.stat().st_size > 0:
+        raise ClothbenchError(f"--out {out} already exists: choose another path, or remove it")
     print(f"measuring here: clothbench {' '.join(argv)} (a few minutes at 32x32)", file=sys.stderr)
     with contextlib.redirect_stdout(sys.stderr):
         acc_args.func(acc_args)

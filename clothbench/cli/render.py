@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from pathlib import Path
 
 from clothbench.cli.args import add_scene_args, setup_from_args
 
@@ -55,6 +56,7 @@ def register(subparsers) -> None:
 def cmd_render(args) -> int:
     from clothbench.backends import BackendOptions, check_name
     from clothbench.reports.progress import LazyProgress
+    from clothbench.harness.preflight import check_memory, check_writable
     from clothbench.reports.render import RenderSettings, check_settings, output_kind, render
 
     check_name(args.backend)
@@ -63,6 +65,9 @@ def cmd_render(args) -> int:
     check_settings(settings)
     setup = setup_from_args(args)
     scene, solver = setup.scene, setup.solver
+    check_memory([scene.grid], reference=False)  # before any work, as every output path is
+    first = Path(args.out) / "frame_0001.png" if output_kind(args.out) == "folder" else Path(args.out)
+    check_writable(first, "--out")
     options = BackendOptions(strict=args.strict, generic=args.generic, gl=args.gl)
     with LazyProgress(settings.frames, f"render {scene.name} on {args.backend}") as progress:
         report = render(scene, solver, args.backend, options, settings, args.out, on_frame=progress.update)

@@ -8,7 +8,11 @@ import math
 from pathlib import Path
 
 from clothbench.cli.args import add_row_args, check_row_args, sigterm_interrupts
-from clothbench.cli.accuracy import add_pbd_args, floats, solvers_from_args, variants_for, write_csv
+from clothbench.cli.accuracy import add_pbd_args, floats, solvers_from_args, variants_for
+from clothbench.harness.study_csv import cells
+from clothbench.cli.study_files import (
+    add_resume_args, finish_stability, say_interrupted, stability_file, stability_key,
+)  # fmt: skip
 from clothbench.errors import ClothbenchError
 
 STABILITY_GRID = 24  # its top frequency is within 1.4 % (omega^2) of the infinite lattice's
@@ -37,7 +41,12 @@ def register(subparsers) -> None:
         "--cap", type=float, default=None,
         help="largest dt the PBD bisection tries, s (default 0.1): stable there reads 'stable up to the cap'",
     )
-    st.add_argument("--out", help="CSV path (default results/stability.csv); the map beside it")
+    st.add_argument(
+        "--out", help="CSV path (default results/stability.csv; each row written as measured); the map beside it"
+    )
+    add_resume_args(
+        st, "the same as --resume: a case whose bisection failed is not written, so a resume measures it again"
+    )
     add_row_args(st, jobs=True)
     st.set_defaults(func=cmd_stability)
 
@@ -77,35 +86,44 @@ def cmd_stability(args) -> int:
         for k in ks:
             stability_scene(kind, k, args.grid, args.damping)
     variants = variants_for(args.backends, solvers)
-    rows = []
     cases = [(v, kind, k) for v in variants for kind in kinds for k in ks]
-    with LazyProgress(len(cases), "stability") as progress, executor_for(
-        args.scheduler, args.jobs, args.row_timeout
-    ) as executor:
-        futures = [
-            executor.submit(
-                measure_stability_limit, v, kind, k, args.steps, args.grid, args.damping,
-                cap=cap if v.solver.name == "pbd" else None, check_60hz=check_60hz,
-                fork_safe=fork_safe(v.backend, v.solver.name),
-            )
-            for v, kind, k in cases
-        ]  # fmt: skip
-        for done, ((v, kind, k), future) in enumerate(zip(cases, futures)):
-            progress.update(done, f"{v.backend} {v.solver.name} {kind} k={k:g}")
-            try:
-                outcome = future.result()
-            except ClothbenchError:
-                raise
-            except Exception as e:  # a broken backend is reported, the others still run
-                print(f"{v.backend} {v.solver.name} {kind} k={k:g}: error: {type(e).__name__}: {e}")
-                continue
-            if outcome.ok:
-                rows.append(outcome.value)
-            else:
-                print(f"{v.backend} {v.solver.name} {kind} k={k:g}: {outcome.status}: {outcome.note}")
+    resume = args.resume or args.retry_failed
+    with stability_file(out, cases, args.grid, args.steps, args.damping, cap, resume) as f:
+        have = f.keys()
+        todo = [c for c in cases if stability_key(*c) not in have]
+        measured = {}
+        try:
+            with LazyProgress(len(todo), "stability") as progress, executor_for(
+                args.scheduler, args.jobs, args.row_timeout
+            ) as executor:
+                futures = [
+                    executor.submit(
+                        measure_stability_limit, v, kind, k, args.steps, args.grid, args.damping,
+                        cap=cap if v.solver.name == "pbd" else None, check_60hz=check_60hz,
+                        fork_safe=fork_safe(v.backend, v.solver.name),
+                    )
+                    for v, kind, k in todo
+                ]  # fmt: skip
+                for done, ((v, kind, k), future) in enumerate(zip(todo, futures)):
+                    progress.update(done, f"{v.backend} {v.solver.name} {kind} k={k:g}")
+                    try:
+                        outcome = future.result()
+                    except ClothbenchError:
+                        raise
+                    except Exception as e:  # a broken backend is reported, the others still run
+                        print(f"{v.backend} {v.solver.name} {kind} k={k:g}: error: {type(e).__name__}: {e}")
+                        continue
+                    if outcome.ok:
+                        f.append(cells(outcome.value.as_dict()))
+                        measured[stability_key(v, kind, k)] = outcome.value
+                    else:
+                        print(f"{v.backend} {v.solver.name} {kind} k={k:g}: {outcome.status}: {outcome.note}")
+        except KeyboardInterrupt:
+            say_interrupted(f)
+            raise
+        rows = finish_stability(f, cases, measured)
     if not rows:
         raise ClothbenchError("no stability limit could be measured (every backend failed)")
-    write_csv(out, [r.as_dict() for r in rows])
     plot_stability_map(rows, png)
     _print_stability(rows)
     if len({_solver_model(r) for r in rows}) > 1 or check_60hz:

@@ -65,9 +65,12 @@ def _output(path: str | None, suffix: str | None, option: str) -> None:
         return
     if suffix and Path(path).suffix.lower() != suffix:
         raise ClothbenchError(f"{option} takes a {suffix} file, got {path!r}")
+    from clothbench.harness.preflight import check_writable
+
     folder = Path(path).parent
     if not folder.is_dir():
         raise ClothbenchError(f"{option}: no folder {folder} to write {Path(path).name} into")
+    check_writable(path, option)  # now, not after the session
 
 
 def settings_from_args(args):
@@ -101,11 +104,13 @@ def settings_from_args(args):
 
 def cmd_view(args) -> int:
     from clothbench.backends import BackendOptions, check_name
+    from clothbench.harness.preflight import check_memory
     from clothbench.reports.viewer import view
 
     check_name(args.backend)
     settings = settings_from_args(args)
     setup = setup_from_args(args)
+    check_memory([setup.scene.grid], reference=False)
     options = BackendOptions(strict=args.strict, generic=args.generic)
     report = view(setup.scene, setup.solver, args.backend, options, settings)
     wrote = f"; wrote {', '.join(report.files)}" if report.files else ""

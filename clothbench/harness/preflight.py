@@ -65,16 +65,17 @@ def _gib(n: float) -> str:
 
 
 def check_memory(
-    grids: Iterable[int], precisions: Iterable[str] = ("f32",), jobs: int = 1, available: int | None = None
+    grids: Iterable[int], precisions: Iterable[str] = ("f32",), jobs: int = 1, available: int | None = None,
+    reference: bool = True,
 ) -> None:
     """Refuse, in one line, a grid whose rows (`jobs` of them at once) need more memory than
-    the machine has available."""
+    the machine has available; reference=False: rows with no float64 run beside them (render, view)."""
     available = available_memory() if available is None else available
     if not available:
         return
     precisions = tuple(precisions) or ("f32",)
     for grid in grids:
-        need = max(row_bytes(grid, p) for p in precisions) * max(1, jobs)
+        need = max(row_bytes(grid, p, reference) for p in precisions) * max(1, jobs)
         if need > HEADROOM * available:
             at_once = f" ({jobs} rows at once)" if jobs > 1 else ""
             raise ClothbenchError(

@@ -127,11 +127,18 @@ class SweepFile:
     """The sweep CSV, open for appending: one complete line per write, fsynced.
 
     Holds an exclusive lock while open, so two sweeps never interleave rows in one file.
+    `columns` and `what` make it the file of another command (accuracy, stability: the
+    study files of harness/study_csv.py); a row is retried when its status's first word
+    (before any ':') is in `retry`.
     """
 
-    def __init__(self, path: str | os.PathLike, resume: bool = False, retry: Iterable[str] = ()):
+    def __init__(
+        self, path: str | os.PathLike, resume: bool = False, retry: Iterable[str] = (),
+        columns: tuple[str, ...] = COLUMNS, what: str = "sweep",
+    ):  # fmt: skip
         self.path = Path(path)
         self.retry = frozenset(retry)
+        self.columns, self.what = tuple(columns), what
         self.rows: list[dict[str, str]] = []  # rows already in the file
         self.dropped_bytes = 0  # a partial last line removed on resume
         if self.path.is_dir():
@@ -149,18 +156,31 @@ class SweepFile:
         try:
             self._lock()
             self._load()
-            if self.retry and any(r["status"] in self.retry for r in self.rows):
+            self._check_rows()
+            if self.retry and any(self._retried(r) for r in self.rows):
                 self._drop_retried()
         except BaseException:
             os.close(self.fd)
             raise
 
+    def _check_rows(self) -> None:
+        """Refuse (before a byte changes) rows this run cannot add to; none for a sweep, whose
+        run_sweep checks the settings of the rows it resumes itself."""
+
+    def _retried(self, row: dict[str, str]) -> bool:
+        return row.get("status", "").split(":", 1)[0].strip() in self.retry
+
     def _drop_retried(self) -> None:
         """--retry-failed: the file without its failed/crashed/timeout rows, replaced in one
         rename (a crash leaves the old file or the new one, never half of either)."""
-        keep = [r for r in self.rows if r["status"] not in self.retry]
+        keep = [r for r in self.rows if not self._retried(r)]
+        self.rewrite(keep)
+
+    def rewrite(self, rows: list[dict[str, str]]) -> None:
+        """The file replaced by `rows` (header first) in one rename, and open again for appending."""
+        columns = self.columns
         tmp = self.path.with_name(self.path.name + ".retry-tmp")
-        text = csv_line(COLUMNS) + "".join(csv_line(r.get(c, "") for c in COLUMNS) for r in keep)
+        text = csv_line(columns) + "".join(csv_line(r.get(c, "") for c in columns) for r in rows)
         with open(tmp, "w", encoding="utf-8", newline="") as t:
             t.write(text)
             t.flush()
@@ -169,7 +189,7 @@ class SweepFile:
         os.close(self.fd)
         self.fd = os.open(self.path, os.O_RDWR | os.O_APPEND)
         self._lock()
-        self.rows = keep
+        self.rows = list(rows)
 
     def _lock(self) -> None:
         try:
@@ -180,12 +200,12 @@ class SweepFile:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise ClothbenchError(
-                f"another clothbench sweep is writing {self.path}: wait for it, or choose another --out"
+                f"another clothbench {self.what} is writing {self.path}: wait for it, or choose another --out"
             ) from None
 
     def _load(self) -> None:
         data = self._read_all()
-        header = csv_line(COLUMNS).encode()
+        header = csv_line(self.columns).encode()
         if not data or (b"\n" not in data and header.startswith(data)):  # new, or a torn header
             os.ftruncate(self.fd, 0)
             self._write(header.decode())
@@ -199,31 +219,33 @@ class SweepFile:
             data = data[:keep]
         records = list(csv.reader(io.StringIO(data.decode("utf-8"))))
         for lineno, record in enumerate(records[1:], start=2):
-            if len(record) != len(COLUMNS):
+            if len(record) != len(self.columns):
                 raise ClothbenchError(
-                    f"{self.path}:{lineno}: {len(record)} fields, expected {len(COLUMNS)}: "
-                    "the file was changed by something other than clothbench sweep"
+                    f"{self.path}:{lineno}: {len(record)} fields, expected {len(self.columns)}: "
+                    f"the file was changed by something other than clothbench {self.what}"
                 )
-            self.rows.append(dict(zip(COLUMNS, record)))
+            self.rows.append(dict(zip(self.columns, record)))
 
     def _check_header(self, first_line: bytes) -> None:
         """Refuse (before changing a byte) a file this version did not write."""
         try:
             header = tuple(next(csv.reader([first_line.decode("utf-8")]), []))
         except UnicodeDecodeError:
-            raise ClothbenchError(f"{self.path} is not a clothbench sweep CSV (not UTF-8 text)") from None
-        if header == COLUMNS:
+            raise ClothbenchError(f"{self.path} is not a clothbench {self.what} CSV (not UTF-8 text)") from None
+        columns = self.columns
+        if header == columns:
             return
-        if "backend" not in header or "ms_median" not in header:
-            raise ClothbenchError(f"{self.path} is not a clothbench sweep CSV: choose another --out")
-        missing = [c for c in COLUMNS if c not in header]
-        extra = [c for c in header if c not in COLUMNS]
+        marker = "ms_median" if columns == COLUMNS else columns[-1]  # a column only this kind of file has
+        if "backend" not in header or marker not in header:
+            raise ClothbenchError(f"{self.path} is not a clothbench {self.what} CSV: choose another --out")
+        missing = [c for c in columns if c not in header]
+        extra = [c for c in header if c not in columns]
         detail = "; ".join(
             ([f"lacks {', '.join(missing)}"] if missing else []) + ([f"has {', '.join(extra)}"] if extra else [])
         ) or "has them in another order"
         raise ClothbenchError(
             f"{self.path} has other columns than this clothbench writes ({detail}): "
-            "resume it with the version that wrote it, or sweep into a new --out"
+            f"resume it with the version that wrote it, or write the {self.what} into a new --out"
         )
 
     def _read_all(self) -> bytes:
@@ -244,7 +266,7 @@ class SweepFile:
         return {row_key(r) for r in self.rows}
 
     def append(self, row: dict[str, str]) -> None:
-        self._write(csv_line(row.get(c, "") for c in COLUMNS))
+        self._write(csv_line(row.get(c, "") for c in self.columns))
         self.rows.append(row)
 
     def close(self) -> None:
