@@ -250,6 +250,13 @@ class AccuracyResult:
         return out
 
 
+def cheapest_at(rows, target: float, error: str = "disc_rms"):
+    """The row with the lowest cost (ms per simulated second) among those whose `error`
+    column is at most `target`; None when no row reaches it."""
+    ok = [r for r in rows if r.status == "ok" and getattr(r, error) <= target and r.ms_per_sim_s > 0]
+    return min(ok, key=lambda r: r.ms_per_sim_s) if ok else None
+
+
 DOMINANCE = 10.0  # a point enters the order fit when discretisation is 10x everything else
 
 

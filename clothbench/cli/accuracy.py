@@ -304,16 +304,11 @@ def _print_accuracy(result, scene, start, time_s) -> None:
         _print_cost_at_error(result.rows)
 
 
-def cheapest_at(rows, target: float, error: str = "disc_rms"):
-    """The row with the lowest cost (ms per simulated second) among those whose `error`
-    column is at most `target`; None when no row reaches it."""
-    ok = [r for r in rows if r.status == "ok" and getattr(r, error) <= target and r.ms_per_sim_s > 0]
-    return min(ok, key=lambda r: r.ms_per_sim_s) if ok else None
-
-
 def _print_cost_at_error(rows) -> None:
     """Per decade of error, the cheapest run of each solver that reaches it: against its own
     converged model, and (PBD) against the converged mass-spring answer."""
+    from clothbench.analysis.convergence import cheapest_at
+
     errors = [r.disc_rms for r in rows if r.status == "ok" and r.disc_rms > 0]
     if not errors:
         return

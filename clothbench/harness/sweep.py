@@ -392,7 +392,7 @@ def run_sweep(
 
         def keep(row: PlannedRow, result: dict[str, str]) -> None:
             if row.options.generic and result["status"] == "ok":
-                twin = _specialised_twin(result, f.rows + progress.measured)
+                twin = _specialised_twin(result, f.rows)  # f.rows holds this run's rows too
                 if twin is not None:
                     result["specialised_speedup"] = fmt(float(result["ms_median"]) / float(twin["ms_median"]))
             f.append(result)

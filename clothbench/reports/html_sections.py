@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from clothbench.analysis.convergence import cheapest_at
 from clothbench.reports import accuracy_plots, plots, tables
 from clothbench.reports.figures_common import FRONT_TOLERANCE, is_peer, pareto_front
 from clothbench.reports.html import Exact, Figures, Html, Section, esc, notice, num, paragraph, slug, table
@@ -261,12 +262,6 @@ def _sweep_cost(r: dict) -> float:
     return float(r["ms_median"]) / float(r["dt"])
 
 
-def _cheapest_within(front: list, target: float, error):
-    """The cheapest item of a Pareto front (by rising error) whose error is at most `target`."""
-    within = [item for item in front if error(item) <= target]
-    return within[-1] if within else None
-
-
 def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
     """Verlet against PBD on each backend and grid: the cheapest f32 mode of each solver model."""
 
@@ -348,14 +343,12 @@ def accuracy_solvers_section(rows: list, ok: list, parent: str) -> Section:
     converged model and against the mass-spring answer Verlet converges to)."""
     columns = (("Verlet", "verlet", "disc_rms"), ("PBD, own model", "pbd", "disc_rms"),
                ("PBD against Verlet's answer", "pbd", "vs_verlet_rms"))  # fmt: skip
-    fronts = [pareto_front([r for r in ok if r.solver == solver], cost=lambda r: r.ms_per_sim_s,
-                           error=lambda r, attr=attr: getattr(r, attr)) for _, solver, attr in columns]  # fmt: skip
     errors = [r.disc_rms for r in ok]
     body = []
     for e in range(math.ceil(math.log10(max(errors))), math.floor(math.log10(min(errors))) - 1, -1):
         cells = []
-        for front, (_, _, attr) in zip(fronts, columns):
-            best = _cheapest_within(front, 10.0**e, lambda r, attr=attr: getattr(r, attr))
+        for _, solver, attr in columns:
+            best = cheapest_at([r for r in ok if r.solver == solver], 10.0**e, attr)
             cells.append(Html(f"{num(best.ms_per_sim_s)} <small>({esc(best.label)}, dt {num(Exact(best.dt))} s)</small>")
                          if best else "–")  # fmt: skip
         body.append([Html(f"≤ {num(Exact(10.0**e))}"), *cells])

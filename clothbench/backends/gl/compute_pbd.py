@@ -70,7 +70,7 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
     def _defines(self) -> dict[str, object]:
         c = self.constants
         defines: dict[str, object] = {"STRICT": ""} if self.strict else {}
-        defines.update(gl_context.constant_defines(self.scene, self.solver, generic=False))  # n, colliders
+        defines.update(gl_context.scene_defines(self.scene))  # n, colliders
         defines.update(
             LOCAL_SIZE=self.local_size,
             H_VALUE=glsl_float(c.h),
