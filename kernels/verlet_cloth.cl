@@ -9,19 +9,24 @@
  *       (w = inverse mass), one work item per particle, every neighbour bounds-checked. One
  *       program serves every scene: the grid side, the constants and every collider kind
  *       with its count come in as kernel arguments. `--generic`.
- *   specialised (the default): kernels verlet_cloth_interior + verlet_cloth_border, built
- *       for one scene's shape: SoA planes, V particles per work item as explicit vectors,
- *       the interior (all 12 neighbours present: no bounds checks, unrolled) apart from a
- *       small bounds-checked border, grid side and collider counts as -D constants, and the
- *       code of a collider kind compiled in only when the scene has one.
+ *   specialised (the default): built for one scene's shape: SoA planes, V particles per
+ *       work item as explicit vectors, grid side and collider counts as -D constants, and
+ *       the code of a collider kind compiled in only when the scene has one. Three ways to
+ *       split the work (the host's kernel shapes, clothbench/backends/opencl/verlet_shapes.py):
+ *       verlet_cloth_interior (all 12 neighbours present: no bounds checks, unrolled) +
+ *       verlet_cloth_border (a small bounds-checked frame, one particle per work item);
+ *       verlet_cloth_rows (every row in vectors, the edge masked lane by lane, one launch);
+ *       verlet_cloth_steps (the rows kernel's work, several steps in one launch, one
+ *       work-group).
  * and two arithmetics, for either build:
  *   strict (-DCLOTH_STRICT): every operation in the order docs/semantics.md fixes, sqrt and
  *       '/', damping once per spring, no FMA contraction, no dot()/length(): the result
  *       equals the NumPy float32 reference bit for bit. Vectors do not change IEEE results,
  *       so the specialised build is exact too and is what `--strict` runs by default.
  *   fast (default): contraction allowed (-cl-mad-enable) in both builds; the specialised
- *       springs also use one reciprocal square root each and sum the damping once per
- *       particle. Measured against float64 instead.
+ *       springs also use one reciprocal square root each (on AVX-512 with 16 lanes the
+ *       hardware estimate and a Newton step) and sum the damping once per particle.
+ *       Measured against float64 instead.
  *
  * What comes in how, and why:
  *   -D build options: what changes the shape of the code, so the compiler can specialise it
@@ -32,6 +37,7 @@
  *                           collider counts: each kind's loop unrolls into straight-line
  *                           code, and a kind the scene lacks is not compiled at all.
  *       CLOTH_VECTOR_WIDTH  particles per work item (1 for the border kernel).
+ *       CLOTH_PAD           floats before and after the planes in each state buffer.
  *   -DCLOTH_NORMALS (either build): also write each particle's normal (docs/normals.md) of
  *       the state the step read, x(t), to one more buffer, normal_out; without it the
  *       kernels neither compute nor take it.
@@ -171,9 +177,10 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
  * y[n2..2n2), z[2n2..3n2) in one buffer per state; inverse mass in its own read-only buffer.
  *
  * The helpers below are written once over `floatv`, V = CLOTH_VECTOR_WIDTH lanes: the host
- * builds this part with V = the device's preferred float width for the interior kernel (V
- * consecutive particles of a row per work item) and with V = 1 for the border kernel (one
- * particle per work item). Explicit vectors because PoCL 3.1 (LLVM 15) did not vectorise the
+ * builds this part with the kernel shape's V for the interior, rows and multi-step kernels
+ * (V consecutive particles of a row per work item) and with V = 1 for the border kernel (one
+ * particle per work item). State buffers hold CLOTH_PAD floats before and after the planes;
+ * every kernel steps its state pointers past them first. Explicit vectors because PoCL 3.1 (LLVM 15) did not vectorise the
  * scalar form across work items: its first optimisation pass packs four springs of one
  * particle into gathers, which then blocks the work-item loop vectoriser. Measured at
  * n = 256: the fast interior kernel took 2.6 ms per step in scalar form, 0.15 ms with
@@ -195,6 +202,16 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
 #endif
 #define N CLOTH_N
 #define N2 (CLOTH_N * CLOTH_N)
+/* Floats before and after the x, y, z planes in each state buffer (CLOTH_PAD, set by the
+ * host): the whole-row kernels' masked vector loads at the grid's first and last particle
+ * reach one float past either end of the planes; those lanes are never used. */
+#ifndef CLOTH_PAD
+#define CLOTH_PAD 0
+#endif
+#define PAD CLOTH_PAD
+/* Every helper is inlined: PoCL 3.0 (the wheel) and 3.1 left the bigger ones as calls, which
+ * pass the vectors through memory. */
+#define INLINE __attribute__((always_inline))
 
 #ifndef CLOTH_VECTOR_WIDTH
 #define CLOTH_VECTOR_WIDTH 1
@@ -202,6 +219,11 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
 #define V CLOTH_VECTOR_WIDTH
 #define CAT_(a, b) a##b
 #define CAT(a, b) CAT_(a, b)
+/* Loads, stores and select() of vectors as plain C: PoCL 3.0 (the wheel) calls the built-ins
+ * vloadn, vstoren and select() out of line, hundreds of calls per work item. A vector load
+ * through a pointer to a 4-byte-aligned vector type is what vloadn does; the conditional
+ * operator on vectors is select() per lane (the most significant bit of each mask lane). */
+#define SELECT(a, b, c) ((c) ? (b) : (a))
 #if V == 1
 typedef float floatv;
 typedef int intv;
@@ -210,12 +232,32 @@ typedef int intv;
 #else
 typedef CAT(float, V) floatv;
 typedef CAT(int, V) intv;
-#define LOADV(p, j) CAT(vload, V)(0, (p) + (j))
-#define STOREV(v, p, j) CAT(vstore, V)((v), 0, (p) + (j))
+typedef floatv floatv_u __attribute__((aligned(4)));
+typedef intv intv_u __attribute__((aligned(4)));
+#define LOADV(p, j) (*(__global const floatv_u *)((p) + (j)))
+#define STOREV(v, p, j) (*(__global floatv_u *)((p) + (j)) = (v))
+#endif
+
+#ifndef CLOTH_STRICT
+#if V == 16 && defined(__AVX512F__)
+/* 1/sqrt(x), fast build, AVX-512: the 14-bit estimate and one Newton step (about 23 bits).
+ * PoCL 3.1 builds rsqrt() as a correctly rounded sqrt and division, which cost more than
+ * the rest of a spring; its native_rsqrt() is no quicker. */
+typedef float v16sf __attribute__((vector_size(64)));
+INLINE floatv fast_rsqrt(floatv x)
+{
+    union { floatv f; v16sf v; } in, zero, y;
+    in.f = x, zero.f = 0.0f;
+    y.v = __builtin_ia32_rsqrt14ps512_mask(in.v, zero.v, (unsigned short)0xffff);
+    return y.f * (1.5f - (0.5f * x) * (y.f * y.f));
+}
+#else
+#define fast_rsqrt rsqrt
+#endif
 #endif
 
 /* Step 5 for one neighbour j. select(), not if, keeps the lanes together. */
-void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, float k,
+INLINE void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, float k,
                 float rest, floatv bx, floatv by, floatv bz, floatv *fx, floatv *fy, floatv *fz)
 {
     floatv dx = LOADV(pos, j) - x, dy = LOADV(pos, N2 + j) - y, dz = LOADV(pos, 2 * N2 + j) - z;
@@ -223,7 +265,7 @@ void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, 
     /* docs/semantics.md to the letter: sqrt, '/', and the damping -b*vel of this spring */
     floatv L2 = (dx * dx + dy * dy) + dz * dz;
     floatv L = sqrt(L2);
-    floatv s = select((floatv)(0.0f), (k * (L - rest)) / L, L2 > 0.0f); /* coincident: 0 */
+    floatv s = SELECT((floatv)(0.0f), (k * (L - rest)) / L, L2 > 0.0f); /* coincident: 0 */
     *fx = *fx + (s * dx - bx);
     *fy = *fy + (s * dy - by);
     *fz = *fz + (s * dz - bz);
@@ -231,7 +273,7 @@ void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, 
     /* k*(L - rest)*d/L = (k - k*rest/L)*d: one reciprocal square root; the damping of every
      * spring is added at once by integrate_store, so bx, by, bz go unused (and uncomputed) */
     floatv L2 = dx * dx + dy * dy + dz * dz;
-    floatv s = select((floatv)(0.0f), k - (k * rest) * rsqrt(L2), L2 > 0.0f);
+    floatv s = SELECT((floatv)(0.0f), k - (k * rest) * fast_rsqrt(L2), L2 > 0.0f);
     *fx += s * dx;
     *fy += s * dy;
     *fz += s * dz;
@@ -241,7 +283,7 @@ void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, 
 /* The colliders, exactly as docs/semantics.md writes them (so in strict mode too), with
  * select() for every branch. A kind's code exists only when the scene has that kind. */
 #if CLOTH_SPHERES > 0
-void collide_sphere_v(floatv *x, floatv *y, floatv *z, float4 sphere)
+INLINE void collide_sphere_v(floatv *x, floatv *y, floatv *z, float4 sphere)
 {
     floatv dx = *x - sphere.x, dy = *y - sphere.y, dz = *z - sphere.z;
     floatv L2 = (dx * dx + dy * dy) + dz * dz;
@@ -249,14 +291,14 @@ void collide_sphere_v(floatv *x, floatv *y, floatv *z, float4 sphere)
     floatv s = sphere.w / L;
     intv inside = L < sphere.w;
     intv at_centre = L2 == 0.0f; /* straight up */
-    *x = select(*x, select(sphere.x + dx * s, (floatv)(sphere.x), at_centre), inside);
-    *y = select(*y, select(sphere.y + dy * s, (floatv)(sphere.y + sphere.w), at_centre), inside);
-    *z = select(*z, select(sphere.z + dz * s, (floatv)(sphere.z), at_centre), inside);
+    *x = SELECT(*x, SELECT(sphere.x + dx * s, (floatv)(sphere.x), at_centre), inside);
+    *y = SELECT(*y, SELECT(sphere.y + dy * s, (floatv)(sphere.y + sphere.w), at_centre), inside);
+    *z = SELECT(*z, SELECT(sphere.z + dz * s, (floatv)(sphere.z), at_centre), inside);
 }
 #endif
 
 #if CLOTH_CYLINDERS > 0
-void collide_cylinder_v(floatv *x, floatv *y, floatv *z, float4 start_len, float4 axis_r,
+INLINE void collide_cylinder_v(floatv *x, floatv *y, floatv *z, float4 start_len, float4 axis_r,
                         float4 radial_r)
 {
     float len = start_len.w, r = axis_r.w;
@@ -273,31 +315,31 @@ void collide_cylinder_v(floatv *x, floatv *y, floatv *z, float4 start_len, float
     intv on_axis = rho2 == 0.0f; /* a fixed radial direction */
     floatv s = r / rho;
     floatv ax = start_len.x + qx, ay = start_len.y + qy, az = start_len.z + qz;
-    floatv side_x = select(ax + px * s, ax + radial_r.x, on_axis);
-    floatv side_y = select(ay + py * s, ay + radial_r.y, on_axis);
-    floatv side_z = select(az + pz * s, az + radial_r.z, on_axis);
-    floatv cap_x = select(*x + axis_r.x * to_end, *x - qx, through_start);
-    floatv cap_y = select(*y + axis_r.y * to_end, *y - qy, through_start);
-    floatv cap_z = select(*z + axis_r.z * to_end, *z - qz, through_start);
-    *x = select(*x, select(cap_x, side_x, through_side), inside);
-    *y = select(*y, select(cap_y, side_y, through_side), inside);
-    *z = select(*z, select(cap_z, side_z, through_side), inside);
+    floatv side_x = SELECT(ax + px * s, ax + radial_r.x, on_axis);
+    floatv side_y = SELECT(ay + py * s, ay + radial_r.y, on_axis);
+    floatv side_z = SELECT(az + pz * s, az + radial_r.z, on_axis);
+    floatv cap_x = SELECT(*x + axis_r.x * to_end, *x - qx, through_start);
+    floatv cap_y = SELECT(*y + axis_r.y * to_end, *y - qy, through_start);
+    floatv cap_z = SELECT(*z + axis_r.z * to_end, *z - qz, through_start);
+    *x = SELECT(*x, SELECT(cap_x, side_x, through_side), inside);
+    *y = SELECT(*y, SELECT(cap_y, side_y, through_side), inside);
+    *z = SELECT(*z, SELECT(cap_z, side_z, through_side), inside);
 }
 #endif
 
 #if CLOTH_PLANES > 0
-void collide_plane_v(floatv *x, floatv *y, floatv *z, float4 point, float4 normal)
+INLINE void collide_plane_v(floatv *x, floatv *y, floatv *z, float4 point, float4 normal)
 {
     floatv dist = ((*x - point.x) * normal.x + (*y - point.y) * normal.y) + (*z - point.z) * normal.z;
     intv inside = dist < 0.0f;
-    *x = select(*x, *x - normal.x * dist, inside);
-    *y = select(*y, *y - normal.y * dist, inside);
-    *z = select(*z, *z - normal.z * dist, inside);
+    *x = SELECT(*x, *x - normal.x * dist, inside);
+    *y = SELECT(*y, *y - normal.y * dist, inside);
+    *z = SELECT(*z, *z - normal.z * dist, inside);
 }
 #endif
 
 /* Every collider, in the order docs/semantics.md fixes: spheres, cylinders, planes. */
-void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *colliders)
+INLINE void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *colliders)
 {
 #if CLOTH_SPHERES > 0
     for (int s = 0; s < CLOTH_SPHERES; ++s)
@@ -317,7 +359,7 @@ void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *colliders)
 
 /* Store lanes first_lane .. V-1 of v at p[j..]: all of them, except in the last vector of
  * an interior row, whose first lanes the vector before it has written already. */
-void store_lanes(floatv v, __global float *p, int j, int first_lane)
+INLINE void store_lanes(floatv v, __global float *p, int j, int first_lane)
 {
 #if V == 1
     p[j] = v;
@@ -327,7 +369,7 @@ void store_lanes(floatv v, __global float *p, int j, int first_lane)
         return;
     }
     float lanes[V];
-    STOREV(v, lanes, 0);
+    *(floatv_u *)lanes = v;
     for (int l = first_lane; l < V; ++l)
         p[j + l] = lanes[l];
 #endif
@@ -335,18 +377,18 @@ void store_lanes(floatv v, __global float *p, int j, int first_lane)
 
 #ifdef CLOTH_NORMALS
 /* v / |v|, or 0 for a zero vector (a degenerate triangle has no direction) */
-void unit_or_zero_v(floatv *x, floatv *y, floatv *z)
+INLINE void unit_or_zero_v(floatv *x, floatv *y, floatv *z)
 {
     floatv L2 = (*x * *x + *y * *y) + *z * *z;
     floatv L = sqrt(L2);
     intv some = L2 > 0.0f;
-    *x = select((floatv)(0.0f), *x / L, some);
-    *y = select((floatv)(0.0f), *y / L, some);
-    *z = select((floatv)(0.0f), *z / L, some);
+    *x = SELECT((floatv)(0.0f), *x / L, some);
+    *y = SELECT((floatv)(0.0f), *y / L, some);
+    *z = SELECT((floatv)(0.0f), *z / L, some);
 }
 
 /* Adds the unit normal of the face (x, ja, jb) to the sum: (a - x) x (c - x) written out. */
-void face_add(floatv x, floatv y, floatv z, __global const float *pos, int ja, int jb,
+INLINE void face_add(floatv x, floatv y, floatv z, __global const float *pos, int ja, int jb,
               floatv *sx, floatv *sy, floatv *sz)
 {
     floatv ax = LOADV(pos, ja) - x, ay = LOADV(pos, N2 + ja) - y, az = LOADV(pos, 2 * N2 + ja) - z;
@@ -358,7 +400,7 @@ void face_add(floatv x, floatv y, floatv z, __global const float *pos, int ja, i
     *sz = *sz + fz;
 }
 
-void store_normal(int i, int first_lane, floatv sx, floatv sy, floatv sz,
+INLINE void store_normal(int i, int first_lane, floatv sx, floatv sy, floatv sz,
                   __global float *normal_out)
 {
     unit_or_zero_v(&sx, &sy, &sz);
@@ -371,10 +413,10 @@ void store_normal(int i, int first_lane, floatv sx, floatv sy, floatv sz,
 #define NORMALS_ARG
 #endif
 
-/* Steps 6-8 for the particles at i, which have `springs` springs each: integrate unless
- * pinned, collide, write both outputs. */
-void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv xp, floatv yp,
-                     floatv zp, floatv fx, floatv fy, floatv fz, float springs,
+/* Steps 6-8 for the particles at i, which have `springs` springs each (per lane): integrate
+ * unless pinned, collide, write both outputs. */
+INLINE void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv xp, floatv yp,
+                     floatv zp, floatv fx, floatv fy, floatv fz, floatv springs,
                      __global const float *inv_mass, __global float *pos_out,
                      __global float *pos_prev_out, __constant float4 *colliders, float b,
                      float dt, float dt2, float4 g)
@@ -387,20 +429,53 @@ void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv
     floatv nz = (2.0f * z - zp) + (g.z + fz * w) * dt2;
 #else
     /* the damping -b*vel of each of the particle's springs, added at once */
-    float b_dt = springs * b / dt;
+    floatv b_dt = springs * b / dt;
     floatv nx = (2.0f * x - xp) + (g.x + (fx - b_dt * (x - xp)) * w) * dt2;
     floatv ny = (2.0f * y - yp) + (g.y + (fy - b_dt * (y - yp)) * w) * dt2;
     floatv nz = (2.0f * z - zp) + (g.z + (fz - b_dt * (z - zp)) * w) * dt2;
 #endif
     collide_v(&nx, &ny, &nz, colliders);
     intv pinned = w == 0.0f; /* never integrated nor collided */
-    store_lanes(select(nx, x, pinned), pos_out, i, first_lane);
-    store_lanes(select(ny, y, pinned), pos_out, N2 + i, first_lane);
-    store_lanes(select(nz, z, pinned), pos_out, 2 * N2 + i, first_lane);
+    store_lanes(SELECT(nx, x, pinned), pos_out, i, first_lane);
+    store_lanes(SELECT(ny, y, pinned), pos_out, N2 + i, first_lane);
+    store_lanes(SELECT(nz, z, pinned), pos_out, 2 * N2 + i, first_lane);
     store_lanes(x, pos_prev_out, i, first_lane);
     store_lanes(y, pos_prev_out, N2 + i, first_lane);
     store_lanes(z, pos_prev_out, 2 * N2 + i, first_lane);
 }
+
+/* The 12 springs of particles whose neighbours all exist, unrolled, in the stencil's order. */
+INLINE void springs_inside(floatv x, floatv y, floatv z, __global const float *pos, int i, float k,
+                    float4 rest, floatv bx, floatv by, floatv bz, floatv *fx, floatv *fy, floatv *fz)
+{
+    spring_add(x, y, z, pos, i - 1, k, rest.x, bx, by, bz, fx, fy, fz); /* structural */
+    spring_add(x, y, z, pos, i + 1, k, rest.x, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i - N, k, rest.x, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i + N, k, rest.x, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i - N - 1, k, rest.y, bx, by, bz, fx, fy, fz); /* shear */
+    spring_add(x, y, z, pos, i - N + 1, k, rest.y, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i + N - 1, k, rest.y, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i + N + 1, k, rest.y, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i - 2 * N - 2, k, rest.z, bx, by, bz, fx, fy, fz); /* bend */
+    spring_add(x, y, z, pos, i - 2 * N + 2, k, rest.z, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i + 2 * N - 2, k, rest.z, bx, by, bz, fx, fy, fz);
+    spring_add(x, y, z, pos, i + 2 * N + 2, k, rest.z, bx, by, bz, fx, fy, fz);
+}
+
+#ifdef CLOTH_NORMALS
+/* The six faces of particles whose ring neighbours all exist: up, up-left, left, down,
+ * down-right, right. */
+INLINE void faces_inside(floatv x, floatv y, floatv z, __global const float *pos, int i, floatv *sx,
+                  floatv *sy, floatv *sz)
+{
+    face_add(x, y, z, pos, i - N, i - N - 1, sx, sy, sz);
+    face_add(x, y, z, pos, i - N - 1, i - 1, sx, sy, sz);
+    face_add(x, y, z, pos, i - 1, i + N, sx, sy, sz);
+    face_add(x, y, z, pos, i + N, i + N + 1, sx, sy, sz);
+    face_add(x, y, z, pos, i + N + 1, i + 1, sx, sy, sz);
+    face_add(x, y, z, pos, i + 1, i - N, sx, sy, sz);
+}
+#endif
 
 /* Rows and columns 2 .. n-3: every neighbour exists, so no bounds checks and all 12 springs
  * unrolled. V consecutive particles of a row per work item; when V does not divide n - 4,
@@ -420,6 +495,7 @@ __kernel void verlet_cloth_interior(__global const float *pos, __global const fl
     int item = get_global_id(0);
     if (item >= INTERIOR_ITEMS)
         return; /* the launch is padded when the work-group size does not divide it */
+    pos += PAD, pos_prev += PAD, pos_out += PAD, pos_prev_out += PAD;
     int row = 2 + item / VECTORS_PER_ROW, vector = item % VECTORS_PER_ROW;
     int last = vector == VECTORS_PER_ROW - 1;
     int i = row * N + (last ? N - 2 - V : 2 + V * vector);
@@ -427,28 +503,12 @@ __kernel void verlet_cloth_interior(__global const float *pos, __global const fl
     floatv xp = LOADV(pos_prev, i), yp = LOADV(pos_prev, N2 + i), zp = LOADV(pos_prev, 2 * N2 + i);
     floatv bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
     floatv fx = 0.0f, fy = 0.0f, fz = 0.0f;
-    spring_add(x, y, z, pos, i - 1, k, rest.x, bx, by, bz, &fx, &fy, &fz); /* structural */
-    spring_add(x, y, z, pos, i + 1, k, rest.x, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i - N, k, rest.x, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + N, k, rest.x, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i - N - 1, k, rest.y, bx, by, bz, &fx, &fy, &fz); /* shear */
-    spring_add(x, y, z, pos, i - N + 1, k, rest.y, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + N - 1, k, rest.y, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + N + 1, k, rest.y, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i - 2 * N - 2, k, rest.z, bx, by, bz, &fx, &fy, &fz); /* bend */
-    spring_add(x, y, z, pos, i - 2 * N + 2, k, rest.z, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + 2 * N - 2, k, rest.z, bx, by, bz, &fx, &fy, &fz);
-    spring_add(x, y, z, pos, i + 2 * N + 2, k, rest.z, bx, by, bz, &fx, &fy, &fz);
-    integrate_store(i, last ? LAST_FIRST_LANE : 0, x, y, z, xp, yp, zp, fx, fy, fz, 12.0f,
-                    inv_mass, pos_out, pos_prev_out, colliders, b, dt, dt2, g);
+    springs_inside(x, y, z, pos, i, k, rest, bx, by, bz, &fx, &fy, &fz);
+    integrate_store(i, last ? LAST_FIRST_LANE : 0, x, y, z, xp, yp, zp, fx, fy, fz,
+                    (floatv)(12.0f), inv_mass, pos_out, pos_prev_out, colliders, b, dt, dt2, g);
 #ifdef CLOTH_NORMALS
-    floatv sx = 0.0f, sy = 0.0f, sz = 0.0f; /* the ring: up, up-left, left, down, down-right, right */
-    face_add(x, y, z, pos, i - N, i - N - 1, &sx, &sy, &sz);
-    face_add(x, y, z, pos, i - N - 1, i - 1, &sx, &sy, &sz);
-    face_add(x, y, z, pos, i - 1, i + N, &sx, &sy, &sz);
-    face_add(x, y, z, pos, i + N, i + N + 1, &sx, &sy, &sz);
-    face_add(x, y, z, pos, i + N + 1, i + 1, &sx, &sy, &sz);
-    face_add(x, y, z, pos, i + 1, i - N, &sx, &sy, &sz);
+    floatv sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    faces_inside(x, y, z, pos, i, &sx, &sy, &sz);
     store_normal(i, last ? LAST_FIRST_LANE : 0, sx, sy, sz, normal_out);
 #endif
 }
@@ -467,6 +527,7 @@ __kernel void verlet_cloth_border(__global const float *pos, __global const floa
     int item = get_global_id(0);
     if (item >= count)
         return;
+    pos += PAD, pos_prev += PAD, pos_out += PAD, pos_prev_out += PAD;
     int i = particles[item];
     int row = i / N, col = i % N;
     float x = pos[i], y = pos[N2 + i], z = pos[2 * N2 + i];
@@ -495,6 +556,172 @@ __kernel void verlet_cloth_border(__global const float *pos, __global const floa
     }
     store_normal(i, 0, sx, sy, sz, normal_out);
 #endif
+}
+#endif
+
+/* ======================================================================================
+ * Whole rows, one kernel for every particle (the `rows` shapes): work item `item` takes V
+ * consecutive particles of one row, the rows' vectors laid side by side, the last vector of
+ * a row overlapping the one before it when V does not divide n (it stores only the lanes
+ * that one did not). A vector whose neighbours all exist takes the unrolled interior path;
+ * one at the grid's edge runs the stencil in order and skips a spring per lane where the
+ * neighbour is outside the grid: a neighbour row outside skips the spring for every lane
+ * (the branch is the same for all of them), a neighbour column outside only for its lanes,
+ * by select(), which leaves those lanes' force exactly as it was. So every lane does the
+ * operations of docs/semantics.md in their order, and strict stays bit-exact. One launch
+ * per step instead of the interior's and the border's; only grids with n >= V have it.
+ *
+ * verlet_cloth_steps (the `steps/launch=K` shapes) runs several steps in one launch, with
+ * the whole grid in one work-group: each work item takes every local-size-th vector, a
+ * barrier separates the steps (valid inside one work-group; the state stays in the global
+ * buffers, ping-ponged by swapping pointers as the host does between launches). It pays one
+ * launch per K steps, at the price of one work-group, so one core: for small grids only.
+ * With CLOTH_NORMALS it writes the normals at every step; the last step's are left, those of
+ * the state it read, as after a one-step launch.
+ * ====================================================================================== */
+#if N >= V
+#define ROW_VECTORS ((N + V - 1) / V)
+#define ROWS_ITEMS (ROW_VECTORS * N)
+#define ROW_LAST_FIRST_LANE (V * ROW_VECTORS - N)
+
+/* lane l of a vector is column c0 + l */
+__constant int LANE_INDEX[16] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+
+INLINE intv lane_columns(int c0)
+{
+#if V == 1
+    return c0;
+#else
+    return c0 + *(__constant const intv_u *)LANE_INDEX;
+#endif
+}
+
+/* A column in the grid, per lane (a vector comparison is -1 for true, as select() wants). */
+INLINE intv column_in_grid(intv c)
+{
+    return (c >= 0) & (c < N);
+}
+
+/* spring_add for the lanes where `valid`; the other lanes keep their force exactly. */
+INLINE void spring_add_masked(floatv x, floatv y, floatv z, __global const float *pos, int j, float k,
+                       float rest, floatv bx, floatv by, floatv bz, floatv *fx, floatv *fy,
+                       floatv *fz, intv valid)
+{
+    floatv gx = *fx, gy = *fy, gz = *fz;
+    spring_add(x, y, z, pos, j, k, rest, bx, by, bz, &gx, &gy, &gz);
+    *fx = SELECT(*fx, gx, valid);
+    *fy = SELECT(*fy, gy, valid);
+    *fz = SELECT(*fz, gz, valid);
+}
+
+#ifdef CLOTH_NORMALS
+/* face_add for the lanes where `valid` */
+INLINE void face_add_masked(floatv x, floatv y, floatv z, __global const float *pos, int ja, int jb,
+                     floatv *sx, floatv *sy, floatv *sz, intv valid)
+{
+    floatv tx = *sx, ty = *sy, tz = *sz;
+    face_add(x, y, z, pos, ja, jb, &tx, &ty, &tz);
+    *sx = SELECT(*sx, tx, valid);
+    *sy = SELECT(*sy, ty, valid);
+    *sz = SELECT(*sz, tz, valid);
+}
+#endif
+
+/* One step for the V particles of work item `item` (see above). */
+INLINE void rows_item(int item, __global const float *pos, __global const float *pos_prev,
+               __global const float *inv_mass, __global float *pos_out,
+               __global float *pos_prev_out, float k, float b, float dt, float dt2, float4 g,
+               float4 rest, __constant float4 *colliders NORMALS_ARG)
+{
+    int row = item / ROW_VECTORS, vector = item % ROW_VECTORS;
+    int last = vector == ROW_VECTORS - 1;
+    int c0 = last ? N - V : V * vector;
+    int first_lane = last ? ROW_LAST_FIRST_LANE : 0;
+    int i = row * N + c0;
+    int inside = row >= 2 && row < N - 2 && c0 >= 2 && c0 + V <= N - 2;
+    floatv x = LOADV(pos, i), y = LOADV(pos, N2 + i), z = LOADV(pos, 2 * N2 + i);
+    floatv xp = LOADV(pos_prev, i), yp = LOADV(pos_prev, N2 + i), zp = LOADV(pos_prev, 2 * N2 + i);
+    floatv bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
+    floatv fx = 0.0f, fy = 0.0f, fz = 0.0f;
+    floatv springs = 12.0f;
+    intv columns = lane_columns(c0);
+    if (inside) {
+        springs_inside(x, y, z, pos, i, k, rest, bx, by, bz, &fx, &fy, &fz);
+    } else {
+        springs = 0.0f;
+#pragma unroll
+        for (int o = 0; o < 12; ++o) { /* unrolled: the offsets and rest lengths fold */
+            int r = row + OFFSETS[o].x, dc = OFFSETS[o].y;
+            if (r < 0 || r >= N)
+                continue; /* outside the grid for every lane: nothing added */
+            intv valid = column_in_grid(columns + dc);
+            float rest_o = o < 4 ? rest.x : (o < 8 ? rest.y : rest.z);
+            spring_add_masked(x, y, z, pos, r * N + c0 + dc, k, rest_o, bx, by, bz, &fx, &fy,
+                              &fz, valid);
+            springs = SELECT(springs, springs + 1.0f, valid);
+        }
+    }
+    integrate_store(i, first_lane, x, y, z, xp, yp, zp, fx, fy, fz, springs, inv_mass, pos_out,
+                    pos_prev_out, colliders, b, dt, dt2, g);
+#ifdef CLOTH_NORMALS
+    floatv sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    if (inside) {
+        faces_inside(x, y, z, pos, i, &sx, &sy, &sz);
+    } else {
+#pragma unroll
+        for (int e = 0; e < 6; ++e) {
+            int ra = row + RING[e].x, rb = row + RING[(e + 1) % 6].x;
+            if (ra < 0 || ra >= N || rb < 0 || rb >= N)
+                continue; /* a face needs both its ring neighbours */
+            int dca = RING[e].y, dcb = RING[(e + 1) % 6].y;
+            intv valid = column_in_grid(columns + dca) & column_in_grid(columns + dcb);
+            face_add_masked(x, y, z, pos, ra * N + c0 + dca, rb * N + c0 + dcb, &sx, &sy, &sz,
+                            valid);
+        }
+    }
+    store_normal(i, first_lane, sx, sy, sz, normal_out);
+#endif
+}
+
+#ifdef CLOTH_NORMALS
+#define NORMALS_PASS , normal_out
+#else
+#define NORMALS_PASS
+#endif
+
+__kernel void verlet_cloth_rows(__global const float *pos, __global const float *pos_prev,
+                                __global const float *inv_mass, __global float *pos_out,
+                                __global float *pos_prev_out, const float k, const float b,
+                                const float dt, const float dt2, const float4 g,
+                                const float4 rest, __constant float4 *colliders NORMALS_ARG)
+{
+    int item = get_global_id(0);
+    if (item >= ROWS_ITEMS)
+        return; /* the launch is padded when the work-group size does not divide it */
+    rows_item(item, pos + PAD, pos_prev + PAD, inv_mass, pos_out + PAD, pos_prev_out + PAD, k, b,
+              dt, dt2, g, rest, colliders NORMALS_PASS);
+}
+
+/* `steps` steps from (pos, pos_prev); the result is in (pos_out, pos_prev_out) after an odd
+ * count, in (pos, pos_prev) after an even one. Launched as one work-group. */
+__kernel void verlet_cloth_steps(__global float *pos, __global float *pos_prev,
+                                 __global const float *inv_mass, __global float *pos_out,
+                                 __global float *pos_prev_out, const float k, const float b,
+                                 const float dt, const float dt2, const float4 g,
+                                 const float4 rest, __constant float4 *colliders,
+                                 const int steps NORMALS_ARG)
+{
+    int first = get_local_id(0), stride = get_local_size(0);
+    __global float *in = pos + PAD, *in_prev = pos_prev + PAD;
+    __global float *out = pos_out + PAD, *out_prev = pos_prev_out + PAD;
+    for (int s = 0; s < steps; ++s) {
+        for (int item = first; item < ROWS_ITEMS; item += stride)
+            rows_item(item, in, in_prev, inv_mass, out, out_prev, k, b, dt, dt2, g, rest,
+                      colliders NORMALS_PASS);
+        barrier(CLK_GLOBAL_MEM_FENCE); /* the next step reads what every work item wrote */
+        __global float *t = in, *t_prev = in_prev;
+        in = out, in_prev = out_prev, out = t, out_prev = t_prev;
+    }
 }
 #endif
 #endif /* CLOTH_GENERIC */

@@ -17,6 +17,10 @@
 //   PASS         which particles this dispatch covers: PASS_ALL (every particle, with
 //                bounds tests), PASS_INTERIOR (2 or more from every edge: all 12 neighbours
 //                exist, no tests) or PASS_BORDER (the 8n - 16 others, with tests).
+//   TILE_W, TILE_H  (interior pass only) 2-D work groups of TILE_W columns x TILE_H rows
+//                over the interior block, dispatched as a 2-D grid of groups, instead of
+//                LOCAL_SIZE consecutive particles: the kernel shape "wg=WxH"
+//                (clothbench/backends/gl/shapes.py). The operations on a particle are the same.
 
 #define PASS_ALL 0
 #define PASS_INTERIOR 1
@@ -25,7 +29,11 @@
 #define NO_BOUNDS_TESTS
 #endif
 
+#if defined(TILE_W) && PASS == PASS_INTERIOR
+layout(local_size_x = TILE_W, local_size_y = TILE_H) in;
+#else
 layout(local_size_x = LOCAL_SIZE) in;
+#endif
 
 #ifdef IMAGE_READS
 layout(rgba32f, binding = 0) readonly uniform imageBuffer pos_in;   // x(t)
@@ -49,6 +57,10 @@ layout(std430, binding = 4) writeonly buffer NormalOut { vec4 normal_out[]; };
 // (row, col) of this invocation's particle, or (-1, -1) past the end of the pass
 ivec2 particle()
 {
+#if defined(TILE_W) && PASS == PASS_INTERIOR
+    ivec2 g = ivec2(gl_GlobalInvocationID.xy);  // (col, row) within the interior block
+    return all(lessThan(g, ivec2(n - 4))) ? ivec2(2 + g.y, 2 + g.x) : ivec2(-1);
+#else
     // the host spreads large dispatches over y (GL promises 65535 groups per dimension)
     int t = int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x) * LOCAL_SIZE
             + int(gl_LocalInvocationID.x);
@@ -68,6 +80,7 @@ ivec2 particle()
     return ivec2(2 + t / 4, c < 2 ? c : n - 4 + c);
 #else
     return t < n * n ? ivec2(t / n, t % n) : ivec2(-1);
+#endif
 #endif
 }
 

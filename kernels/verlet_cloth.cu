@@ -1,12 +1,17 @@
 /*
- * One mass-spring cloth step, one CUDA thread per particle: the chapter's
- * verlet_cloth_kernel.cu (Game Engine Gems 2, section 22.7, after Listing 22.1).
+ * The mass-spring cloth step in two kernels (docs/cuda.md):
  *
- * The step is defined operation by operation in docs/semantics.md, the normals in
- * docs/normals.md; this kernel performs those operations in that order and does not restate
- * them. The launch is in Python (clothbench/backends/cuda/verlet.py: PingPong), which owns the
- * two pairs of buffers (pos, pos_prev) x (in, out) and either swaps them or copies out to in
- * after each step.
+ *   verlet_step   one step, one CUDA thread per particle: the chapter's verlet_cloth_kernel.cu
+ *                 (Game Engine Gems 2, section 22.7, after Listing 22.1);
+ *   verlet_steps  `steps` steps in one launch of one thread block that holds the whole grid in
+ *                 shared memory, each thread several particles, __syncthreads() between steps:
+ *                 for small grids, where a launch costs more than a step.
+ *
+ * Both call verlet_particle, so a particle's operations are the same in both. The step is
+ * defined operation by operation in docs/semantics.md, the normals in docs/normals.md; this
+ * file performs those operations in that order and does not restate them. The launch is in
+ * Python (clothbench/backends/cuda/launch.py: PingPong), which owns the two pairs of buffers
+ * (pos, pos_prev) x (in, out) and either swaps them or copies out to in after each launch.
  *
  * The host builds this one file in several ways, with -D switches (verlet.py: kernel_defines):
  *
@@ -156,6 +161,24 @@ __device__ __forceinline__ float3 collide_plane(float3 x, float4 point, float4 n
 }
 #endif
 
+// Where a step reads x(t): the input buffer (verlet_step) or the block's copy of it in shared
+// memory, one array per component (verlet_steps). pos(j) is particle j's position.
+struct GlobalPositions {
+    const float4* __restrict__ p;
+    __device__ __forceinline__ float3 operator()(int j) const
+    {
+        const float4 v = p[j];
+        return make_float3(v.x, v.y, v.z);
+    }
+};
+
+struct SharedPositions {
+    const float* x;
+    const float* y;
+    const float* z;
+    __device__ __forceinline__ float3 operator()(int j) const { return make_float3(x[j], y[j], z[j]); }
+};
+
 #ifdef CLOTH_NORMALS
 // docs/normals.md: v / |v|, or 0 for a zero vector (a degenerate triangle has no direction)
 __device__ __forceinline__ float3 unit_or_zero(float3 v)
@@ -173,7 +196,8 @@ __device__ __forceinline__ float3 unit_or_zero(float3 v)
 
 // The chapter's per-particle normal: the normalised sum of the unit normals of the (up to
 // six) triangles around (row, col), each grid quad split along its (r,c)-(r+1,c+1) diagonal.
-__device__ __forceinline__ float3 normal_at(const float4* pos, int row, int col, int n, float3 x)
+template <class Positions>
+__device__ __forceinline__ float3 normal_at(Positions pos, int row, int col, int n, float3 x)
 {
     // the ring of neighbours: up, up-left, left, down, down-right, right (then up again)
     const Offset ring[7] = {{-1, 0}, {-1, -1}, {0, -1}, {1, 0}, {1, 1}, {0, 1}, {-1, 0}};
@@ -183,9 +207,8 @@ __device__ __forceinline__ float3 normal_at(const float4* pos, int row, int col,
         const int ra = row + ring[e].dr, ca = col + ring[e].dc;
         const int rb = row + ring[e + 1].dr, cb = col + ring[e + 1].dc;
         if (!inside_grid(ra, ca, n) || !inside_grid(rb, cb, n)) continue;
-        const float4 pa = pos[ra * n + ca], pb = pos[rb * n + cb];
-        const float3 a = minus(make_float3(pa.x, pa.y, pa.z), x);
-        const float3 c = minus(make_float3(pb.x, pb.y, pb.z), x);
+        const float3 a = minus(pos(ra * n + ca), x);
+        const float3 c = minus(pos(rb * n + cb), x);
         const float3 f = unit_or_zero(make_float3(a.y * c.z - a.z * c.y,    // a x c, written out
                                                   a.z * c.x - a.x * c.z,
                                                   a.x * c.y - a.y * c.x));
@@ -195,37 +218,32 @@ __device__ __forceinline__ float3 normal_at(const float4* pos, int row, int col,
 }
 #endif
 
-extern "C" __global__ void verlet_step(
-    const float4* __restrict__ pos,       // x(t); w = inverse mass, 0 = pinned
-    const float4* __restrict__ pos_prev,  // x(t - dt)
-    float4* __restrict__ pos_out,         // x(t + dt)
-    float4* __restrict__ pos_prev_out     // x(t), the next step's previous position
-#ifdef CLOTH_NORMALS
-    , float4* __restrict__ normal_out     // the normal of x(t), w = 0 (docs/normals.md)
-#endif
+// The scene's values: kernel parameters of the generic build (the same names as the
+// specialised build's constants above, so the code below reads the same in both).
 #ifdef CLOTH_GENERIC
-    , int n,                              // particles per side
-    float dt, float dt2,                  // dt2 = dt*dt rounded once on the host
-    float k, float b,                     // spring stiffness and damping
-    float gx, float gy, float gz,         // gravity, an acceleration (differs: not scaled by 1/m)
-    float rest_structural, float rest_shear, float rest_bend,  // |(dr, dc)| * h
-    const float4* __restrict__ spheres, int sphere_count,      // (centre, radius)
-    const float4* __restrict__ cylinders, int cylinder_count,  // 3 rows each, as collide_cylinder
-    const float4* __restrict__ planes, int plane_count         // 2 rows each, as collide_plane
+#define SCENE_PARAMS                                                                        \
+    , int n,                              /* particles per side */                          \
+    float dt, float dt2,                  /* dt2 = dt*dt rounded once on the host */        \
+    float k, float b,                     /* spring stiffness and damping */                \
+    float gx, float gy, float gz,         /* gravity, an acceleration (not scaled by 1/m) */ \
+    float rest_structural, float rest_shear, float rest_bend, /* |(dr, dc)| * h */          \
+    const float4* __restrict__ spheres, int sphere_count,     /* (centre, radius) */        \
+    const float4* __restrict__ cylinders, int cylinder_count, /* 3 rows, collide_cylinder */ \
+    const float4* __restrict__ planes, int plane_count        /* 2 rows, collide_plane */
+#define SCENE_ARGS , n, dt, dt2, k, b, gx, gy, gz, rest_structural, rest_shear, rest_bend, \
+    spheres, sphere_count, cylinders, cylinder_count, planes, plane_count
+#else
+#define SCENE_PARAMS
+#define SCENE_ARGS
 #endif
-)
-{
-    const int i = blockIdx.x * blockDim.x + threadIdx.x;
-    if (i >= n * n) return;
-    const int row = i / n;
-    const int col = i % n;
 
-    // steps 1-3: current and previous position, the lagged velocity, its damping term
-    const float4 p = pos[i];
-    const float4 q = pos_prev[i];
-    const float3 x = make_float3(p.x, p.y, p.z);
-    const float3 xp = make_float3(q.x, q.y, q.z);
-    const float w = p.w;
+// Steps 1-6 of docs/semantics.md for the particle at (row, col), at x(t) = x with x(t - dt) =
+// xp and inverse mass w, its neighbours' x(t) read through pos: x(t + dt).
+template <class Positions>
+__device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int col, float3 x,
+                                                  float3 xp, float w SCENE_PARAMS)
+{
+    // steps 1-3: the lagged velocity, its damping term
     const float3 vel = make_float3((x.x - xp.x) / dt, (x.y - xp.y) / dt, (x.z - xp.z) / dt);
     const float3 bv = make_float3(b * vel.x, b * vel.y, b * vel.z);
 
@@ -245,7 +263,7 @@ extern "C" __global__ void verlet_step(
         const int r = row + stencil[o].dr;
         const int c = col + stencil[o].dc;
         if (!inside_grid(r, c, n)) continue;
-        const float4 pj = pos[r * n + c];
+        const float3 pj = pos(r * n + c);
         const float3 d = make_float3(pj.x - x.x, pj.y - x.y, pj.z - x.z);
         const float s = spring_scale(dot3(d, d), rest[o / 4], k);
         // damping -b*vel once per existing spring, as in the listing
@@ -255,32 +273,117 @@ extern "C" __global__ void verlet_step(
     }
 
     // step 6: position Verlet, then collisions; pinned particles (w = 0) do not move
-    float3 x_new = x;
-    if (w != 0.0f) {
-        const float3 acc = make_float3(force.x * w + gx, force.y * w + gy, force.z * w + gz);
-        x_new = make_float3((2.0f * x.x - xp.x) + acc.x * dt2,
-                            (2.0f * x.y - xp.y) + acc.y * dt2,
-                            (2.0f * x.z - xp.z) + acc.z * dt2);
-        // every collider in the fixed order: all spheres, all cylinders, all planes
+    if (w == 0.0f) return x;
+    const float3 acc = make_float3(force.x * w + gx, force.y * w + gy, force.z * w + gz);
+    float3 x_new = make_float3((2.0f * x.x - xp.x) + acc.x * dt2,
+                               (2.0f * x.y - xp.y) + acc.y * dt2,
+                               (2.0f * x.z - xp.z) + acc.z * dt2);
+    // every collider in the fixed order: all spheres, all cylinders, all planes
 #if HAS_SPHERES
-        for (int s = 0; s < sphere_count; ++s)
-            x_new = collide_sphere(x_new, spheres[s]);
+    for (int s = 0; s < sphere_count; ++s)
+        x_new = collide_sphere(x_new, spheres[s]);
 #endif
 #if HAS_CYLINDERS
-        for (int c = 0; c < cylinder_count; ++c)
-            x_new = collide_cylinder(x_new, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
+    for (int c = 0; c < cylinder_count; ++c)
+        x_new = collide_cylinder(x_new, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
 #endif
 #if HAS_PLANES
-        for (int f = 0; f < plane_count; ++f)
-            x_new = collide_plane(x_new, planes[2 * f], planes[2 * f + 1]);
+    for (int f = 0; f < plane_count; ++f)
+        x_new = collide_plane(x_new, planes[2 * f], planes[2 * f + 1]);
 #endif
-    }
+    return x_new;
+}
 
-    // steps 7-8: the new position, and the current one as the next step's previous
-    pos_out[i] = make_float4(x_new.x, x_new.y, x_new.z, w);
-    pos_prev_out[i] = make_float4(x.x, x.y, x.z, w);
+extern "C" __global__ void verlet_step(
+    const float4* __restrict__ pos,       // x(t); w = inverse mass, 0 = pinned
+    const float4* __restrict__ pos_prev,  // x(t - dt)
+    float4* __restrict__ pos_out,         // x(t + dt)
+    float4* __restrict__ pos_prev_out     // x(t), the next step's previous position
 #ifdef CLOTH_NORMALS
-    const float3 normal = normal_at(pos, row, col, n, x);  // for rendering only
+    , float4* __restrict__ normal_out     // the normal of x(t), w = 0 (docs/normals.md)
+#endif
+    SCENE_PARAMS)
+{
+    const int i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= n * n) return;
+    const int row = i / n;
+    const int col = i % n;
+    const float4 p = pos[i];
+    const float4 q = pos_prev[i];
+    const float3 x = make_float3(p.x, p.y, p.z);
+    const float3 x_new = verlet_particle(GlobalPositions{pos}, row, col, x, make_float3(q.x, q.y, q.z),
+                                         p.w SCENE_ARGS);
+    // steps 7-8: the new position, and the current one as the next step's previous
+    pos_out[i] = make_float4(x_new.x, x_new.y, x_new.z, p.w);
+    pos_prev_out[i] = p;
+#ifdef CLOTH_NORMALS
+    const float3 normal = normal_at(GlobalPositions{pos}, row, col, n, x);  // for rendering only
     normal_out[i] = make_float4(normal.x, normal.y, normal.z, 0.0f);
 #endif
+}
+
+// verlet_steps: the block's shared memory, sized by the host (launch.py: multistep_shared_bytes):
+// x(t) and x(t - dt) of every particle, one float array per component: 6 n*n floats, 24 bytes
+// a particle, so that a 64 x 64 grid (96 KiB) fits every sm_80+ device (99 KiB or more).
+extern __shared__ float cloth_shared[];
+
+// The most threads verlet_steps runs in its one block (the host never asks for more); at 1024
+// the compiler must fit a thread in 64 registers.
+#define MULTISTEP_MAX_THREADS 1024
+
+// `steps` steps of the whole grid in one block of any size (each thread takes particles
+// threadIdx.x, + blockDim.x, ...: the same particles every step). The state lives in shared
+// memory between steps: `cur` holds x(t) and `old` x(t - dt); a step overwrites each particle's
+// own x(t - dt) slot with its x(t + dt) (only that particle's thread reads that slot), then
+// __syncthreads() and the two swap roles. In and out as verlet_step after `steps` of them:
+// (pos_out, pos_prev_out) = (x(t + steps dt), x(t + (steps - 1) dt)), the normals those of
+// the latter. Launch with one block, steps >= 1, and 6 n*n floats of dynamic shared memory.
+extern "C" __global__ void __launch_bounds__(MULTISTEP_MAX_THREADS) verlet_steps(
+    const float4* __restrict__ pos,       // x(t); w = inverse mass, 0 = pinned
+    const float4* __restrict__ pos_prev,  // x(t - dt)
+    float4* __restrict__ pos_out,         // x(t + steps dt)
+    float4* __restrict__ pos_prev_out     // x(t + (steps - 1) dt)
+#ifdef CLOTH_NORMALS
+    , float4* __restrict__ normal_out     // the normal of pos_prev_out, w = 0
+#endif
+    , int steps                           // steps in this launch, >= 1
+    SCENE_PARAMS)
+{
+    const int count = n * n;
+    float* cur_x = cloth_shared;
+    float* cur_y = cur_x + count;
+    float* cur_z = cur_y + count;
+    float* old_x = cur_z + count;
+    float* old_y = old_x + count;
+    float* old_z = old_y + count;
+    for (int i = threadIdx.x; i < count; i += blockDim.x) {
+        const float4 p = pos[i], q = pos_prev[i];
+        cur_x[i] = p.x, cur_y[i] = p.y, cur_z[i] = p.z;
+        old_x[i] = q.x, old_y[i] = q.y, old_z[i] = q.z;
+    }
+    __syncthreads();
+    for (int s = 0; s < steps; ++s) {
+        const SharedPositions now{cur_x, cur_y, cur_z};
+        for (int i = threadIdx.x; i < count; i += blockDim.x) {
+            const float3 x_new = verlet_particle(now, i / n, i % n, now(i),
+                                                 make_float3(old_x[i], old_y[i], old_z[i]),
+                                                 pos[i].w SCENE_ARGS);
+            old_x[i] = x_new.x, old_y[i] = x_new.y, old_z[i] = x_new.z;  // was x(t - dt)
+        }
+        __syncthreads();  // every x(t + dt) written before any is read as a neighbour
+        float* t;
+        t = cur_x, cur_x = old_x, old_x = t;
+        t = cur_y, cur_y = old_y, old_y = t;
+        t = cur_z, cur_z = old_z, old_z = t;
+    }
+    for (int i = threadIdx.x; i < count; i += blockDim.x) {
+        const float w = pos[i].w;
+        pos_out[i] = make_float4(cur_x[i], cur_y[i], cur_z[i], w);
+        pos_prev_out[i] = make_float4(old_x[i], old_y[i], old_z[i], w);
+#ifdef CLOTH_NORMALS
+        const SharedPositions last{old_x, old_y, old_z};  // what the last step read
+        const float3 normal = normal_at(last, i / n, i % n, n, last(i));
+        normal_out[i] = make_float4(normal.x, normal.y, normal.z, 0.0f);
+#endif
+    }
 }

@@ -333,7 +333,7 @@ def test_accuracy_figures_split_by_platform_mark_peers_and_label_the_front(tmp_p
     result = SimpleNamespace(rows=accuracy_rows(), differences=[])
     speed = speed_vs_error_chart(result)
     titles = list(speed.panels)
-    assert titles == ["every run", "CPU (numpy)", "OpenCL", "GL", "CUDA", "peers"]
+    assert titles == ["every run", "CPU (numpy, c)", "OpenCL", "GL", "CUDA", "peers"]
     assert all(len(labels) <= MAX_SERIES for labels in speed.panels.values())
     assert sum(len(v) for k, v in speed.panels.items() if k != "every run") == 14  # every line, once
     assert set(speed.panels["peers"]) == {"taichi fast (peer)", "warp default (peer)", "numba fast (peer)"}
@@ -376,7 +376,7 @@ def test_stability_map_has_a_panel_per_scene_with_pbd_as_its_worst_backend(tmp_p
     chart = stability_map_chart(rows)
     assert list(chart.panels) == ["flat", "crumpled"]
     assert all(len(labels) <= MAX_SERIES for labels in chart.panels.values())
-    assert chart.panels["flat"] == ["Verlet, CPU (numpy) (1 mode)", "Verlet, OpenCL (1 mode)", "Verlet, GL (1 mode)",
+    assert chart.panels["flat"] == ["Verlet, CPU (numpy, c) (1 mode)", "Verlet, OpenCL (1 mode)", "Verlet, GL (1 mode)",
                                     "PBD jacobi (10 it): smallest of 3 backend modes"]  # fmt: skip
     pbd = next(line for line in chart.figure.axes[0].get_lines() if line.get_label().startswith("PBD jacobi"))
     assert list(pbd.get_ydata()) == [0.05, 0.05]  # the worst backend, not the best

@@ -338,7 +338,7 @@ def test_modes_name_what_changes_speed_or_results():
     scene = sphere(8)
     assert build("glsl", scene, strict=True).mode == "strict"
     assert build("glsl", scene, normals=True).mode == "fast/normals"
-    assert build("glsl-compute", scene).mode == "fast/ls=64"
+    assert build("glsl-compute", scene).mode == "fast/ls=64/wg=64"  # the default kernel shape
     assert build("glsl-compute", scene, local_size=128).mode == "fast/ls=128"
     assert glsl.GLSLBackend.capabilities.sweep_variants == ({"strict": True}, {"strict": False})
     assert glsl_compute.GLSLComputeBackend.capabilities.local_size

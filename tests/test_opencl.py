@@ -268,15 +268,24 @@ def test_an_edit_to_collide_cl_reaches_the_compiler(monkeypatch):
         create_backend("opencl", sphere(8), VERLET, BackendOptions(strict=True, generic=True))
 
 
+def split_shape(scene, options: BackendOptions) -> BackendOptions:
+    """`options` with the interior + border kernel pair (the shape named by its width alone)."""
+    from clothbench.backends.opencl.verlet import OpenCLBackend
+
+    name = next(s for s in OpenCLBackend.kernel_shapes(scene, options) if s.startswith("v"))
+    return BackendOptions(**{**options.__dict__, "shape": name})
+
+
 def test_a_second_backend_of_the_same_key_builds_nothing(monkeypatch):
     require("opencl")
     built = []
     real_program = device.import_pyopencl().Program
     monkeypatch.setattr(device.import_pyopencl(), "Program", lambda *a: built.append(a) or real_program(*a))
     scene = every_collider_scene(29)  # a grid no other test builds
-    with create_backend("opencl", scene, VERLET, STRICT) as first:
+    split = split_shape(scene, STRICT)
+    with create_backend("opencl", scene, VERLET, split) as first:
         assert len(built) == 2, "interior and border programs, built once each"
-    with create_backend("opencl", scene.replace(stiffness=800.0), VERLET.replace(dt=4e-4), STRICT) as second:
+    with create_backend("opencl", scene.replace(stiffness=800.0), VERLET.replace(dt=4e-4), split) as second:
         pass  # the numbers are arguments: same key, no build
     assert len(built) == 2
     assert second.programs == first.programs and second.key == first.key
@@ -299,26 +308,31 @@ def test_more_colliders_than_the_constant_buffer_holds_are_refused():
 @pytest.mark.parametrize("strict", [True, False])
 @pytest.mark.parametrize("n", [3, 5, 20, 21, 37])
 def test_specialised_step_writes_every_particle_once(n, strict):
-    # The specialised step splits the grid between an interior kernel (V particles per work
-    # item, the last vector of a row overlapping) and a border kernel; the previous position
+    # The split shape divides the grid between an interior kernel (V particles per work
+    # item, the last vector of a row overlapping) and a border kernel, the rows shapes mask
+    # a row's last vector lane by lane; in every shape the previous position
     # written for every particle must be exactly the position it had, so none is missed.
     require("opencl")
     scene = sphere(n)
     pos, prev = scene.initial_state(np.float32)
     pos = pos.copy()
     pos[:, :3] += np.random.default_rng(n).normal(0, 1e-3, (n * n, 3)).astype(np.float32)
+    from clothbench.backends.opencl.verlet import OpenCLBackend
+
     for ls in (None, 7):
-        with create_backend("opencl", scene, VERLET, BackendOptions(strict=strict, local_size=ls)) as b:
-            b.upload(pos, prev)
-            b.advance(1)
-            assert_bit_exact(b.read()[1], pos, f"prev after one step, n={n} ls={ls}")
+        options = BackendOptions(strict=strict, local_size=ls)
+        for shape in OpenCLBackend.kernel_shapes(scene, options):  # the rows kernels mask the edges instead
+            with create_backend("opencl", scene, VERLET, BackendOptions(strict=strict, local_size=ls, shape=shape)) as b:
+                b.upload(pos, prev)
+                b.advance(1)
+                assert_bit_exact(b.read()[1], pos, f"prev after one step, n={n} ls={ls} shape={shape}")
 
 
 def test_kernel_rejects_a_wrongly_typed_argument():
     # The chapter (section 22.8): a float passed where the kernel wants an int failed
     # silently. Every argument has a declared dtype, so the wrapper refuses it instead.
     require("opencl")
-    with create_backend("opencl", sphere(16), VERLET, FAST) as b:
+    with create_backend("opencl", sphere(16), VERLET, split_shape(sphere(16), FAST)) as b:
         b.upload(*b.initial_state())
         border = b.kernels[-1]
         pos, prev, pos_out, prev_out = b._state
@@ -392,10 +406,10 @@ def test_unknown_device_lists_the_devices_there_are():
 
 def test_mode_names_what_changes_speed_or_results():
     require("opencl")
-    with create_backend("opencl", sphere(16), VERLET, STRICT) as b:
-        assert b.mode == "strict/resident/ls=auto"
+    with create_backend("opencl", sphere(16), VERLET, STRICT) as b:  # + the kernel shape
+        assert b.mode == f"strict/resident/ls=auto/{b.shape}"
     with create_backend("opencl", sphere(16), VERLET, BackendOptions(transfer="per-step", local_size=4)) as b:
-        assert b.mode == "fast/per-step/ls=4"
+        assert b.mode == f"fast/per-step/ls=4/{b.shape}"
     with create_backend("opencl", sphere(16), VERLET, BackendOptions(strict=True, generic=True)) as b:
         assert b.mode == "strict/generic/resident/ls=auto"
     with create_backend("opencl", sphere(16), VERLET, BackendOptions(normals=True, generic=True)) as b:

@@ -166,7 +166,7 @@ def test_no_panel_carries_more_than_eight_series_and_every_variant_is_drawn_once
         assert all(len(labels) <= MAX_SERIES for labels in panels.values()), panels
         detail = [label for title, labels in panels.items() if "fastest" not in title for label in labels]
         assert sorted(detail) == sorted(report.series[name]) and len(detail) == 26
-        assert list(panels)[1:] == ["CPU (numpy)", "OpenCL, Verlet", "OpenCL, PBD jacobi", "OpenCL, PBD coloured",
+        assert list(panels)[1:] == ["CPU (numpy, c)", "OpenCL, Verlet", "OpenCL, PBD jacobi", "OpenCL, PBD coloured",
                                     "GL", "CUDA", "peers"]  # fmt: skip
         assert "fastest" in list(panels)[0]
     assert all(len(platforms) <= MAX_SERIES for platforms in report.charts["speed_vs_error"].panels.values())
@@ -176,7 +176,7 @@ def test_peers_are_dashed_with_hollow_markers_and_say_peer(tmp_path):
     report = draw_sweep(write_csv(tmp_path / "many.csv", many_variant_rows()))
     chart = report.charts["time_vs_grid"]
     titles = list(chart.panels)
-    peers_ax, numpy_ax = chart.figure.axes[titles.index("peers")], chart.figure.axes[titles.index("CPU (numpy)")]
+    peers_ax, numpy_ax = chart.figure.axes[titles.index("peers")], chart.figure.axes[titles.index("CPU (numpy, c)")]
     peers = legend_lines(peers_ax)
     assert set(peers) == {"Taichi (peer)", "Warp (peer)", "Numba (peer)"}
     for line in peers.values():

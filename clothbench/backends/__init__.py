@@ -36,6 +36,7 @@ BACKENDS: dict[str, BackendEntry] = {
     for e in (
         BackendEntry("numpy", f"{_OWN}.numpy.verlet:NumpyBackend", f"{_OWN}.numpy.pbd:NumpyPbdBackend",
                      summary="vectorised NumPy reference (CPU)"),
+        BackendEntry("c", f"{_OWN}.c.verlet:CBackend", summary="native C with OpenMP (CPU line)"),
         BackendEntry("opencl", f"{_OWN}.opencl.verlet:OpenCLBackend", f"{_OWN}.opencl.pbd:OpenCLPbdBackend",
                      summary="OpenCL kernel via pyopencl"),
         BackendEntry("glsl", f"{_OWN}.gl.fragment:GLSLBackend", summary="GLSL fragment shader, FBO ping-pong"),

@@ -36,6 +36,8 @@ class BackendOptions:
     gl: str = "egl"  # GL context provider for the GL backends: egl|osmesa
     normals: bool = False  # compute normals (rendering, --save-normals)
     generic: bool = False  # one kernel for every scene instead of a specialised one
+    shape: str | None = None  # kernel shape by name (backends/tuning.py); None = the tuned one
+    retune: bool = False  # measure the kernel shapes again instead of reading the cached choice
 
     @property
     def dtype(self):
@@ -54,6 +56,7 @@ class Capabilities:
     normals: bool = False  # computes normals in the step (read_normals)
     device: bool = False  # options.device selects among several devices
     gl: bool = False  # options.gl selects the GL context provider
+    shapes: bool = False  # has kernel shapes chosen by measurement (options.shape, options.retune)
     # option overrides a sweep measures by default, one CSV row each
     sweep_variants: tuple[dict, ...] = ({},)
 
@@ -83,6 +86,8 @@ class Capabilities:
             return no("--gl", options.gl, ", ".join(GL_PROVIDERS))
         if options.gl != "egl" and not self.gl:
             return no("--gl", options.gl, "no GL context")
+        if options.shape is not None and not self.shapes:
+            return no("--shape", options.shape, "one kernel shape")
         return None
 
     def adapt(self, options: BackendOptions) -> BackendOptions:
@@ -98,6 +103,8 @@ class Capabilities:
             normals=options.normals and self.normals,
             device=options.device if self.device else None,
             gl=options.gl if self.gl else "egl",
+            shape=options.shape if self.shapes else None,
+            retune=options.retune and self.shapes,
         )
 
     def mode(self, options: BackendOptions, solver: Solver, local_size: int | None = None) -> str:
@@ -148,9 +155,43 @@ class Backend(ABC):
         """What the work runs on, as the driver names it."""
 
     @property
+    def driver(self) -> str:
+        """The driver (or compiler) and its version that ran the work, for the row's `driver`
+        column: a device name alone does not say which of several runtimes ran it."""
+        return ""
+
+    @property
     def mode(self) -> str:
         """The settings that change speed or results, for tables and CSV rows."""
-        return self.capabilities.mode(self.options, self.solver, self.effective_local_size) + self.mode_suffix
+        shape = f"/{self.shape}" if self.shape else ""
+        return self.capabilities.mode(self.options, self.solver, self.effective_local_size) + shape + self.mode_suffix
+
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+        """Where capabilities.shapes: the kernel shapes this backend can run `scene` with
+        (names, as the mode spells them; the first is the default), chosen among by
+        measurement (backends/tuning.py) unless options.shape names one."""
+        return ()
+
+    def pick_shape(self, key: dict[str, str], time_candidate) -> str:
+        """options.shape if given (refused in one line if not a candidate), else the tuned
+        choice for `key` (backends/tuning.py). Sets and returns self.shape."""
+        from clothbench.backends.tuning import choose_shape
+
+        candidates = self.kernel_shapes(self.scene, self.options)
+        if self.options.shape is not None:
+            if self.options.shape not in candidates:
+                raise ClothbenchError(
+                    f"{self.name} has no kernel shape {self.options.shape!r} for this scene "
+                    f"(it has: {', '.join(candidates)})"
+                )
+            self.shape = self.options.shape
+        else:
+            self.shape = choose_shape(self.name, key, candidates, time_candidate, self.options.retune)
+        return self.shape
+
+    # the kernel shape that runs (backends/tuning.py), part of the mode; None: it has one
+    shape: str | None = None
 
     # the work-group size the backend chose where options.local_size is None
     effective_local_size: int | None = None

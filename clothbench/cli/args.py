@@ -54,11 +54,21 @@ def add_backend_args(p: argparse.ArgumentParser) -> None:
     add_device_args(p)
     p.add_argument("--save-normals", action="store_true", help="compute normals and save them with --save")
     p.add_argument("--generic", action="store_true", help="one kernel for every scene (no specialisation)")
+    p.add_argument(
+        "--shape",
+        help="run this kernel shape (as the mode names it, e.g. v8/ls=64) instead of the one tuned for this device",
+    )
 
 
 def add_device_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", help="device selector (opencl: 'platform:device' index, like PYOPENCL_CTX)")
     p.add_argument("--gl", choices=["egl", "osmesa"], default="egl", help="GL context provider")
+    p.add_argument(
+        "--retune",
+        action="store_true",
+        help="measure the kernel shapes (vector width, work-group size) again on this device instead of "
+        "reading the choice cached by the first run (CLOTHBENCH_TUNING=off: default shapes, no measuring)",
+    )
 
 
 def options_from_args(args):
@@ -73,6 +83,8 @@ def options_from_args(args):
         local_size=args.local_size,
         device=args.device,
         gl=args.gl,
+        shape=args.shape,
+        retune=getattr(args, "retune", False),
         normals=args.save_normals,
         generic=args.generic,
     )

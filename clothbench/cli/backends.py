@@ -1,4 +1,6 @@
-"""`clothbench backends`: every backend, whether it can run here, and why not."""
+"""`clothbench backends`: every backend, whether it can run here, and why not; then every
+OpenCL device of every platform (runtime, versions, whether it compiles) and which one is
+the default, and why."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import json
 def register(subparsers) -> None:
     p = subparsers.add_parser("backends", help="list every backend, whether it runs here, and why not")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--retune", action="store_true", help="measure the OpenCL devices again to choose the default")
     p.set_defaults(func=cmd_backends)
 
 
@@ -26,10 +29,50 @@ def cmd_backends(args) -> int:
                 "reason": a.reason,
             }
         )
+    devices, default = opencl_devices(args.retune)
+    for row in rows:
+        if row["backend"] == "opencl" and devices is not None:
+            row["devices"], row["default_device"] = devices, default
     if args.json:
         print(json.dumps(rows))
-    else:
-        from clothbench.reports.tables import print_backends
+        return 0
+    from clothbench.reports.tables import print_backends
 
-        print_backends(rows)
+    print_backends(rows)
+    if devices:
+        print_opencl_devices(devices, default)
     return 0
+
+
+def opencl_devices(retune: bool) -> tuple[list[dict] | None, str]:
+    """The OpenCL device rows and the default's line; (None, why) without pyopencl or any
+    platform (the opencl row's reason already says so)."""
+    from clothbench.errors import ClothbenchError
+
+    try:
+        from clothbench.backends.opencl import device
+
+        device.import_pyopencl()
+        return device.device_listing(retune)
+    except ImportError:
+        return None, "pyopencl not installed"
+    except ClothbenchError as e:
+        return None, str(e)
+
+
+def print_opencl_devices(devices: list[dict], default: str) -> None:
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    table = Table(title="OpenCL devices")
+    for col in ("device", "name", "runtime", "platform version", "driver", "LLVM", "compiles"):
+        table.add_column(col, no_wrap=col in ("device", "driver", "LLVM"))
+    for d in devices:
+        compiles = "[green]yes[/green]" if d["compiles"] else f"[red]no[/red]: {escape(d['error'])}"
+        mark = "*" if d["default"] else ""
+        cells = (d["device"] + mark, d["name"], f"{d['runtime']} ({d['platform']})", d["platform_version"],
+                 d["driver_version"], d["llvm"] or "-")  # fmt: skip
+        table.add_row(*map(escape, cells), compiles)  # a driver's text is not rich markup
+    Console().print(table)
+    print(default)  # one line, unwrapped: what a script or a bug report quotes

@@ -15,7 +15,8 @@ from clothbench.cli.args import (
     solver_specs,
 )
 
-DEFAULT_GRIDS = "32,64,128,256"
+DEFAULT_GRIDS = "32,64,128,256,512,1024,2048"
+DEFAULT_ROW_BUDGET = 15.0  # seconds of timed run a row may take before it runs fewer steps
 
 EPILOG = """\
 One CSV row per (backend, mode, grid, local size), appended and flushed to the disk as
@@ -53,6 +54,14 @@ def register(subparsers) -> None:
     p.add_argument("--steps", type=int, default=50, help="steps per timed chunk, S (default 50)")
     p.add_argument("--repeat", type=int, default=10, help="timed chunks per row, R (default 10)")
     p.add_argument("--scene", default="sphere", help="built-in scene name or a .toml file (default sphere)")
+    p.add_argument(
+        "--row-budget",
+        type=float,
+        default=DEFAULT_ROW_BUDGET,
+        metavar="SECONDS",
+        help="timed run a row may take: a row whose warm-up step says it would take longer runs fewer, "
+        f"shorter chunks (at least 3), recorded in its budget_s, steps, repeats and note (default {DEFAULT_ROW_BUDGET:g})",
+    )
     p.add_argument("--dt", type=float, help="time step (s); default: the scene's")
     p.add_argument(
         "--local-sizes",
@@ -127,11 +136,12 @@ def cmd_sweep(args) -> int:
         grids=args.grids,
         steps=args.steps,
         repeats=args.repeat,
-        base=BackendOptions(device=args.device, gl=args.gl),
+        base=BackendOptions(device=args.device, gl=args.gl, retune=args.retune),
         local_sizes=tuple(args.local_sizes),
         solvers=solver_specs(args.solvers),
         generic=args.generic,
         row_timeout=args.row_timeout,
+        row_budget=args.row_budget,
     )
     bar: LazyProgress | None = None
     state: list = []  # the sweep's progress, once it has started
@@ -196,6 +206,10 @@ def cmd_sweep(args) -> int:
 
     if progress.measured:
         print_rows(progress.measured, title=f"clothbench sweep: {args.out}")
+    if progress.machine is not None:
+        _note(f"machine limits (the bound_ms column, docs/bounds.md): {progress.machine.what()}")
+    elif progress.machine_note:
+        _note(f"no machine bound measured: {progress.machine_note}")
     bad = [r for r in progress.measured if r["status"] != "ok"]
     total = progress.already + len(progress.measured)
     _note(

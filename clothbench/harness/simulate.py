@@ -6,7 +6,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.backends import BackendOptions, create_backend
+from clothbench.backends import BackendOptions, availability, create_backend
+from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 
@@ -24,8 +25,19 @@ def simulate(
 
 @lru_cache(maxsize=32)
 def reference(scene: Scene, solver: Solver, steps: int, precision: str = "f64") -> tuple[np.ndarray, np.ndarray]:
-    """The NumPy reference state, cached: many comparisons share one reference run."""
-    pos, prev = simulate("numpy", scene, solver, steps, BackendOptions(precision=precision))
+    """The NumPy reference state, cached: many comparisons share one reference run.
+
+    A float64 Verlet reference is stepped by the `c` backend in strict float64 where it can
+    run: the same operations in the same order, so NumPy float64's bits (tests/test_c_backend.py
+    holds it to that), at a fraction of NumPy's time on large grids (docs/c.md). Float32
+    references stay NumPy's own: they are what every strict backend is compared against."""
+    if precision == "f64" and solver.name == "verlet" and availability("c").usable:
+        try:
+            pos, prev = simulate("c", scene, solver, steps, BackendOptions(precision="f64", strict=True))
+        except ClothbenchError:  # a compiler that cannot build it: NumPy gives the same bits
+            pos, prev = simulate("numpy", scene, solver, steps, BackendOptions(precision=precision))
+    else:
+        pos, prev = simulate("numpy", scene, solver, steps, BackendOptions(precision=precision))
     pos.setflags(write=False)
     prev.setflags(write=False)
     return pos, prev

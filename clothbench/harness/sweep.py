@@ -44,6 +44,10 @@ from clothbench.scene import Setup
 from clothbench.solver import Solver
 
 
+NATIVE = "c"  # the backend every row's vs_c is taken against: the native CPU line
+BUDGET_NOTE = "time budget"  # how the note of a row its budget shortened begins
+
+
 # --- plan ------------------------------------------------------------------------------
 
 
@@ -109,6 +113,8 @@ def plan_sweep(
     """harness.plan's variants on every grid, grid-major so an interrupted sweep holds every
     backend at the small grids; the float64 reference first in each grid and solver."""
     variants, skipped = plan_variants(names, solvers, base, local_sizes, generic)
+    # the native c line next, so that every later row of its grid has its vs_c ratio
+    variants.sort(key=lambda v: 0 if v.is_reference else 1 if v.backend == NATIVE else 2)
     return Plan([PlannedRow(v, g) for g in grids for v in variants], skipped)
 
 
@@ -140,6 +146,7 @@ def measure_row(
     repeats: int,
     references: dict | None = None,
     on_progress: Callable[[int], None] | None = None,
+    budget_s: float | None = None,
 ) -> dict[str, str]:
     """Time `row` (R chunks of S steps after warm-up) and compare its final state with the
     float64 reference. Never raises for a backend's failure: that becomes the row's status.
@@ -149,16 +156,19 @@ def measure_row(
     scene, solver = setup.scene, row.solver
     total = steps * repeats
     out = base_row(row, setup, steps, repeats)
+    out["budget_s"] = fmt(budget_s)
     try:
         t0 = time.perf_counter()
         backend = create_backend(row.backend, scene, solver, row.options)
         build_s = time.perf_counter() - t0
         with backend:
-            out["mode"], out["device"] = backend.mode, backend.device
+            out["mode"], out["device"], out["driver"] = backend.mode, backend.device, backend.driver
             faults.inject(row.backend)
             result = run_timed(
-                backend, total, chunk=steps, on_progress=on_progress, raise_on_blowup=False, build_s=build_s
+                backend, total, chunk=steps, on_progress=on_progress, raise_on_blowup=False, build_s=build_s,
+                budget_s=budget_s,
             )
+            out["mode"] = backend.mode  # a shape tuned during the warm-up is part of it
     except MemoryError as e:  # a Python-side allocation the machine could not hold
         out.update(status="crashed", note=one_line(f"out of memory: {e}"), **environment.collect())
         return out
@@ -173,6 +183,15 @@ def measure_row(
 
     spread = result.spread()
     ms = result.ms_per_step
+    if result.budget_cut:
+        total = result.steps
+        out.update(
+            steps=str(result.chunk),
+            repeats=str(len(result.chunk_ms_per_step)),
+            simulated_s=fmt(total * solver.dt),
+            note=f"{BUDGET_NOTE} {fmt(budget_s)} s: {len(result.chunk_ms_per_step)} chunks of {result.chunk} steps "
+            f"instead of {repeats} of {steps}; error against the float64 run of the same {total} steps",
+        )
     out.update(
         status="ok",
         ms_median=fmt(ms),
@@ -187,10 +206,10 @@ def measure_row(
         finite=fmt(result.finite),
         max_penetration_m=fmt(result.max_penetration),
     )
-    if row.variant.is_reference:
+    if row.variant.is_reference and not result.budget_cut:  # a shortened run is not the others' reference
         references[(scene, solver)] = result.pos
     try:
-        ref = references.get((scene, solver))
+        ref = None if result.budget_cut else references.get((scene, solver))  # those are of S*R steps
         ref = ref if ref is not None else reference(scene, solver, total)[0]
         if np.isfinite(ref[:, :3]).all():
             rms, worst = position_error(result.pos, ref)
@@ -203,21 +222,39 @@ def measure_row(
     return out
 
 
-def _measure_in_child(row, setup, steps, repeats, known, on_progress=None):
+def _measure_in_child(row, setup, steps, repeats, known, on_progress=None, budget_s=None):
     """measure_row in a worker process: the row, and the reference state it found (if it is one)."""
     references = {} if known is None else {(setup.scene, row.solver): known}
-    out = measure_row(row, setup, steps, repeats, references, on_progress=on_progress)
+    out = measure_row(row, setup, steps, repeats, references, on_progress=on_progress, budget_s=budget_s)
     return out, references.get((setup.scene, row.solver)) if row.variant.is_reference else None
+
+
+def _reference_in_child(scene, solver, steps: int) -> np.ndarray:
+    """The float64 reference's final positions, in a worker: the parent never runs a native
+    library's threads (OpenMP does not survive a fork into the next row's worker)."""
+    return reference(scene, solver, steps)[0]
 
 
 def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: bool) -> dict[str, str]:
     setup = settings.setups[row.grid]
     if not settings.isolate:
-        return measure_row(row, setup, settings.steps, settings.repeats, references, on_progress=report)
+        return measure_row(
+            row, setup, settings.steps, settings.repeats, references, on_progress=report, budget_s=settings.row_budget
+        )
     key = (setup.scene, row.solver)
+    if key not in references and not row.variant.is_reference:
+        # once per grid and solver, where the reference row did not leave it (skipped, or
+        # shortened by its budget): each row's worker would otherwise run it again
+        known = run_isolated(
+            _reference_in_child, (setup.scene, row.solver, settings.steps * settings.repeats),
+            timeout=settings.row_timeout, method=start_method(False),
+        )  # fmt: skip
+        if known.ok:
+            references[key] = known.value
     outcome = run_isolated(
         _measure_in_child,
         (row, setup, settings.steps, settings.repeats, references.get(key)),
+        kwargs={"budget_s": settings.row_budget},
         timeout=settings.row_timeout,
         on_progress=report or (lambda done: None),
         method=start_method(fork_safe),
@@ -246,7 +283,10 @@ def _run_distributed(todo, settings, executor, keep, have, name, on_step, per_ro
     for row in todo:
         setup = settings.setups[row.grid]
         args = (row, setup, settings.steps, settings.repeats, None)
-        futures[executor.submit(_measure_in_child, *args, timing=True, timeout=settings.row_timeout)] = row
+        submitted = executor.submit(
+            _measure_in_child, *args, budget_s=settings.row_budget, timing=True, timeout=settings.row_timeout
+        )
+        futures[submitted] = row
     written = set(have)
     for i, future in enumerate(executor.as_completed(list(futures))):
         row = futures[future]
@@ -282,10 +322,14 @@ class SweepSettings:
     generic: str = "no"  # no | yes | both (plan.GENERIC_CHOICES)
     isolate: bool = True  # each row in a worker process (harness/executor.py)
     row_timeout: float | None = DEFAULT_ROW_TIMEOUT  # seconds, per row (isolated rows only)
+    row_budget: float | None = None  # seconds of timed run per row; slower rows run fewer steps
+    bounds: bool = True  # measure the machine's limits once and give every row its bound
 
     def __post_init__(self):
         if self.row_timeout is not None and not self.row_timeout > 0:
             raise ClothbenchError(f"--row-timeout must be > 0 seconds, got {self.row_timeout}")
+        if self.row_budget is not None and not self.row_budget > 0:
+            raise ClothbenchError(f"--row-budget must be > 0 seconds, got {self.row_budget}")
         if self.steps < 1:
             raise ClothbenchError(f"--steps must be >= 1 (steps per timed chunk), got {self.steps}")
         if self.repeats < 1:
@@ -307,6 +351,8 @@ class SweepProgress:
     dropped_bytes: int
     earlier_commits: set[str]
     measured: list[dict[str, str]] = field(default_factory=list)
+    machine: object = None  # the machine's limits (harness/bounds.py), once measured
+    machine_note: str = ""  # why they were not, if not
 
     @property
     def already(self) -> int:
@@ -321,8 +367,8 @@ class SweepProgress:
 def check_resumable(rows: list[dict[str, str]], s: SweepSettings, path: Path) -> None:
     """Refuse to mix rows timed with other settings into one file: they would not compare."""
     for r in rows:
-        if r["scene"] != s.setup.scene.name:
-            continue
+        if r["scene"] != s.setup.scene.name or r.get("note", "").startswith(BUDGET_NOTE):
+            continue  # a row its time budget shortened ran fewer steps on purpose
         try:
             same = (
                 int(r["steps"]) == s.steps
@@ -345,6 +391,27 @@ def _specialised_twin(row: dict[str, str], rows: list[dict[str, str]]) -> dict[s
         if row_key(r) == want and r["status"] == "ok" and r["ms_median"]:
             return r
     return None
+
+
+def _compared_columns(result: dict[str, str], rows: list[dict[str, str]], settings, row) -> dict[str, str]:
+    """The row's bound (harness/bounds.py: the machine measured once, in this process) and its
+    ratio to the c backend's row of the same grid, solver, precision and strictness."""
+    out: dict[str, str] = {}
+    ms = float(result["ms_median"])
+    if settings.bounds:
+        from clothbench.harness.bounds import bound_columns, machine_columns
+
+        scene, o = settings.setups[row.grid].scene, row.options
+        out.update(bound_columns(scene, o.precision, ms, row.solver, strict=o.strict, normals=o.normals))
+        out.update(machine_columns())
+    same = ("grid", "solver", "pbd_method", "precision", "strict", "scene")
+    native = [
+        r for r in [*rows, result]
+        if r["backend"] == NATIVE and r["status"] == "ok" and r["ms_median"] and all(r[c] == result[c] for c in same)
+    ]  # fmt: skip
+    if native:
+        out["vs_c"] = fmt(ms / float(native[-1]["ms_median"]))
+    return out
 
 
 def run_sweep(
@@ -389,12 +456,18 @@ def run_sweep(
             on_start(progress)
         references: dict = {}
         per_row = settings.steps * settings.repeats
+        if settings.bounds and todo:
+            from clothbench.harness.bounds import machine_or_reason
+
+            progress.machine, progress.machine_note = machine_or_reason()  # once, before any row
 
         def keep(row: PlannedRow, result: dict[str, str]) -> None:
             if row.options.generic and result["status"] == "ok":
                 twin = _specialised_twin(result, f.rows)  # f.rows holds this run's rows too
                 if twin is not None:
                     result["specialised_speedup"] = fmt(float(result["ms_median"]) / float(twin["ms_median"]))
+            if result["status"] == "ok":
+                result.update(_compared_columns(result, f.rows, settings, row))
             f.append(result)
             progress.measured.append(result)
             if on_row:

@@ -20,6 +20,25 @@ from clothbench.errors import ClothbenchError
 
 PER_STEP_TRANSFERS = frozenset({"per-step"})  # transfer modes that move the state host<->device every step
 
+# The columns of the machine's limits (harness/bounds.py), with what each means.
+BOUND_COLUMN_DOCS = {
+    "bound_ms": "the machine's lower bound on ms per step for this scene and precision: max(memory, arithmetic), "
+    "measured in this run (docs/bounds.md); empty where there is none (no C compiler, pbd)",
+    "bound_kind": "which limit sets bound_ms: memory (bytes at the streaming rate) or arithmetic (the busiest unit)",
+    "bound_fraction": "bound_ms / ms_median: the fraction of the machine's bound achieved (1 = at the bound)",
+}
+MACHINE_COLUMN_DOCS = {
+    "bandwidth_gb_s": "best streaming rate measured this run (max of triad and copy, STREAM's byte count, GB/s)",
+    "triad_gb_s": "STREAM triad a = b + s*c, all threads, 3 arrays counted, fastest 2 MiB chunks (GB/s)",
+    "copy_gb_s": "STREAM scale a = s*b (a copy's traffic), all threads, 2 arrays counted (GB/s)",
+    "triad_pass_gb_s": "the triad timed over whole passes, as STREAM reports it (GB/s; not used by the bound)",
+    "sqrt_gops": "float32 sqrt throughput, all threads (1e9/s)",
+    "div_gops": "float32 division throughput, all threads (1e9/s)",
+    "fp_gops": "float32 add/multiply throughput, all threads (1e9/s)",
+    "rsqrt_gops": "float32 fast reciprocal square root (estimate + Newton step) throughput (1e9/s)",
+    "bound_threads": "threads the limits were measured with",
+}
+
 # Every column, in file order, with what it means. COLUMNS is the header.
 COLUMN_DOCS: dict[str, str] = {
     "backend": "registry name (see `clothbench backends`)",
@@ -36,6 +55,8 @@ COLUMN_DOCS: dict[str, str] = {
     "generic": "true = one kernel for every scene; false = the backend's default (specialised where it has one)",
     "specialised_speedup": "generic rows only: ms/step of this generic kernel / ms/step of the same backend's specialised kernel (same grid, mode and sweep)",
     "device": "what the work ran on, as the driver names it",
+    "driver": "the runtime or compiler, with its version, that ran the work (which of several OpenCL runtimes, "
+    "the GL renderer, the C compiler)",
     "scene": "scene name",
     "grid": "n, particles per side",
     "particles": "n*n",
@@ -44,6 +65,8 @@ COLUMN_DOCS: dict[str, str] = {
     "steps": "steps per timed chunk (S)",
     "repeats": "timed chunks (R): the timed run simulates S*R steps after the warm-up",
     "simulated_s": "simulated time of the timed run, S*R*dt (s)",
+    "budget_s": "the per-row time budget (--row-budget, s) the row ran under; where the run would not fit, "
+    "steps and repeats are what ran (fewer than asked) and the note says so",
     "status": "ok | unstable (blew up: NaN/Inf or runaway) | failed (raised) | crashed (its worker process died: "
     "a signal, an abort, out of memory) | timeout (ran past --row-timeout); measurements are empty unless ok",
     "note": "why a row is unstable or failed (one line)",
@@ -61,7 +84,11 @@ COLUMN_DOCS: dict[str, str] = {
     "max_penetration_m": "deepest penetration of a particle into a collider at the end (m)",
     "err_rms_m": "RMS distance of the final positions to the numpy float64 run of the same scene and S*R steps (m)",
     "err_max_m": "largest such distance (m)",
+    **BOUND_COLUMN_DOCS,
+    "vs_c": "ms_median / ms_median of the c backend's row of the same grid, solver, precision and strict flag in "
+    "this file (the native CPU line; > 1 is slower than it)",
     "timed_region": "what the clock saw: 'steps' (upload and readback outside) or 'steps+transfers' (per-step transfer mode)",
+    **MACHINE_COLUMN_DOCS,
     "cpu": "CPU model",
     "cores": "logical CPUs available to the process",
     "host": "the machine the row ran on (its host name; a Dask worker's for a sweep on a cluster)",

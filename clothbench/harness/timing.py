@@ -47,6 +47,8 @@ class RunResult:
     prev: np.ndarray | None = None
     blowup: BlowUp | None = None
     warnings: list[str] = field(default_factory=list)  # one line each, said once
+    chunk: int = 0  # steps per timed chunk, as run (a time budget can make it smaller)
+    budget_cut: bool = False  # the time budget shortened the run (steps and chunk say what ran)
     # --strict on a driver that flushes subnormals: the first step it parts from NumPy f32
     strict_divergence: str | None = None
 
@@ -86,6 +88,22 @@ def warm_up(backend) -> float:
     return time.perf_counter() - t0
 
 
+MIN_BUDGET_CHUNKS = 3  # a budget never leaves fewer timed chunks than this: a median needs them
+
+
+def fit_budget(steps: int, chunk: int, step_s: float, budget_s: float) -> tuple[int, int]:
+    """(steps, chunk) that fit `budget_s` seconds at `step_s` a step: the chunk shrinks first
+    (the same number of chunks, so the spread means the same), then the chunks, never below
+    MIN_BUDGET_CHUNKS chunks of one step. Unchanged when the run fits."""
+    if step_s * steps <= budget_s:
+        return steps, chunk
+    chunks = max(1, -(-steps // chunk))
+    chunk = max(1, int(budget_s / (step_s * chunks)))
+    if chunk == 1:
+        chunks = min(chunks, max(MIN_BUDGET_CHUNKS, int(budget_s / step_s)))
+    return chunk * chunks, chunk
+
+
 def run_timed(
     backend,
     steps: int,
@@ -93,13 +111,22 @@ def run_timed(
     on_progress: Callable[[int], None] | None = None,
     raise_on_blowup: bool = True,
     build_s: float = 0.0,
+    budget_s: float | None = None,
 ) -> RunResult:
     """Run `steps` steps of the backend's scene and solver from the solver's start in timed
-    chunks, checking health after each."""
+    chunks, checking health after each. With `budget_s`, the slowest warm-up step sets how
+    many steps fit in that many seconds of timed run, and a run that would not fit is
+    shortened (fit_budget; result.steps and result.chunk say what ran)."""
     chunk = chunk or default_chunk(steps)
     scene, solver = backend.scene, backend.solver
     result = RunResult(backend.name, backend.device, backend.mode, scene, solver, steps)
     result.warmup_s = build_s + warm_up(backend)
+    if budget_s is not None:
+        fitted = fit_budget(steps, chunk, _one_step_s(backend), budget_s)
+        result.budget_cut = fitted != (steps, chunk)
+        steps, chunk = fitted
+        result.steps = steps
+    result.chunk = chunk
 
     pos, prev = backend.initial_state()
     backend.upload(pos, prev)
@@ -138,6 +165,15 @@ def run_timed(
                 on_progress(done)
     result.pos, result.prev = pos, prev
     return result
+
+
+def _one_step_s(backend) -> float:
+    """Seconds of one synchronised step, after the warm-up (it is past compilation)."""
+    backend.synchronize()
+    t0 = time.perf_counter()
+    backend.advance(1)
+    backend.synchronize()
+    return time.perf_counter() - t0
 
 
 def _pinpoint(backend, pos, prev, done, chunk) -> tuple[int, str | None]:

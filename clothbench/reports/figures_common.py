@@ -28,9 +28,11 @@ T = TypeVar("T")
 MAX_SERIES = 8  # more lines than this in one panel and a reader stops telling them apart
 
 PEERS = "peers"
-PLATFORM_OF = {"numpy": "CPU (numpy)", "opencl": "OpenCL", "glsl": "GL", "glsl-compute": "GL", "cuda": "CUDA"}
-PLATFORM_ORDER = ("CPU (numpy)", "OpenCL", "GL", "CUDA", PEERS)
-PLATFORM_COLORS = {"CPU (numpy)": "#404040", "OpenCL": "#1f77b4", "GL": "#2ca02c", "CUDA": "#d62728", PEERS: "#ff7f0e"}
+CPU = "CPU (numpy, c)"
+PLATFORM_OF = {"numpy": CPU, "c": CPU, "opencl": "OpenCL", "glsl": "GL", "glsl-compute": "GL", "cuda": "CUDA"}
+PLATFORM_ORDER = (CPU, "OpenCL", "GL", "CUDA", PEERS)
+PLATFORM_COLORS = {CPU: "#404040", "OpenCL": "#1f77b4", "GL": "#2ca02c", "CUDA": "#d62728", PEERS: "#ff7f0e"}
+NATIVE_COLOR = "black"  # the c backend's fast line, drawn in every panel as the native CPU line
 # distinct at a glance and in print; a panel's series take them in order
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f",
            "#bcbd22")  # fmt: skip
@@ -232,6 +234,21 @@ def draw_bound_lines(ax, rows: list, x: Callable, y: Callable) -> bool:
         ax.plot(xs, [min(points[v]) for v in xs], color=BOUND_COLOR, linewidth=2.4, alpha=0.7,
                 linestyle=(0, (6, 2)), zorder=1, label=label)  # fmt: skip
     return bool(by_device)
+
+
+def draw_native_line(ax, rows: list, x: Callable, y: Callable) -> bool:
+    """The c backend's fast float32 Verlet rows as a thin black line: the native CPU line
+    every other panel is read against (the chapter's CPU line). Whether a line was drawn."""
+    native = sorted(
+        (r for r in rows if r.backend == "c" and not r.strict and r.precision == "f32" and r.solver == "verlet"
+         and not r.local_size),
+        key=x,
+    )  # fmt: skip
+    if not native:
+        return False
+    ax.plot([x(r) for r in native], [y(r) for r in native], color=NATIVE_COLOR, linewidth=1.0, linestyle=":",
+            zorder=2, label="c fast: the native CPU line")  # fmt: skip
+    return True
 
 
 def new_figure(width: float, height: float) -> Figure:

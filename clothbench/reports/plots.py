@@ -34,9 +34,9 @@ from matplotlib.ticker import FuncFormatter
 
 from clothbench.errors import ClothbenchError
 from clothbench.reports.figures_common import (
-    BOUND_COLOR, FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, MAX_SERIES, PEERS, PLATFORM_COLORS,
-    Chart, draw_bound_lines, draw_front, fit_labels, key_legend, panel_axes, panel_legend, pareto_front,
-    plain_log_labels, platform_rank, save_figure, small_multiples, titled_figure,
+    BOUND_COLOR, CPU, FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, MAX_SERIES, PEERS, PLATFORM_COLORS,
+    Chart, draw_bound_lines, draw_front, draw_native_line, fit_labels, key_legend, panel_axes, panel_legend,
+    pareto_front, plain_log_labels, platform_rank, save_figure, small_multiples, titled_figure,
 )  # fmt: skip
 from clothbench.reports.sweep_rows import (
     DISPLAY, REQUIRED, Row, Series, by_variant, by_variant_grid, devices_line, footer, group, load,
@@ -158,9 +158,11 @@ def plot_time_vs_grid(rows: list[Row], report: PlotReport) -> None:
     labels = ("grid: particles per side (particles below)", "time per step (ms), median; bars min-max")
     chart, panels = _line_figure("time_vs_grid", "Computation time per step against grid size", labels, rows, report,
                                  draw)  # fmt: skip
-    for ax, (_, members) in panels:
+    for ax, (panel, members) in panels:
         mine = [r for s in members for r in s.rows]
         draw_bound_lines(ax, mine, x=lambda r: r.grid, y=lambda r: r.bound_ms)
+        if panel != CPU:
+            draw_native_line(ax, rows, x=lambda r: r.grid, y=lambda r: r.ms)
         _grid_axis(ax, [r.grid for r in mine])
         panel_legend(ax)
     _log_if_wide(panels[0][0], [r.ms for _, (_, ms) in panels for s in ms for r in s.rows])
@@ -187,9 +189,11 @@ def plot_throughput(rows: list[Row], report: PlotReport) -> None:
 
     labels = ("particles N; a label's N^p: the fitted time per step ∝ N^p", "throughput (particles per second)")
     chart, panels = _line_figure("throughput", "Throughput against particle count", labels, rows, report, draw)
-    for ax, (_, members) in panels:
+    for ax, (panel, members) in panels:
         mine = [r for s in members for r in s.rows]
         draw_bound_lines(ax, mine, x=lambda r: r.particles, y=lambda r: r.particles * 1e3 / r.bound_ms)
+        if panel != CPU:
+            draw_native_line(ax, rows, x=lambda r: r.particles, y=lambda r: r.particles * 1e3 / r.ms)
         panel_legend(ax)
     ax = panels[0][0]
     ax.set_xscale("log")

@@ -24,6 +24,7 @@ REQUIRED = (
 
 DISPLAY = {
     "numpy": "CPU (numpy)",
+    "c": "C (OpenMP)",
     "opencl": "OpenCL",
     "glsl": "GLSL",
     "glsl-compute": "GLSL compute",

@@ -1,1 +1,2 @@
-"""CUDA through CuPy RawKernel: Verlet (verlet.py, kernels/verlet_cloth.cu)."""
+"""CUDA through CuPy RawKernel: Verlet (verlet.py; launch.py: kernel shapes and buffers; cpu.py:
+the CPU build the tests run; kernels/verlet_cloth.cu; docs/cuda.md)."""

@@ -1,19 +1,22 @@
 """CUDA: kernels/verlet_cloth.cu through CuPy, the chapter's section 22.7.
 
-Host code only; the step itself is docs/semantics.md, performed by the kernel. The chapter
-keeps two pairs of device buffers, (pos, pos_prev) x (in, out), and copies each output to
-its input with cudaMemcpyDeviceToDevice after every step; `--transfer copy` does exactly
-that, and the default `swap` exchanges the pointers instead, so the harness shows what the
-copy costs. `PingPong` holds that logic once, written against a small runtime (allocate,
-copy, launch), so the CPU build of the same kernel (tests/test_cuda.py, through shim/ beside
-this module) is driven with the same argument list, launch geometry and swap.
+Host code only; the step itself is docs/semantics.md, performed by the kernels, and how they
+are launched is launch.py (the kernel shapes and PingPong). The chapter keeps two pairs of
+device buffers, (pos, pos_prev) x (in, out), and copies each output to its input with
+cudaMemcpyDeviceToDevice after every launch; `--transfer copy` does exactly that, and the
+default `swap` exchanges the pointers instead, so the harness shows what the copy costs.
 
-Specialisation: by default the kernel is built for the scene and solver, its constants and
+Kernel shapes (docs/cuda.md): one step a launch in blocks of 64..512 threads ("block=N"), or,
+where the grid fits one block's shared memory, K steps a launch ("steps/launch=K"). The
+backend times each on the device with CUDA events and keeps the fastest per device, driver,
+grid, colliders and arithmetic (backends/tuning.py); `--shape` names one.
+
+Specialisation: by default the kernels are built for the scene and solver, its constants and
 colliders compile-time constants (exact float literals in -D defines) and the code of a
-collider kind the scene lacks left out; `--generic` builds the one kernel that takes them all
-as arguments. `kernel_defines` gives the -D switches, and compiled kernels are cached by them.
+collider kind the scene lacks left out; `--generic` builds the one module that takes them all
+as arguments. `kernel_defines` gives the -D switches, and compiled modules are cached by them.
 
-Compilation: we compile the kernel ourselves (NVRTC through CuPy's binding, or nvcc) and
+Compilation: we compile the kernels ourselves (NVRTC through CuPy's binding, or nvcc) and
 load the binary with RawModule(path=...). CuPy's own RawModule(code=...) path appends
 `-ftz=true`, flushing denormals that NumPy keeps, which `--strict` cannot allow.
 
@@ -23,7 +26,7 @@ never needs it, and probe() says how to install it.
 
 from __future__ import annotations
 
-import math
+import statistics
 import tempfile
 from functools import lru_cache
 from pathlib import Path
@@ -35,12 +38,16 @@ from clothbench.kernel_source import c_float, read_kernel
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
+from clothbench.backends.cuda import launch
+from clothbench.backends.cuda.launch import AUTO_BLOCK, TRANSFERS, PingPong, kernel_constants
+from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, collider_rows
+
+__all__ = ["AUTO_BLOCK", "TRANSFERS", "PingPong", "CudaBackend", "kernel_constants", "kernel_defines"]
 
 KERNEL_FILE = "verlet_cloth.cu"
-KERNEL_NAME = "verlet_step"
-TRANSFERS = ("swap", "copy")  # the first is the default
-AUTO_BLOCK = 256  # threads per block when --local-size is not given
+KERNEL_NAME = launch.STEP_KERNEL
+TUNING_STEPS = 64  # steps a candidate shape is timed over: a multiple of every steps/launch
+TUNING_REPEATS = 3
 INSTALL_HINT = "cupy not installed (pip install 'clothbench[cuda]')"
 NO_COMPILER = "no CUDA compiler (pip install 'clothbench[cuda]' for NVRTC, or put nvcc on PATH)"
 
@@ -58,18 +65,6 @@ def compile_options(strict: bool) -> tuple[str, ...]:
             "-DCLOTH_STRICT",
         )
     return ("--std=c++17", "--use_fast_math")
-
-
-def kernel_constants(scene: Scene, solver: Solver) -> dict[str, object]:
-    """The step's constants (kernel_inputs.VerletConstants), in kernel parameter order."""
-    c = VerletConstants.of(scene, solver)
-    (gx, gy, gz), (structural, shear, bend) = c.g, c.rest
-    return {
-        "n": np.int32(scene.grid),
-        "dt": c.dt, "dt2": c.dt2, "k": c.k, "b": c.b,
-        "gx": gx, "gy": gy, "gz": gz,
-        "rest_structural": structural, "rest_shear": shear, "rest_bend": bend,
-    }  # fmt: skip
 
 
 def kernel_defines(
@@ -202,79 +197,7 @@ def compile_kernel(
     raise ValueError(f"unknown CUDA compiler {using!r} (nvrtc or nvcc)")
 
 
-# --- the ping-pong, shared by the CuPy backend and the CPU build in the tests ----------
-
-
-class PingPong:
-    """The chapter's two pairs of buffers and one step on them, for any runtime that has
-
-        alloc(host array) -> buffer       upload(buffer, host array)   download(buffer) -> array
-        copy(dst, src)  (device to device)       launch(grid, block, args)
-
-    CudaBackend's runtime is CuPy; tests/test_cuda.py's is the CPU build of the same
-    kernel, so both launch it with the argument list built here, in this order. `generic`
-    and `normals` must be those the kernel was built with (kernel_defines).
-    """
-
-    def __init__(
-        self,
-        runtime,
-        scene: Scene,
-        solver: Solver,
-        transfer: str = TRANSFERS[0],
-        block: int = AUTO_BLOCK,
-        generic: bool = False,
-        normals: bool = False,
-    ):
-        if transfer not in TRANSFERS:
-            raise ValueError(f"transfer must be swap or copy, got {transfer!r}")
-        self.runtime = runtime
-        self.transfer = transfer
-        self.block = block
-        self.grid = math.ceil(scene.particles / block)  # blocks; the last may run past n*n
-        self.scene_args: tuple = ()  # the specialised kernel has the scene compiled in
-        if generic:
-            colliders = []
-            for kind, rows in collider_rows(scene).items():
-                # never a zero-size buffer: its pointer is passed even when no collider is read
-                buffer = runtime.alloc(rows if len(rows) else np.zeros((1, 4), np.float32))
-                colliders += [buffer, np.int32(len(rows) // ROWS_PER_COLLIDER[kind])]
-            self.scene_args = (*kernel_constants(scene, solver).values(), *colliders)
-        empty = np.zeros((scene.particles, 4), dtype=np.float32)
-        self.pos_in, self.prev_in = runtime.alloc(empty), runtime.alloc(empty)
-        self.pos_out, self.prev_out = runtime.alloc(empty), runtime.alloc(empty)
-        self.normals = runtime.alloc(empty) if normals else None  # written, never read back in
-        self.has_normals = False  # whether the last step since upload() wrote them
-
-    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
-        self.runtime.upload(self.pos_in, np.ascontiguousarray(pos, dtype=np.float32))
-        self.runtime.upload(self.prev_in, np.ascontiguousarray(prev, dtype=np.float32))
-        self.has_normals = False
-
-    def args(self) -> tuple:
-        """The kernel's arguments, in verlet_step's parameter order."""
-        buffers = (self.pos_in, self.prev_in, self.pos_out, self.prev_out)
-        if self.normals is not None:
-            buffers += (self.normals,)
-        return (*buffers, *self.scene_args)
-
-    def step(self) -> None:
-        self.runtime.launch(self.grid, self.block, self.args())
-        if self.transfer == "copy":  # the chapter: cudaMemcpy(in, out, DeviceToDevice)
-            self.runtime.copy(self.pos_in, self.pos_out)
-            self.runtime.copy(self.prev_in, self.prev_out)
-        else:  # the output becomes the next input: swap the pointers, move no data
-            self.pos_in, self.pos_out = self.pos_out, self.pos_in
-            self.prev_in, self.prev_out = self.prev_out, self.prev_in
-        self.has_normals = self.normals is not None
-
-    def read(self) -> tuple[np.ndarray, np.ndarray]:
-        """(pos, prev) after the last step: always the input pair, whichever the transfer."""
-        return self.runtime.download(self.pos_in), self.runtime.download(self.prev_in)
-
-    def read_normals(self) -> np.ndarray | None:
-        """The normals of read()[1], x(t) of the last step; None before a step or unasked."""
-        return self.runtime.download(self.normals) if self.has_normals else None
+# --- the backend ------------------------------------------------------------------
 
 
 class _CupyRuntime:
@@ -301,9 +224,26 @@ class _CupyRuntime:
         rt = self.cupy.cuda.runtime
         rt.memcpyAsync(dst.data.ptr, src.data.ptr, src.nbytes, rt.memcpyDeviceToDevice, self.stream.ptr)
 
-    def launch(self, grid: int, block: int, args: tuple) -> None:
+    def launch(self, grid: int, block: int, args: tuple, shared_bytes: int = 0) -> None:
         with self.stream:
-            self.kernel((grid,), (block,), args)
+            self.kernel((grid,), (block,), args, shared_mem=shared_bytes)
+
+
+def _version(number: int) -> str:
+    """13020 -> '13.2', as CUDA encodes its versions (1000 major + 10 minor)."""
+    return f"{number // 1000}.{number % 1000 // 10}"
+
+
+def shared_memory_limit(device: str | None) -> int:
+    """The dynamic shared memory one block of CUDA device `device` (an index) may opt into;
+    where no device answers (no cupy, no GPU), the least of any sm_80+ device."""
+    try:
+        import cupy
+
+        props = cupy.cuda.runtime.getDeviceProperties(int(device or 0))
+        return int(props["sharedMemPerBlockOptin"])
+    except Exception:  # any failure to ask means: assume the smallest device
+        return launch.SMALLEST_SHARED_OPTIN
 
 
 class CudaBackend(Backend):
@@ -314,14 +254,17 @@ class CudaBackend(Backend):
         generic=True,  # --generic: one program for every scene
         normals=True,
         device=True,  # --device: a CUDA device index
+        shapes=True,  # block=N, steps/launch=K (launch.py)
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "copy"}),
     )
 
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+        return launch.kernel_shapes(scene.particles, options.local_size, shared_memory_limit(options.device))
+
     def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):
         super().__init__(scene, solver, options)
-        transfer = options.transfer or TRANSFERS[0]
-        block = options.local_size or AUTO_BLOCK
-        self.effective_local_size = block
+        self.transfer = options.transfer or TRANSFERS[0]
         import cupy
 
         try:
@@ -335,22 +278,71 @@ class CudaBackend(Backend):
                 f"cuda --device must be a device index (0 .. {cupy.cuda.runtime.getDeviceCount() - 1}), "
                 f"got {options.device!r}"
             ) from None
-        props = cupy.cuda.runtime.getDeviceProperties(index)
+        rt = cupy.cuda.runtime
+        props = rt.getDeviceProperties(index)
         self._name = props["name"].decode() if isinstance(props["name"], bytes) else str(props["name"])
+        self._driver = f"CUDA driver {_version(rt.driverGetVersion())}, runtime {_version(rt.runtimeGetVersion())}, {self._name}"
         self._binary_dir = None
         self.defines = kernel_defines(scene, solver, options.normals, options.generic)
-        kernel = self._load_kernel(options.strict, self._device.compute_capability, self.defines)
-        if block > kernel.max_threads_per_block:  # the base refused < 1; the limit is the device's
-            raise ClothbenchError(
-                f"cuda --local-size must be 1 .. {kernel.max_threads_per_block} here, got {block}"
-            )
+        module = self._load_module(options.strict, self._device.compute_capability, self.defines)
+        self._kernels = {name: module.get_function(name) for name in (launch.STEP_KERNEL, launch.STEPS_KERNEL)}
+        limit = self._kernels[launch.STEP_KERNEL].max_threads_per_block
+        if options.local_size is not None and options.local_size > limit:  # the base refused < 1
+            raise ClothbenchError(f"cuda --local-size must be 1 .. {limit} here, got {options.local_size}")
         self.stream = cupy.cuda.Stream(non_blocking=True)
         self._start, self._end = cupy.cuda.Event(), cupy.cuda.Event()
         self._timed = False
-        runtime = _CupyRuntime(kernel, self.stream)
-        self.state = PingPong(runtime, scene, solver, transfer, block, options.generic, options.normals)
+        self.state = self._pingpong(self.pick_shape(self._tuning_key(), self._time_shape))
 
-    def _load_kernel(self, strict: bool, arch: str, defines: tuple[str, ...]):
+    def _tuning_key(self) -> dict[str, str]:
+        """What the fastest shape depends on: the device and its software, the grid and its
+        colliders, the arithmetic, and what else each launch does."""
+        o, s = self.options, self.scene
+        return {
+            "device": self._name, "driver": self._driver, "grid": str(s.grid),
+            "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
+            "arithmetic": "strict" if o.strict else "fast", "generic": str(o.generic),
+            "normals": str(o.normals), "transfer": self.transfer, "local_size": str(o.local_size or "auto"),
+        }  # fmt: skip
+
+    def _pingpong(self, shape: str) -> PingPong:
+        """Device buffers and the kernel for one shape (launch.py)."""
+        steps_per_launch, block = launch.parse_shape(shape, self.scene.particles, self.options.local_size)
+        kernel = self._kernels[launch.STEP_KERNEL if steps_per_launch is None else launch.STEPS_KERNEL]
+        if block > kernel.max_threads_per_block:
+            raise ClothbenchError(f"cuda {shape}: {block} threads a block, at most {kernel.max_threads_per_block} here")
+        self.effective_local_size = block
+        state = PingPong(
+            _CupyRuntime(kernel, self.stream), self.scene, self.solver, self.transfer, block,
+            self.options.generic, self.options.normals, steps_per_launch,
+        )  # fmt: skip
+        if state.shared_bytes:  # above 48 KiB a kernel must opt in, up to the device's limit
+            kernel.max_dynamic_shared_size_bytes = state.shared_bytes
+        return state
+
+    def _time_shape(self, shape: str) -> float:
+        """Device seconds a step of `shape`, from CUDA events around TUNING_STEPS steps (the
+        median of TUNING_REPEATS, after as many steps untimed)."""
+        import cupy
+
+        try:
+            state = self._pingpong(shape)
+            state.upload(*self.solver.initial_state(self.scene, np.float32))
+            state.advance(TUNING_STEPS)
+            times = []
+            for _ in range(TUNING_REPEATS):
+                self._start.record(self.stream)
+                state.advance(TUNING_STEPS)
+                self._end.record(self.stream)
+                self._end.synchronize()
+                times.append(cupy.cuda.get_elapsed_time(self._start, self._end) / 1e3 / TUNING_STEPS)
+        except ClothbenchError:
+            raise
+        except Exception as e:  # e.g. too many resources requested: this shape cannot run here
+            raise ClothbenchError(f"cuda {shape}: {_short(e)}") from None
+        return statistics.median(times)
+
+    def _load_module(self, strict: bool, arch: str, defines: tuple[str, ...]):
         import cupy
 
         using = compiler()
@@ -360,19 +352,22 @@ class CudaBackend(Backend):
         self._binary_dir = tempfile.TemporaryDirectory(prefix="clothbench-cuda-")
         path = Path(self._binary_dir.name) / "verlet_cloth.bin"  # cuModuleLoad tells cubin from PTX
         path.write_bytes(compile_kernel(strict, arch, using, "cubin", defines))
-        return cupy.RawModule(path=str(path)).get_function(KERNEL_NAME)
+        return cupy.RawModule(path=str(path))
 
     @property
     def device(self) -> str:
         return self._name
+
+    @property
+    def driver(self) -> str:
+        return self._driver
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         self.state.upload(pos, prev)
 
     def advance(self, steps: int) -> None:
         self._start.record(self.stream)
-        for _ in range(steps):
-            self.state.step()
+        self.state.advance(steps)
         self._end.record(self.stream)
         self._timed = True
 

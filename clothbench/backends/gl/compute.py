@@ -8,9 +8,16 @@ imageBuffer views of the same buffers (no copy either): llvmpipe loads SSBOs one
 time, images with vector gathers.
 Each step is two dispatches, the interior (every neighbour present, no bounds tests) and
 the border, then a memory barrier before the next step reads what this one wrote.
+
+Kernel shapes (gl/shapes.py): the work-group size or 2-D tile of those dispatches, or, on
+small grids, one work group running K steps per dispatch (kernels/verlet_cloth_steps.comp);
+chosen per driver, grid and build by measurement (backends/tuning.py) unless --shape or
+--local-size fixes it.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,6 +25,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Verlet
 from clothbench.backends.gl import context as gl_context
+from clothbench.backends.gl import shapes
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 
 PASS_ALL, PASS_INTERIOR, PASS_BORDER = 0, 1, 2  # as in the kernel
@@ -33,31 +41,22 @@ def probe() -> Availability:
 class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
     name = "glsl-compute"
     capabilities = Capabilities(
-        local_size=True, generic=True, normals=True, gl=True,
+        local_size=True, generic=True, normals=True, gl=True, shapes=True,
         sweep_variants=({"strict": True}, {"strict": False}),
     )  # fmt: skip
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
+        shapes.refuse_shape_with_local_size(options)
         self.gl, self.local_size = gl_context.open_compute_device(self.name, options)
-        self.effective_local_size = self.local_size
-        n = scene.grid
+        self.max_invocations, self.shared_bytes = shapes.limits(self.gl)
         self.image_reads = PREFER_IMAGE_READS and self.gl.max_texture_buffer_size >= scene.particles
         self.mode_suffix = gl_context.mode_suffix(self.gl, ssbo_reads=not self.image_reads)
-        self.sources: dict[int, str] = {}  # the compiled source of each pass
-        # interior and border when there is an interior (n >= 5); else one pass with tests
-        if n >= 5:
-            counts = {PASS_INTERIOR: (n - 4) ** 2, PASS_BORDER: 8 * n - 16}
-        else:
-            counts = {PASS_ALL: n * n}
+        self.sources: dict[object, str] = {}  # the compiled source of each (pass, shape)
+        self._scratch = None  # the one-group shape's scratch buffer, where shared memory is too small
         size = scene.particles * 16  # one vec4 per particle
         with self.gl:
             ctx = self.gl.ctx
-            # (program, work groups) for each dispatch of a step
-            self.passes = [
-                (self._program(p), gl_context.work_groups(count, self.local_size))
-                for p, count in counts.items()
-            ]
             self.pairs = [(ctx.buffer(reserve=size), ctx.buffer(reserve=size)) for _ in range(2)]
             self.normals = ctx.buffer(reserve=size) if options.normals else None
             # imageBuffer views of each pair, for the reads (IMAGE_READS), sharing its storage
@@ -66,17 +65,61 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                 self.views = [tuple(map(self.gl.buffer_texture, pair)) for pair in self.pairs]
         self.current = 0  # index of the pair holding the latest state
         self.has_normals = False
+        if options.local_size is not None:  # the 1-D shape of that size, not tuned
+            self.plan = self.build_plan(f"wg={self.local_size}")
+        else:
+            self.pick_shape(shapes.tuning_key(self), lambda name: shapes.time_shape(self, name))
+            self.plan = self.build_plan(self.shape)
+        self.effective_local_size = self.plan.shape.local
 
-    def _program(self, pass_id: int):
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+        return shapes.candidates(scene, options)
+
+    def build_plan(self, name: str) -> "Plan":
+        """The programs and dispatches of shape `name` (shapes.py)."""
+        shape = shapes.parse(name, self.scene, self.max_invocations)
+        n = self.scene.grid
+        with self.gl:
+            if shape.steps is not None:
+                layout = shapes.steps_layout(self.scene.particles, self.max_invocations, self.shared_bytes)
+                shape = replace(shape, local=layout.local)
+                if not layout.shared and self._scratch is None:
+                    floats = 2 * 3 * self.scene.particles
+                    self._scratch = self.gl.ctx.buffer(reserve=4 * floats)
+                defines = dict(LOCAL_SIZE=layout.local, PPI=layout.ppi, CAPACITY=self.scene.particles)
+                if layout.shared:
+                    defines["SCRATCH_SHARED"] = ""
+                program = self._program("verlet_cloth_steps.comp", ("steps", name), defines)
+                return Plan(shape, [(program, (1, 1))], layout)
+            if n < 5:  # no interior: one pass with bounds tests
+                counts = {PASS_ALL: n * n}
+            else:
+                counts = {PASS_INTERIOR: (n - 4) ** 2, PASS_BORDER: 8 * n - 16}
+            passes = []
+            for pass_id, count in counts.items():
+                defines = dict(LOCAL_SIZE=shape.local, PASS=pass_id)
+                groups = gl_context.work_groups(count, shape.local)
+                if pass_id == PASS_BORDER and shape.tile is not None:
+                    defines["LOCAL_SIZE"] = shapes.BORDER_LOCAL_SIZE
+                    groups = gl_context.work_groups(count, shapes.BORDER_LOCAL_SIZE)
+                if pass_id == PASS_INTERIOR and shape.tile is not None:
+                    w, h = shape.tile
+                    defines.update(TILE_W=w, TILE_H=h)
+                    groups = (-(-(n - 4) // w), -(-(n - 4) // h))
+                passes.append((self._program("verlet_cloth.comp", (pass_id, name), defines), groups))
+            return Plan(shape, passes)
+
+    def _program(self, filename: str, what, extra: dict):
         defines = gl_context.kernel_defines(self.scene, self.solver, self.options)
-        defines.update(LOCAL_SIZE=self.local_size, PASS=pass_id)
-        if self.image_reads:
+        defines.update(extra)
+        if self.image_reads and filename == "verlet_cloth.comp":
             defines["IMAGE_READS"] = ""
         kinds = gl_context.collider_kinds(self.scene, self.options.generic)
-        source = gl_context.shader_source("verlet_cloth.comp", 430, defines, kinds)
+        source = gl_context.shader_source(filename, 430, defines, kinds)
         # the source is the specialisation key (see fragment.GLSLBackend._program)
         program = self.gl.program(("comp", source), lambda: self.gl.ctx.compute_shader(source))
-        self.sources[pass_id] = source
+        self.sources[what] = source
         if self.options.generic:
             gl_context.set_constant_uniforms(program, self.scene, self.solver)
         return program
@@ -89,29 +132,54 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         self.has_normals = False
 
     def advance(self, steps: int) -> None:
-        if steps <= 0:
-            return
+        if steps > 0:
+            self.run_plan(self.plan, steps)
+
+    def run_plan(self, plan: "Plan", steps: int) -> None:
+        """Enqueue `steps` steps with `plan`'s dispatches (the chosen one, or one being timed)."""
         with self.gl:
             if self.options.generic:
-                for program, _ in self.passes:  # programs are shared between backends
+                for program, _ in plan.passes:  # programs are shared between backends
                     gl_context.set_constant_uniforms(program, self.scene, self.solver)
             if self.normals is not None:
                 self.normals.bind_to_storage_buffer(4)
-            for _ in range(steps):
-                source, target = self.current, 1 - self.current
-                if self.image_reads:
-                    for unit, view in enumerate(self.views[source]):
-                        self.gl.bind_image_read(unit, view)
-                else:
-                    for binding, buf in enumerate(self.pairs[source]):
-                        buf.bind_to_storage_buffer(binding)
-                for binding, buf in enumerate(self.pairs[target], start=2):
-                    buf.bind_to_storage_buffer(binding)
-                for program, groups in self.passes:
-                    program.run(*groups)
-                self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
-                self.current = target  # ping-pong: swap the pairs' roles
+            if plan.shape.steps is not None:
+                self._run_steps(plan, steps)
+            else:
+                for _ in range(steps):
+                    self._bind_pairs(image_reads=self.image_reads)
+                    for program, groups in plan.passes:
+                        program.run(*groups)
+                    self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
+                    self.current = 1 - self.current  # ping-pong: swap the pairs' roles
         self.has_normals = self.options.normals
+
+    def _bind_pairs(self, image_reads: bool) -> None:
+        """The current pair as the input (images 0-1 or SSBOs 0-1), the other as the output."""
+        source, target = self.current, 1 - self.current
+        if image_reads:
+            for unit, view in enumerate(self.views[source]):
+                self.gl.bind_image_read(unit, view)
+        else:
+            for binding, buf in enumerate(self.pairs[source]):
+                buf.bind_to_storage_buffer(binding)
+        for binding, buf in enumerate(self.pairs[target], start=2):
+            buf.bind_to_storage_buffer(binding)
+
+    def _run_steps(self, plan: "Plan", steps: int) -> None:
+        """steps/dispatch=K: dispatches of K steps each and one of the remainder."""
+        program = plan.passes[0][0]
+        if self._scratch is not None and not plan.layout.shared:
+            self._scratch.bind_to_storage_buffer(5)
+        done = 0
+        while done < steps:
+            chunk = min(plan.shape.steps, steps - done)
+            self._bind_pairs(image_reads=False)
+            program["steps"].value = chunk
+            program.run(1)
+            self.gl.ctx.memory_barrier()
+            self.current = 1 - self.current
+            done += chunk
 
     def _read_buffer(self, buf) -> np.ndarray:
         return np.frombuffer(buf.read(), dtype=np.float32).reshape(self.scene.particles, 4).copy()
@@ -142,4 +210,16 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
             for buf in [b for pair in self.pairs for b in pair] + [self.normals]:
                 if buf is not None:
                     buf.release()
-        self.views, self.pairs, self.normals = [], [], None
+            if self._scratch is not None:
+                self._scratch.release()
+        self.views, self.pairs, self.normals, self._scratch = [], [], None, None
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A shape's dispatches: (program, work groups) per pass of a step, or the one program of
+    the one-group shape and its layout (shapes.StepsLayout)."""
+
+    shape: shapes.ComputeShape
+    passes: list
+    layout: shapes.StepsLayout | None = None

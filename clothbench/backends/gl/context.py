@@ -26,6 +26,7 @@ from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
+from clothbench.backends.gl.driver import GLDriverInfo
 
 INSTALL_HINT = "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for --gl osmesa"  # README
 MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs
@@ -179,7 +180,7 @@ class GLDevice:
 _GL_TEXTURE_BUFFER, _GL_RGBA32F, _GL_READ_ONLY = 0x8C2A, 0x8814, 0x88B8
 
 
-class GLDeviceMixin:
+class GLDeviceMixin(GLDriverInfo):
     """What every GL backend (glsl, glsl-compute and its PBD solver) does the same way with its
     context `self.gl`: the device is the GL renderer, and synchronising is glFinish.
     Timing is perf_counter around synchronize() (the harness); device_elapsed_ms stays None:

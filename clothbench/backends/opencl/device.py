@@ -1,10 +1,17 @@
-"""What both OpenCL backends (verlet.py, pbd.py) share: the probe, choosing a device that can
-compile, one context per device, program sources and the program cache keyed by build
-options, and OpenCLDeviceMixin, the queue, buffers, launch sizes and profiling events."""
+"""What both OpenCL backends (verlet.py, pbd.py) share: the probe, the default device (one
+that compiles; the fastest by measurement where several do), one context per device,
+program sources and the program cache keyed by build options, and OpenCLDeviceMixin, the
+queue, buffers, launch sizes and profiling events. Which runtimes a process sees, and
+making Intel's pip runtime one of them: runtimes.py."""
 
 from __future__ import annotations
 
+import json
 import os
+import re
+import time
+import warnings
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -12,23 +19,40 @@ from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import collider_rows
+from clothbench.backends.opencl import runtimes
+from clothbench.backends.opencl.runtimes import INTEL_EXTRA
+from clothbench.native import cache_dir
 
 INSTALL_HINT = "pip install pyopencl pocl-binary-distribution"  # both are clothbench's own dependencies
-# README's "System packages": PoCL's wheel has an LLVM too old for recent CPUs, Debian's has not
-NO_PLATFORM_HINT = "pip install pocl-binary-distribution, or apt-get install pocl-opencl-icd, or a vendor's driver"
+# The one command that gives a machine an OpenCL CPU device that compiles, with pip alone
+# (Intel's runtime is x86-64 only), and the root alternative (Debian's PoCL, whose LLVM is
+# newer than the PoCL wheel's): docs/opencl-devices.md
+FIX_HINT = f"{INTEL_EXTRA}, or as root apt-get install pocl-opencl-icd"
+NO_PLATFORM_HINT = f"{FIX_HINT}, or a vendor's driver"
 
 # A kernel every working OpenCL C compiler builds: the probe's test that a device can compile.
 _PROBE_SOURCE = "__kernel void clothbench_probe(__global float *a) { a[get_global_id(0)] = 1.0f; }"
 
+# The default device's measurement (docs/opencl-devices.md): the project's own step, short,
+# at the smallest grid the benchmarks report (at 128² launch overhead decides, not the step).
+TIMING_GRID, TIMING_STEPS = 256, 10
+# Times closer than this are a tie, given to the earlier runtime in RUNTIME_ORDER: run to run
+# on a shared 2-core machine the same device's time moved by 20% and more.
+TIE_MARGIN = 0.10
+
 # Module-level caches, so that a sweep building many backends builds each program once.
 _contexts: dict = {}  # device int_ptr -> Context
 _programs: dict = {}  # (context int_ptr, source, build options) -> built Program
+_compiles: dict = {}  # (device int_ptr, probe source) -> None (it compiles) or the error line
+_defaults: dict = {}  # compiling devices' int_ptrs -> DefaultDevice, once per process
+_retuned = False  # whether this process measured the default again (--retune) already
 
 
 def import_pyopencl():
     import pyopencl
     import pyopencl.cltypes  # noqa: F401  (float4 argument dtypes)
 
+    runtimes.prepare_loader(pyopencl)  # before the loader's first look at its vendors
     return pyopencl
 
 
@@ -65,12 +89,31 @@ def _devices_listing() -> str:
     )
 
 
-def choose_device(spec: str | None):
+def compile_error(device) -> str | None:
+    """None if `device` builds the probe kernel, else the compiler's first error. Listed is
+    not enough: PoCL 3.0's LLVM 14 lists CPUs it cannot compile for ("unknown target CPU")."""
+    key = (device.int_ptr, _PROBE_SOURCE)
+    if key not in _compiles:
+        try:
+            build_program(device_context(device), _PROBE_SOURCE, ())
+            _compiles[key] = None
+        except ClothbenchError as e:
+            _compiles[key] = _first_error_line(str(e))
+    return _compiles[key]
+
+
+@dataclass(frozen=True)
+class DefaultDevice:
+    device: object  # pyopencl.Device
+    spec: str  # 'platform:device'
+    reason: str  # one line: why this one
+
+
+def choose_device(spec: str | None, retune: bool = False):
     """The device `spec` names ('platform:device' indices or names, as PYOPENCL_CTX), else
-    the first device that can compile a kernel. Listed is not enough: PoCL 3.0's LLVM 14
-    lists CPUs it cannot compile for ("unknown target CPU 'generic'")."""
+    default_device()'s."""
     cl = import_pyopencl()
-    platforms = _platforms()
+    _platforms()
     if spec:
         try:
             return cl.choose_devices(interactive=False, answers=spec.split(":"))[0]
@@ -78,18 +121,181 @@ def choose_device(spec: str | None):
             raise ClothbenchError(
                 f"no OpenCL device {spec!r} (give 'platform:device', e.g. 0:0; here: {_devices_listing()})"
             ) from None
-    failures: dict[str, None] = {}  # ordered and without repeats
-    for platform in platforms:
-        for device in platform.get_devices():
+    return default_device(retune).device
+
+
+def ordered_devices() -> list[tuple[str, object, str]]:
+    """Every device as ('platform:device', device, runtime), in RUNTIME_ORDER, then as listed."""
+    found = [
+        (f"{p}:{d}", device, runtimes.runtime_of(platform))
+        for p, platform in enumerate(_platforms())
+        for d, device in enumerate(platform.get_devices())
+    ]
+    return sorted(found, key=lambda row: runtimes.RUNTIME_ORDER.index(row[2]))
+
+
+def default_device(retune: bool = False) -> DefaultDevice:
+    """Among the devices that compile: the only one; else, with tuning on, the fastest at the
+    project's own step, measured once per set of installed (device, driver version) and kept
+    on disk (--retune measures again, once per process); else (CLOTHBENCH_TUNING=off) the
+    first in runtimes.RUNTIME_ORDER: system PoCL, Intel's CPU runtime, other, the PoCL wheel."""
+    rows = ordered_devices()
+    compiling = [(spec, dev, runtime) for spec, dev, runtime in rows if compile_error(dev) is None]
+    if not compiling:
+        raise ClothbenchError(_none_compiles(rows))
+    global _retuned
+    key = tuple(dev.int_ptr for _, dev, _ in compiling)
+    retune = retune and not _retuned  # a sweep's every backend asks: measure once
+    if retune or key not in _defaults:
+        _retuned = _retuned or retune
+        _defaults[key] = _pick_default(compiling, retune)
+    return _defaults[key]
+
+
+def _pick_default(compiling: list, retune: bool) -> DefaultDevice:
+    from clothbench.backends.tuning import choose_shape, tuning_enabled
+
+    names = [_timing_name(dev, runtime) for _, dev, runtime in compiling]
+    if len(compiling) == 1:
+        return DefaultDevice(compiling[0][1], compiling[0][0], "the only OpenCL device here that compiles")
+    if not tuning_enabled():
+        spec, dev, runtime = compiling[0]
+        order = ", ".join(runtimes.RUNTIME_ORDER)
+        return DefaultDevice(dev, spec, f"first that compiles in the order {order} (CLOTHBENCH_TUNING=off)")
+    specs = dict(zip(names, (spec for spec, _, _ in compiling)))
+    key = {"devices": "; ".join(sorted(names)), "grid": str(TIMING_GRID), "mode": "fast"}
+    timed: dict = {}
+
+    def time_candidate(name: str) -> float:
+        if not timed:  # all at once, interleaved, the first time choose_shape asks
+            timed.update(_seconds_per_step(list(specs.values())))
+        if isinstance(timed[specs[name]], ClothbenchError):
+            raise timed[specs[name]]
+        return timed[specs[name]]
+
+    choice = choose_shape(DEFAULT_TUNING, key, names, time_candidate, retune)
+    measured = {n: ms for n, ms in _measured_ms(key).items() if n in specs and isinstance(ms, (int, float))}
+    if measured:  # a near-tie is noise: the earlier in RUNTIME_ORDER (names are in that order)
+        best = min(measured.values())
+        choice = next(n for n in names if measured.get(n, float("inf")) <= best * (1 + TIE_MARGIN))
+    times = ", ".join(f"{specs[n]} {measured[n]:.2f}" for n in names if n in measured)
+    detail = f": {times} ms/step" if times else ""
+    reason = (
+        f"fastest of {len(names)} that compile (a tie within {TIE_MARGIN:.0%} to the earlier of "
+        f"{', '.join(runtimes.RUNTIME_ORDER)}), sphere {TIMING_GRID}² fast{detail}; --retune measures again"
+    )
+    index = names.index(choice)
+    return DefaultDevice(compiling[index][1], compiling[index][0], reason)
+
+
+DEFAULT_TUNING = "opencl-device"  # its tuning file: <cache>/tuning/opencl-device.json
+
+
+def _timing_name(device, runtime: str) -> str:
+    """A device's name in the tuning file: the same across processes, whatever the order in
+    which the loader lists its platforms."""
+    return f"{device.name} [{runtime}: {' '.join(device.platform.version.split())}; driver {device.driver_version}]"
+
+
+def _seconds_per_step(specs: list[str]) -> dict:
+    """Seconds per step of the project's own Verlet step (sphere scene, fast, the default
+    kernel shape) on each device of `specs`, or the ClothbenchError that stopped it: what the
+    default device is chosen by. The devices take turns, so that a load that comes and goes
+    on a shared machine falls on each alike, and each keeps its fastest turn (noise only
+    ever adds time)."""
+    from contextlib import ExitStack
+
+    from clothbench.backends.opencl.verlet import OpenCLBackend
+    from clothbench.scene import load_setup
+
+    setup = load_setup("sphere").replace(grid=TIMING_GRID)
+    result: dict = {}
+    with ExitStack() as stack:
+        running = {}
+        for spec in specs:
+            options = BackendOptions(device=spec)  # explicit: building it never asks for the default
+            shapes = OpenCLBackend.kernel_shapes(setup.scene, options) if OpenCLBackend.capabilities.shapes else ()
+            if shapes:  # its first shape: no kernel-shape tuning inside this measurement
+                options = replace(options, shape=shapes[0])
             try:
-                build_program(device_context(device), _PROBE_SOURCE, ())
-                return device
+                backend = stack.enter_context(OpenCLBackend(setup.scene, setup.solver, options))
+                backend.upload(*backend.initial_state())
+                backend.advance(TIMING_STEPS)  # warm-up: first launches, page faults
+                backend.synchronize()
             except ClothbenchError as e:
-                failures[f"{device.name}: {_first_error_line(str(e))}"] = None
-    hint = "check the OpenCL driver's installation"
-    if any("unknown target CPU" in f for f in failures):
-        hint = "this PoCL's LLVM predates the CPU: install a newer PoCL (Debian: apt-get install pocl-opencl-icd)"
-    raise ClothbenchError(f"no OpenCL device here can compile a kernel ({'; '.join(failures)}): {hint}")
+                result[spec] = e
+                continue
+            running[spec], result[spec] = backend, float("inf")
+        for _ in range(7):
+            for spec, backend in running.items():
+                start = time.perf_counter()
+                backend.advance(TIMING_STEPS)
+                backend.synchronize()
+                result[spec] = min(result[spec], (time.perf_counter() - start) / TIMING_STEPS)
+    return result
+
+
+def _measured_ms(key: dict) -> dict[str, float]:
+    """The ms/step the tuning file holds for `key` (empty if unreadable)."""
+    try:
+        data = json.loads((cache_dir("tuning") / f"{DEFAULT_TUNING}.json").read_text())
+        return dict(data[json.dumps(key, sort_keys=True)]["ms"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def device_listing(retune: bool = False) -> tuple[list[dict], str]:
+    """Every OpenCL device of every platform, as `clothbench backends` shows them, and one
+    line saying which is the default and why. Raises ClothbenchError where there is no
+    platform."""
+    rows = []
+    for p, platform in enumerate(_platforms()):
+        for d, dev in enumerate(platform.get_devices()):
+            llvm = re.search(r"LLVM[ -]?(\d+(?:\.\d+)*)", f"{platform.version} {dev.version}")
+            error = compile_error(dev)
+            rows.append({
+                "device": f"{p}:{d}",
+                "name": dev.name,
+                "runtime": runtimes.runtime_of(platform),
+                "platform": platform.name,
+                "platform_version": " ".join(platform.version.split()),
+                "driver_version": dev.driver_version,
+                "llvm": llvm.group(1) if llvm else "",
+                "compiles": error is None,
+                "error": error or "",
+                "default": False,
+            })  # fmt: skip
+    given = os.environ.get("PYOPENCL_CTX")
+    try:
+        if given:
+            chosen, reason = choose_device(given), f"PYOPENCL_CTX={given} names it"
+        else:
+            default = default_device(retune)
+            chosen, reason = default.device, default.reason
+    except ClothbenchError as e:
+        return rows, str(e)
+    devices = [dev for platform in _platforms() for dev in platform.get_devices()]
+    for row, dev in zip(rows, devices):
+        if dev.int_ptr == chosen.int_ptr:
+            row["default"] = True
+            return rows, f"default: {row['device']} {dev.name} ({row['runtime']}): {reason}"
+    return rows, reason
+
+
+def _none_compiles(rows: list) -> str:
+    failures = dict.fromkeys(f"{dev.name}: {compile_error(dev)}" for _, dev, _ in rows)  # ordered, no repeats
+    if any(runtime == runtimes.INTEL_CPU for _, _, runtime in rows):
+        hint = "check the OpenCL drivers' installation"
+    elif any("unknown target CPU" in f for f in failures):
+        hint = f"this PoCL's LLVM predates the CPU: {FIX_HINT}"
+    else:
+        hint = FIX_HINT
+    return f"no OpenCL device here can compile a kernel ({'; '.join(failures)}): {hint}"
+
+
+def platform_driver(device) -> str:
+    platform = device.platform
+    return f"{platform.name}: {' '.join(platform.version.split())}; driver {device.driver_version}"
 
 
 def _first_error_line(message: str) -> str:
@@ -125,7 +331,9 @@ def build_program(context, source: str, options: tuple[str, ...]):
     if key not in _programs:
         program = cl.Program(context, source)
         try:
-            program.build(options=list(options))
+            with warnings.catch_warnings():  # Intel's runtime logs every build; failures say more below
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                program.build(options=list(options))
         except cl.Error as e:
             device = context.devices[0]
             try:
@@ -165,7 +373,7 @@ class OpenCLDeviceMixin:
 
     def _open_queue(self, options: BackendOptions) -> None:
         cl = self._cl = import_pyopencl()
-        self._device = choose_device(options.device or os.environ.get("PYOPENCL_CTX"))
+        self._device = choose_device(options.device or os.environ.get("PYOPENCL_CTX"), options.retune)
         self._context = device_context(self._device)
         self.queue = cl.CommandQueue(
             self._context, self._device, properties=cl.command_queue_properties.PROFILING_ENABLE
@@ -217,6 +425,12 @@ class OpenCLDeviceMixin:
     @property
     def device(self) -> str:
         return self._device.name
+
+    @property
+    def driver(self) -> str:
+        """Platform name and version and the device's driver version: which of several
+        runtimes (PoCL's, Intel's, ...) ran it, and which build of it."""
+        return platform_driver(self._device)
 
     def synchronize(self) -> None:
         self.queue.finish()

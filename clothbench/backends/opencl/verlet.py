@@ -13,13 +13,18 @@ Transfer modes (options.transfer):
 
 Which kernel runs (kernels/verlet_cloth.cl, whose header says what is a -D option and what
 an argument):
-  default    `verlet_cloth_interior` + `verlet_cloth_border`, built for the scene: SoA planes,
-             V particles per work item (the device's preferred float width, 16 here), the
-             grid side and the collider counts as -D constants, the code of a collider kind
-             only when the scene has one. Programs are cached by their build options
-             (`key`), so backends of the same shape (a dt or stiffness sweep too) build
-             nothing. `--strict` runs them with the documented operation order and
-             FP_CONTRACT OFF: bit-exact with the NumPy float32 reference.
+  default    built for the scene: SoA planes (with PAD floats either side), V particles per
+             work item, the grid side and the collider counts as -D constants, the code of a
+             collider kind only when the scene has one. Which kernels and how the work is
+             split is the kernel shape (verlet_shapes.py: interior + border kernels, whole
+             rows, or several steps per launch), chosen per device and scene by measurement
+             (backends/tuning.py; the backend times each candidate on itself) unless
+             options.shape names one; it ends the mode. The multi-step kernel ping-pongs the
+             buffers inside its launch: advance() swaps the references after an odd count.
+             Programs are cached by their build options (`key`), so backends of the same
+             shape (a dt or stiffness sweep too) build nothing. `--strict` runs them with
+             the documented operation order and FP_CONTRACT OFF: bit-exact with the NumPy
+             float32 reference, whatever the shape.
   --generic  `verlet_cloth`, the float4 kernel that reads beside Listing 22.1: one program
              for every scene, grid side, constants and collider counts all arguments.
              Bit-exact too in strict mode; the tests hold the two builds to each other.
@@ -33,6 +38,8 @@ Timings of these variants, and where the specialisation gain comes from: docs/op
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from clothbench.errors import ClothbenchError
@@ -40,13 +47,16 @@ from clothbench.scene import Scene
 from clothbench.solver import Verlet
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants
+from clothbench.backends.opencl import verlet_shapes as shapes
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
     build_program,
+    choose_device,
     program_source,
     shape_options,
 )
+from clothbench.backends.tuning import median_seconds
 from clothbench.backends.opencl.device import probe  # noqa: F401  (the registry asks this module)
 
 KERNEL_FILE = "verlet_cloth.cl"
@@ -60,6 +70,7 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         generic=True,  # --generic: the float4 kernel, one program for every scene
         normals=True,
         device=True,
+        shapes=True,  # verlet_shapes.py; the specialised build only
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "per-step"}),
     )
 
@@ -79,9 +90,11 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         self._constant_dtypes = [np.float32] * 4 + [cl.cltypes.float4] * 2
         self._colliders = self._collider_buffer()
 
-        # State buffers, twice over: float4 per particle (generic) or x, y, z planes.
+        # State buffers, twice over: float4 per particle (generic) or x, y, z planes with
+        # PAD floats before and after them (the rows kernels' masked loads reach past).
         mf = cl.mem_flags
-        state_bytes = self.n2 * 4 * (4 if self.generic else 3)
+        self._pad = 0 if self.generic else shapes.PAD
+        state_bytes = 4 * (self.n2 * 4 if self.generic else self.n2 * 3 + 2 * self._pad)
         self._state = [cl.Buffer(context, mf.READ_WRITE, state_bytes) for _ in range(4)]
         self._host = [np.zeros(state_bytes // 4, np.float32) for _ in range(2)]  # per-step copy
         self._w = np.zeros(self.n2, np.float32)  # inverse mass, as uploaded
@@ -90,19 +103,63 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         self._border = None  # specialised: the particles of the border kernel
         # normals (docs/normals.md) of the state each step reads, only when asked for
         self.normals = options.normals
-        self._normals = cl.Buffer(context, mf.WRITE_ONLY, state_bytes) if self.normals else None
+        normal_bytes = 4 * self.n2 * (4 if self.generic else 3)
+        self._normals = cl.Buffer(context, mf.WRITE_ONLY, normal_bytes) if self.normals else None
         self._normals_of_prev = False  # is there a step whose normals belong to read()[1]?
 
-        # One step's launches as (kernel, work items, arguments after the state buffers), and
-        # the programs they come from with the options each was built with (the key).
         self.programs: list = []
         self.key: tuple[tuple[str, ...], ...] = ()
-        launches = self._generic_launches() if self.generic else self._specialised_launches()
+        if self.generic:  # one kernel for every scene: no shapes
+            if options.shape is not None:
+                raise ClothbenchError(f"opencl --generic has one kernel shape; drop --shape {options.shape}")
+            self._use(self._generic_launches())
+        else:
+            self.pick_shape(
+                shapes.tuning_key(self._device, scene, options, program_source(KERNEL_FILE)), self._time_shape
+            )
+            self._use_shape(self.shape)
+
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+        if options.generic:
+            return ()
+        device = choose_device(options.device or os.environ.get("PYOPENCL_CTX"))
+        return tuple(s.name for s in shapes.candidates(device, scene, options))
+
+    def _use_shape(self, name: str) -> None:
+        self._shape = shapes.parse(name)
+        self.programs, self.key = [], ()  # those of this shape only (tuning builds several)
+        self._use(self._specialised_launches(self._shape))
+
+    def _use(self, launches) -> None:
+        """Make `launches`, (kernel, work items, arguments after the state buffers), the step:
+        the kernels, their launch sizes and the buffers of the normals appended."""
         self.kernels = [k for k, _, _ in launches]
         for k in self.kernels:
             self._check_local_size(k, k.function_name)
         normals = (self._normals,) if self.normals else ()
         self._launches = [(k, *self._launch_size(items), (*args, *normals)) for k, items, args in launches]
+        self.effective_local_size = self._launches[0][2][0] if self._launches[0][2] else None
+
+    def _time_shape(self, name: str) -> float:
+        """Seconds of a short synchronised run of shape `name` from the initial state (a
+        backend tuning its shape measures on itself, then leaves the initial state uploaded)."""
+        try:
+            self._use_shape(name)
+            self.upload(*self.initial_state())
+            steps = shapes.timing_steps(self.n, self._shape.steps_per_launch)
+            seconds = median_seconds(lambda: self.advance(steps), self.synchronize, repeats=5)
+            self.upload(*self.initial_state())
+        except self._cl.Error as e:  # a shape this device cannot launch is not a candidate
+            raise ClothbenchError(f"{name}: {e}") from None
+        self._events = []  # device_elapsed_ms() is about the caller's advance(), not these
+        return seconds / steps
+
+    @property
+    def local_size(self) -> int | None:
+        """options.local_size, else the shape's fixed work-group size (None: the runtime's)."""
+        shape = getattr(self, "_shape", None)
+        return self.options.local_size or (shape.work_group if shape else None)
 
     def build_options(self, vector_width: int = 1) -> tuple[str, ...]:
         """The specialisation key: what this scene's program is built with (the module's
@@ -110,7 +167,7 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         arithmetic = arithmetic_options(self.strict) + ("-DCLOTH_NORMALS",) * self.normals
         if self.generic:
             return ("-DCLOTH_GENERIC", *arithmetic)
-        return (*shape_options(self.scene, vector_width), *arithmetic)
+        return (*shape_options(self.scene, vector_width), f"-DCLOTH_PAD={self._pad}", *arithmetic)
 
     def _kernel(self, name: str, dtypes, vector_width: int = 1):
         """Kernel `name` of this scene's program (built once per key, see build_program),
@@ -132,18 +189,24 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         args += (i32(len(s.spheres)), i32(len(s.cylinders)), i32(len(s.planes)))
         return [(self._kernel("verlet_cloth", dtypes), self.n2, args)]
 
-    def _specialised_launches(self):
-        """The interior (rows and columns 2..n-3) in vectors of V particles, V the device's
-        preferred float width, then every other particle through the border kernel."""
-        n = self.n
-        v = max(1, self._device.preferred_vector_width_float)
+    def _specialised_launches(self, shape: shapes.KernelShape):
+        """split: the interior (rows and columns 2..n-3) in vectors of V particles, then
+        every other particle through the border kernel. rows: every row in vectors of V, one
+        kernel. steps: the rows kernel's work, several steps per launch (advance())."""
+        n, v = self.n, shape.width
+        dtypes = [None] * 5 + self._constant_dtypes + [None]
+        args = (*self._constants, self._colliders)
+        if shape.layout == "rows":
+            return [(self._kernel("verlet_cloth_rows", dtypes, v), -(-n // v) * n, args)]
+        if shape.layout == "steps":  # one work-group; the step count is the last argument
+            return [(self._kernel("verlet_cloth_steps", dtypes + [np.int32], v), shape.work_group, args)]
         vectors_per_row = -(-(n - 4) // v) if n - 4 >= v else 0
         covered = np.zeros((n, n), bool)
         covered[2 : n - 2, 2 : n - 2] = vectors_per_row > 0
         particles = np.flatnonzero(~covered).astype(np.int32)
+        if self._border is not None:
+            self._border.release()
         self._border = self._read_only_buffer(particles)
-        dtypes = [None] * 5 + self._constant_dtypes + [None]
-        args = (*self._constants, self._colliders)
         launches = []
         if vectors_per_row:
             interior = self._kernel("verlet_cloth_interior", dtypes, v)
@@ -176,6 +239,9 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         cl, queue = self._cl, self.queue
         per_step = self.transfer == "per-step"
         self._events = []
+        if not self.generic and self._shape.layout == "steps":
+            self._advance_in_launches(steps)
+            return
         for _ in range(steps):
             pos, prev, pos_out, prev_out = self._state
             if per_step:  # the chapter's variant: the host's state goes up at every step
@@ -192,6 +258,23 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
             self._w_prev = self._w  # prev_out carries pos's inverse mass
             self._normals_of_prev = self.normals
 
+    def _advance_in_launches(self, steps: int) -> None:
+        """ceil(steps / K) launches of the multi-step kernel, the last with the remainder.
+        It leaves the result in its output buffers after an odd count, in its input buffers
+        after an even one: the references swap to match."""
+        (kernel, global_size, local_size, args), k = self._launches[0], self._shape.steps_per_launch
+        constants, normals = args[: len(self._constants) + 1], args[len(self._constants) + 1 :]
+        for done in range(0, steps, k):
+            count = min(k, steps - done)
+            pos, prev, pos_out, prev_out = self._state
+            state = (pos, prev, self._inv_mass, pos_out, prev_out)
+            self._events.append(kernel(self.queue, global_size, local_size, *state, *constants, np.int32(count), *normals))
+            if count % 2:
+                self._state = [pos_out, prev_out, pos, prev]
+        if steps > 0:
+            self._w_prev = self._w
+            self._normals_of_prev = self.normals
+
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         out = []
         for buf, w in zip(self._state[:2], (self._w, self._w_prev)):
@@ -205,19 +288,24 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         None unless options.normals, or before the first step."""
         if not self._normals_of_prev:
             return None
-        flat = np.empty(self._host[0].size, np.float32)
+        flat = np.empty(self.n2 * (4 if self.generic else 3), np.float32)
         self._cl.enqueue_copy(self.queue, flat, self._normals)  # blocking: waits for the steps
-        return self._unpack(flat, np.zeros(self.n2, np.float32))
+        return self._unpack(flat, np.zeros(self.n2, np.float32), pad=0)
 
     # --- layouts -----------------------------------------------------------------------
     def _pack(self, state: np.ndarray) -> np.ndarray:
-        """(n2, 4) -> the device layout: float4 rows (generic) or x, y, z planes."""
-        return state.reshape(-1) if self.generic else state[:, :3].T.reshape(-1)
+        """(n2, 4) -> the device layout: float4 rows (generic) or x, y, z planes between
+        PAD zeros."""
+        if self.generic:
+            return state.reshape(-1)
+        pad = np.zeros(self._pad, np.float32)
+        return np.concatenate([pad, state[:, :3].T.reshape(-1), pad])
 
-    def _unpack(self, flat: np.ndarray, w: np.ndarray) -> np.ndarray:
+    def _unpack(self, flat: np.ndarray, w: np.ndarray, pad: int | None = None) -> np.ndarray:
         if self.generic:
             return flat.reshape(self.n2, 4)
+        pad = self._pad if pad is None else pad
         out = np.empty((self.n2, 4), np.float32)
-        out[:, :3] = flat.reshape(3, self.n2).T
+        out[:, :3] = flat[pad : pad + 3 * self.n2].reshape(3, self.n2).T
         out[:, 3] = w
         return out

@@ -13,9 +13,9 @@ import string
 from clothbench.backends import BACKENDS
 from clothbench.errors import ClothbenchError
 
-# The F-keys in the chapter's order (F1 the CPU, F2 GLSL, F3 OpenCL, F4 CUDA), then the rest
-# of the registry in its order.
-CHAPTER_ORDER = ("numpy", "glsl", "opencl", "cuda")
+# The F-keys in the chapter's order (F1 the CPU, F2 GLSL, F3 OpenCL, F4 CUDA), F5 GLSL compute
+# (its key before the registry grew), then the rest of the registry in its order.
+CHAPTER_ORDER = ("numpy", "glsl", "opencl", "cuda", "glsl-compute")
 BACKEND_ORDER = tuple(CHAPTER_ORDER) + tuple(n for n in BACKENDS if n not in CHAPTER_ORDER)
 BACKEND_KEYS = {f"F{i}": name for i, name in enumerate(BACKEND_ORDER, start=1)}
 GRID_KEYS = {"1": 32, "2": 64, "3": 128, "4": 256, "5": 512}

@@ -1,0 +1,255 @@
+"""The `c` backend: kernels/verlet_cloth.c, built per scene with the system C compiler
+(clothbench.native.build_library) and called through ctypes.
+
+Host code only; the step is in the kernel file and docs/semantics.md. The kernel is
+specialised per scene with -D options (grid side, collider counts, precision, arithmetic),
+so each shape is a separate cached library. The state lives in two aligned buffers of three
+planes each that the library steps in place and ping-pongs (the kernel's header says how);
+advance(steps) is one ctypes call that runs every step inside one OpenMP parallel region.
+
+Arithmetics (docs/c.md has the flags):
+  strict  the documented operation order, no contraction, no fast math: NumPy float32 (and,
+          with --precision f64, NumPy float64) bit for bit.
+  fast    contraction, one 1/sqrt per spring, the damping summed once: within float32's own
+          error of the float64 reference.
+Threads are its kernel shape (backends/tuning.py), named in the mode as threads=T:
+OMP_NUM_THREADS when set, else chosen by measurement among every core this process may run
+on, half of them, ... down to one (where meeting the other threads at every step's barrier
+costs more than they save). The default, untuned shape is every core.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+
+import numpy as np
+
+from clothbench import environment
+from clothbench.errors import ClothbenchError
+from clothbench.native import build_library, compiler, no_compiler_reason
+from clothbench.scene import Scene
+from clothbench.solver import Verlet
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.backends.tuning import median_seconds
+from clothbench.kernel_source import read_kernel
+
+KERNEL_FILE = "verlet_cloth.c"
+THREADS_ENV = "OMP_NUM_THREADS"
+ALIGN = 64  # bytes: a cache line, and one AVX-512 vector
+
+# Both arithmetics: optimised for this CPU; no errno from sqrt (so it is one instruction) and
+# no FP traps assumed (so selects may compute both sides). Neither changes a rounded value.
+COMMON_FLAGS = ("-std=gnu11", "-O3", "-march=native", "-fopenmp", "-fno-math-errno", "-fno-trapping-math")
+# Strict: every operation rounded on its own. No -ffast-math/-funsafe-math-optimizations in
+# either mode: GCC then links crtfastmath.o, whose constructor turns on flush-to-zero in the
+# loading thread, i.e. for NumPy and every other backend in this process.
+STRICT_FLAGS = ("-ffp-contract=off",)
+FAST_FLAGS = ("-ffp-contract=fast",)  # 512-bit vectors measured slower here (docs/c.md)
+
+
+def probe() -> Availability:
+    if compiler() is None:
+        return Availability(False, no_compiler_reason())
+    try:
+        omp_num_threads()
+    except ClothbenchError as e:  # a bad OMP_NUM_THREADS: say so as the reason, in one line
+        return Availability(False, str(e))
+    return Availability(True, device=environment.cpu_model())
+
+
+def omp_num_threads() -> int | None:
+    """OMP_NUM_THREADS (its first level) when set, else None."""
+    value = os.environ.get(THREADS_ENV, "").strip()
+    if not value:
+        return None
+    try:
+        count = int(value.split(",")[0])
+    except ValueError:
+        count = 0
+    if count < 1:
+        raise ClothbenchError(f"{THREADS_ENV} must be a positive integer, got {value!r}")
+    return count
+
+
+def thread_count(shape: str) -> int:
+    """The T of a shape named threads=T."""
+    return int(shape.removeprefix("threads="))
+
+
+def build_flags(scene: Scene, precision: str, strict: bool) -> tuple[str, ...]:
+    """The library for this scene's shape: what the kernel folds as constants (-D), the
+    arithmetic (native.build_library keys its cache by the CPU too)."""
+    defines = [
+        f"-DCLOTH_N={scene.grid}",
+        f"-DCLOTH_SPHERES={len(scene.spheres)}",
+        f"-DCLOTH_CYLINDERS={len(scene.cylinders)}",
+        f"-DCLOTH_PLANES={len(scene.planes)}",
+    ]
+    defines += ["-DCLOTH_DOUBLE"] * (precision == "f64") + ["-DCLOTH_STRICT"] * strict
+    return (*COMMON_FLAGS, *(STRICT_FLAGS if strict else FAST_FLAGS), *defines)
+
+
+_LIBRARIES: dict[tuple[str, ...], ctypes.CDLL] = {}
+
+
+class _OpenMP:
+    """Whether this process may start OpenMP threads. GNU libgomp hangs in a child forked
+    after its parent ran a parallel region (measured: the child's first region never
+    returns), so such a child steps on one thread, through the kernel's serial path: the same
+    bits, more slowly. A sweep times this backend in fresh processes, never in such a child.
+    Another library's use of libgomp (Numba's OpenMP layer) breaks it the same way, so a
+    child forked while libgomp is loaded at all counts as broken too."""
+
+    ran = False  # this process has run a parallel region
+    broken = False  # this process was forked after its parent had, or with libgomp loaded
+
+    @classmethod
+    def after_fork_in_child(cls) -> None:
+        cls.broken = cls.broken or cls.ran or _libgomp_loaded()
+
+
+def _libgomp_loaded() -> bool:
+    try:
+        with open("/proc/self/maps") as f:
+            return any("libgomp" in line for line in f)
+    except OSError:
+        return False
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_OpenMP.after_fork_in_child)
+
+
+def load_library(flags: tuple[str, ...]) -> ctypes.CDLL:
+    """The built library for `flags`, loaded once per process, its entry points typed."""
+    lib = _LIBRARIES.get(flags)
+    if lib is None:
+        lib = build_library(KERNEL_FILE, flags)
+        p = ctypes.c_void_p
+        lib.cloth_advance.argtypes = [p, p, p, p, p, ctypes.c_int, ctypes.c_int]
+        lib.cloth_advance.restype = ctypes.c_int
+        lib.cloth_grid.restype = lib.cloth_real_bytes.restype = ctypes.c_int
+        _LIBRARIES[flags] = lib
+    return lib
+
+
+def aligned(count: int, dtype) -> np.ndarray:
+    """A zeroed 1-D array of `count` values whose data starts on an ALIGN-byte boundary."""
+    itemsize = np.dtype(dtype).itemsize
+    raw = np.zeros(count + ALIGN // itemsize, dtype)
+    start = (-raw.ctypes.data % ALIGN) // itemsize
+    return raw[start : start + count]
+
+
+class CBackend(Backend):
+    name = "c"
+    capabilities = Capabilities(
+        precisions=("f32", "f64"),
+        strict=True,
+        shapes=True,  # the thread count
+        sweep_variants=({"strict": True}, {"strict": False}),  # f32 unless the sweep asks for f64
+    )
+
+    def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
+        super().__init__(scene, solver, options)
+        t = self.dtype = options.dtype
+        self.n2 = scene.particles
+        self.flags = build_flags(scene, options.precision, options.strict)
+        self._lib = load_library(self.flags)
+        if self._lib.cloth_grid() != scene.grid or self._lib.cloth_real_bytes() != np.dtype(t).itemsize:
+            raise ClothbenchError(f"c: the cached library for {self.flags} is not the one it names; clear its cache")
+        c = VerletConstants.of(scene, solver, t)  # rounded once, docs/semantics.md
+        self._numbers = np.array((c.k, c.b, c.dt, c.dt2, *c.g, *c.rest), dtype=t)
+        rows = collider_rows(scene, t)
+        table = [rows[kind].reshape(-1) for kind in ("spheres", "cylinders", "planes")]
+        self._colliders = np.concatenate([*table, np.zeros(1, t)])  # never empty: a valid pointer
+        # the two state buffers, x|y|z planes: _state[0] holds x(t), _state[1] x(t - dt)
+        self._state = [aligned(3 * self.n2, t) for _ in range(2)]
+        self._w = aligned(self.n2, t)
+        self._w_prev = self._w  # the prev state's w as uploaded, until a step writes pos's w
+        self.threads = 1
+        self.threads = thread_count(self.pick_shape(self._tuning_key(), self._time_shape))
+
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+        """threads=T: OMP_NUM_THREADS alone where set (one thread in a child forked after
+        OpenMP ran, see _OpenMP), else every core, then halving down to one."""
+        if _OpenMP.broken:
+            return ("threads=1",)
+        chosen = omp_num_threads()
+        if chosen is not None:
+            return (f"threads={chosen}",)
+        counts = [max(1, environment.cores())]
+        while counts[-1] > 1:
+            counts.append(counts[-1] // 2)
+        return tuple(f"threads={count}" for count in counts)
+
+    def _tuning_key(self) -> dict[str, str]:
+        s, cc = self.scene, compiler()
+        return {
+            "cpu": environment.cpu_model(),
+            "cores": str(environment.cores()),
+            "compiler": cc.version if cc else "",
+            "kernel": hashlib.sha256(read_kernel(KERNEL_FILE).encode()).hexdigest()[:12],
+            "grid": str(s.grid),
+            "colliders": f"{len(s.spheres)}/{len(s.cylinders)}/{len(s.planes)}",
+            "precision": self.options.precision,
+            "arithmetic": "strict" if self.options.strict else "fast",
+        }
+
+    def _time_shape(self, name: str) -> float:
+        """Seconds per step of `name` on the scene's start: a few ms of steps, median of 5."""
+        self.threads = thread_count(name)
+        self.upload(*self.initial_state())  # the harness uploads its own state afterwards
+        steps = max(1, min(50, 2_000_000 // self.n2))
+        return median_seconds(lambda: self.advance(steps), lambda: None) / steps
+
+    @property
+    def device(self) -> str:
+        return environment.cpu_model()
+
+    @property
+    def driver(self) -> str:
+        cc = compiler()
+        return f"{cc.version}, OpenMP" if cc else ""
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        expected = (self.n2, 4)
+        if np.shape(pos) != expected or np.shape(prev) != expected:
+            raise ClothbenchError(f"state must be two {expected} arrays, got {np.shape(pos)} and {np.shape(prev)}")
+        for buf, state in zip(self._state, (pos, prev)):
+            buf[:] = np.asarray(state, self.dtype)[:, :3].T.reshape(-1)
+        self._w[:] = np.asarray(pos, self.dtype)[:, 3]
+        self._w_prev = np.asarray(prev, self.dtype)[:, 3].copy()
+
+    def advance(self, steps: int) -> None:
+        if steps <= 0:
+            return
+        if self._state[0].size == 0:
+            raise ClothbenchError("c: advance after close")
+        if _OpenMP.broken:  # built before a fork, stepped after it: the same bits on one thread
+            self.threads = 1
+        a, b = self._state
+        swapped = self._lib.cloth_advance(
+            a.ctypes.data, b.ctypes.data, self._w.ctypes.data, self._numbers.ctypes.data,
+            self._colliders.ctypes.data, int(steps), self.threads,
+        )  # fmt: skip
+        _OpenMP.ran = _OpenMP.ran or self.threads > 1
+        if swapped:  # the library wrote x(t) into the second buffer
+            self._state.reverse()
+        self._w_prev = self._w  # prev now carries pos's inverse mass
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._rows(self._state[0], self._w), self._rows(self._state[1], self._w_prev)
+
+    def _rows(self, planes: np.ndarray, w: np.ndarray) -> np.ndarray:
+        out = np.empty((self.n2, 4), self.dtype)
+        out[:, :3] = planes.reshape(3, self.n2).T
+        out[:, 3] = w
+        return out
+
+    def close(self) -> None:
+        self._state = [np.zeros(0, self.dtype)] * 2

@@ -1,0 +1,144 @@
+"""The kernel shapes of glsl-compute (Verlet), how each is dispatched, and how they are timed
+for backends/tuning.py.
+
+A shape changes how the particles are split over invocations and dispatches, never the
+operations done on one particle, so every shape of a strict build is bit-exact with NumPy:
+- "wg=L": work groups of L consecutive particles (row-major), the interior pass and the
+  border pass (kernels/verlet_cloth.comp); "wg=64" is the default.
+- "wg=WxH": the interior pass in 2-D work groups of W columns x H rows (TILE_W, TILE_H),
+  the border pass as "wg=64".
+- "steps/dispatch=K": one work group holds the whole grid and runs up to K steps per
+  dispatch (kernels/verlet_cloth_steps.comp), on grids of up to MULTI_STEP_MAX_PARTICLES;
+  the neighbours' positions go through shared memory where 6 floats per particle fit in the
+  driver's GL_MAX_COMPUTE_SHARED_MEMORY_SIZE, else through a scratch storage buffer.
+An explicit --local-size fixes the shape to "wg=L" with no tuning (and no shape in the mode,
+as before shapes existed); --shape and --local-size exclude each other.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+
+from clothbench.errors import ClothbenchError
+from clothbench.scene import Scene
+from clothbench.backends.base import BackendOptions
+from clothbench.backends.tuning import median_seconds
+
+DEFAULT_SHAPE = "wg=64"
+LINEAR_SIZES = (64, 256)  # work-group sizes of the 1-D shape (the first is the default)
+TILES = ((8, 8), (16, 16), (32, 4))  # (columns, rows) of the 2-D interior shape
+BORDER_LOCAL_SIZE = 64  # the border pass of the 2-D shapes
+STEPS_PER_DISPATCH = (16, 64)
+# One work group runs on one llvmpipe thread: past this many particles the second thread
+# the other shapes use is worth more than the dispatches saved (docs/llvmpipe.md).
+MULTI_STEP_MAX_PARTICLES = 64 * 64
+SCRATCH_BYTES_PER_PARTICLE = 2 * 3 * 4  # two halves of x, y, z floats
+TUNING_STEPS = 8  # steps per timed run of a shape (at least K for steps/dispatch=K)
+TUNING_REPEATS = 3
+_GL_MAX_COMPUTE_SHARED_MEMORY_SIZE = 0x8262
+
+
+@dataclass(frozen=True)
+class ComputeShape:
+    """A parsed shape name: `local` invocations per work group, `tile` (W, H) for the 2-D
+    interior, `steps` per dispatch for the one-group shape (None for the others)."""
+
+    name: str
+    local: int
+    tile: tuple[int, int] | None = None
+    steps: int | None = None
+
+
+@dataclass(frozen=True)
+class StepsLayout:
+    """How the one-group shape covers n*n particles: `local` invocations of `ppi` particles,
+    the neighbours' positions in shared memory (`shared`) or a scratch buffer."""
+
+    local: int
+    ppi: int
+    shared: bool
+
+
+def limits(device) -> tuple[int, int]:
+    """(GL_MAX_COMPUTE_WORK_GROUP_INVOCATIONS, GL_MAX_COMPUTE_SHARED_MEMORY_SIZE) of `device`
+    (moderngl's info has the first only)."""
+    value = ctypes.c_int(0)
+    with device:
+        get = device._fn("glGetIntegerv", ctypes.c_uint, ctypes.POINTER(ctypes.c_int))
+        get(_GL_MAX_COMPUTE_SHARED_MEMORY_SIZE, ctypes.byref(value))
+        return int(device.ctx.info["GL_MAX_COMPUTE_WORK_GROUP_INVOCATIONS"]), value.value
+
+
+def steps_layout(particles: int, max_invocations: int, shared_bytes: int) -> StepsLayout:
+    """The fewest particles per invocation that fit one work group, the invocations a
+    multiple of 8 (llvmpipe's SIMD width on AVX: a partial vector is wasted lanes)."""
+    ppi = -(-particles // max_invocations)
+    local = -(-particles // ppi)
+    local = min(max_invocations, -(-local // 8) * 8)
+    return StepsLayout(local, ppi, particles * SCRATCH_BYTES_PER_PARTICLE <= shared_bytes)
+
+
+def candidates(scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+    """The shape names glsl-compute can run `scene` with, the default first; none where
+    --local-size fixes the shape."""
+    if options.local_size is not None:
+        return ()
+    names = [f"wg={size}" for size in LINEAR_SIZES]
+    if scene.grid >= 5:  # there is an interior to tile
+        names += [f"wg={w}x{h}" for w, h in TILES]
+    if scene.particles <= MULTI_STEP_MAX_PARTICLES:
+        names += [f"steps/dispatch={k}" for k in STEPS_PER_DISPATCH]
+    return tuple(names)
+
+
+def parse(name: str, scene: Scene, max_invocations: int) -> ComputeShape:
+    """The shape `name` (one of candidates()) for this scene on a driver allowing
+    `max_invocations` per work group."""
+    if name.startswith("steps/dispatch="):
+        return ComputeShape(name, 0, steps=int(name.split("=")[1]))
+    size = name.removeprefix("wg=")
+    if "x" in size:
+        w, h = (int(v) for v in size.split("x"))
+        if w * h > max_invocations:
+            raise ClothbenchError(f"glsl-compute: {name} is more invocations than the driver allows ({max_invocations})")
+        return ComputeShape(name, w * h, tile=(w, h))
+    return ComputeShape(name, int(size))
+
+
+def refuse_shape_with_local_size(options: BackendOptions) -> None:
+    if options.shape is not None and options.local_size is not None:
+        raise ClothbenchError(
+            f"glsl-compute: --shape {options.shape} and --local-size {options.local_size} exclude "
+            "each other (a shape fixes the work-group size); give one"
+        )
+
+
+def tuning_key(backend) -> dict[str, str]:
+    """What a measured choice holds for: the driver, the grid, the colliders, the build."""
+    scene, options = backend.scene, backend.options
+    return {
+        "driver": backend.driver,
+        "grid": str(scene.grid),
+        "colliders": f"{len(scene.spheres)}s{len(scene.cylinders)}c{len(scene.planes)}p",
+        "arithmetic": "strict" if options.strict else "fast",
+        "generic": str(options.generic),
+        "normals": str(options.normals),
+        "reads": "image" if backend.image_reads else "ssbo",
+    }
+
+
+def time_shape(backend, name: str) -> float:
+    """Seconds per step of shape `name` on `backend`'s own buffers, from its initial state
+    (the caller uploads the real state afterwards). A shape the driver cannot build is
+    dropped by the tuner, with the compiler's first line (a ClothbenchError)."""
+    import moderngl
+
+    try:
+        plan = backend.build_plan(name)
+    except moderngl.Error as e:
+        raise ClothbenchError(f"glsl-compute: {name} does not build: {str(e).strip().splitlines()[0]}") from None
+    steps = max(TUNING_STEPS, plan.shape.steps or 0)
+    backend.upload(*backend.initial_state())
+    seconds = median_seconds(lambda: backend.run_plan(plan, steps), backend.synchronize, TUNING_REPEATS)
+    return seconds / steps

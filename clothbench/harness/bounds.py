@@ -1,0 +1,380 @@
+"""The machine's limits, measured in the same run, and the lower bound they put on one cloth
+step (docs/bounds.md).
+
+`measure_machine()` measures, once per process, the streaming bandwidth (STREAM triad and a
+copy-like scale over arrays far larger than the caches) and the throughput of float32 and
+float64 sqrt, division, sqrt+division pairs, add/multiply and (float32) the fast reciprocal
+square root, on every CPU the process may use (kernels/machine_bounds.c, built by
+clothbench.native). It runs in a child process: GNU OpenMP's threads do not survive a fork,
+so a sweep that forks its row workers after measuring must not have loaded it.
+
+`step_bound_ms(scene, precision, bounds)` counts the bytes a Verlet step moves and the
+operations it does (from the kernels in kernels/; docs/bounds.md shows the count) and turns
+them into milliseconds: the larger of the memory time and the arithmetic time is a lower
+bound on a step here. `bound_columns` and `machine_columns` are the sweep's CSV cells.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
+
+from clothbench.errors import ClothbenchError
+from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS, fmt
+
+SOURCE = "machine_bounds.c"
+FLAGS = ("-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno")
+WIDE = ("-mprefer-vector-width=512",)  # GCC prefers 256-bit vectors on some AVX-512 CPUs
+FAST = ("-DMB_FAST", "-ffast-math")  # the second build: rsqrt as a fast kernel computes it
+ARRAY_MIB = 512  # per array; three of them, far past the L3 (docs/bounds.md: why this size)
+SMALLEST_MIB = 64  # where memory is short, halved down to this before giving up
+STREAM_ROUNDS = 2  # triad + scale passes over the arrays; the fastest chunk and pass count
+ARITH_SECONDS = 0.004  # one timed run of an arithmetic test, per thread
+ARITH_REPEATS = 3
+CHILD_TIMEOUT_S = 120.0
+
+@dataclass(frozen=True)
+class Rates:
+    """Operations per second on all the measured threads, of one precision."""
+
+    sqrt: float
+    div: float
+    sqrt_div: float  # pairs (one sqrt and one division) per second: shows whether they share a unit
+    fp: float  # separate adds and multiplies (a fused one counts once: same ports)
+    rsqrt: float = 0.0  # float32 only
+
+
+@dataclass(frozen=True)
+class MachineBounds:
+    threads: int
+    triad_gb_s: float  # fastest chunks (what the bound uses)
+    copy_gb_s: float
+    triad_pass_gb_s: float  # fastest whole passes, as STREAM times them: what a whole step sees
+    copy_pass_gb_s: float
+    f32: Rates
+    f64: Rates
+    array_mib: int  # size of each streamed array
+    compiler: str
+    seconds: float  # what measuring cost, child process included
+
+    @property
+    def bandwidth_gb_s(self) -> float:
+        """The best streaming rate measured: what the bound's memory part divides by."""
+        return max(self.triad_gb_s, self.copy_gb_s)
+
+    @property
+    def sqrt_per_s(self) -> float:
+        return self.f32.sqrt
+
+    @property
+    def div_per_s(self) -> float:
+        return self.f32.div
+
+    def rates(self, precision: str) -> Rates:
+        return self.f64 if precision == "f64" else self.f32
+
+    def what(self) -> str:
+        """What was measured, in one line."""
+        return (
+            f"{self.threads} threads: STREAM triad {self.triad_gb_s:.1f} GB/s, copy {self.copy_gb_s:.1f} GB/s "
+            f"(whole passes {self.triad_pass_gb_s:.1f}, {self.copy_pass_gb_s:.1f}; 3 x {self.array_mib} MiB); "
+            f"f32 sqrt {self.f32.sqrt / 1e9:.2f}, div {self.f32.div / 1e9:.2f}, "
+            f"sqrt+div {self.f32.sqrt_div / 1e9:.2f} pairs, add/mul {self.f32.fp / 1e9:.1f}, "
+            f"rsqrt {self.f32.rsqrt / 1e9:.2f} G/s; "
+            f"f64 sqrt {self.f64.sqrt / 1e9:.2f}, div {self.f64.div / 1e9:.2f} G/s "
+            f"({self.compiler}; {self.seconds:.2f} s)"
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MachineBounds":
+        return cls(**{**d, "f32": Rates(**d["f32"]), "f64": Rates(**d["f64"])})
+
+
+# --- measuring -------------------------------------------------------------------------
+
+
+def measure_machine(threads: int | None = None, array_mib: int = ARRAY_MIB) -> MachineBounds:
+    """The machine's limits on `threads` threads (default: every CPU this process may use),
+    measured once per process, in a child process. Raises ClothbenchError with the reason
+    when they cannot be measured (no C compiler, a failed build, no memory)."""
+    from clothbench import environment
+
+    return _measured(threads or environment.cores() or 1, array_mib)
+
+
+@lru_cache(maxsize=None)
+def _measured(threads: int, array_mib: int) -> MachineBounds:
+    from clothbench.native import compiler, no_compiler_reason
+
+    if compiler() is None:
+        raise ClothbenchError(no_compiler_reason())
+    if threads < 1 or array_mib < 1:
+        raise ClothbenchError(f"machine bounds need threads >= 1 and array_mib >= 1, got {threads}, {array_mib}")
+    t0 = time.perf_counter()
+    package_root = str(Path(__file__).resolve().parents[2])  # so a checkout's child imports this clothbench
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")])))
+    command = [sys.executable, "-m", "clothbench.harness.bounds", "--json", "--threads", str(threads)]
+    command += ["--array-mib", str(array_mib)]
+    try:
+        out = subprocess.run(command, capture_output=True, text=True, timeout=CHILD_TIMEOUT_S, env=env)
+    except subprocess.TimeoutExpired:
+        raise ClothbenchError(f"measuring the machine's limits took over {CHILD_TIMEOUT_S:.0f} s") from None
+    lines = out.stdout.strip().splitlines()
+    try:
+        result = json.loads(lines[-1])
+    except (IndexError, ValueError):
+        tail = (out.stderr.strip().splitlines() or [f"exit status {out.returncode}"])[-1]
+        raise ClothbenchError(f"measuring the machine's limits failed: {tail}") from None
+    if "error" in result:
+        raise ClothbenchError(result["error"])
+    return MachineBounds.from_dict({**result, "seconds": time.perf_counter() - t0})
+
+
+def machine_or_reason(threads: int | None = None) -> tuple[MachineBounds | None, str]:
+    """(the limits, "") or (None, why they could not be measured)."""
+    try:
+        return measure_machine(threads), ""
+    except ClothbenchError as e:
+        return None, str(e)
+
+
+def _library(flags: tuple[str, ...]) -> ctypes.CDLL:
+    from clothbench.native import build_library
+
+    try:
+        return build_library(SOURCE, flags + WIDE)
+    except ClothbenchError:  # a compiler (or target) without the vector-width option
+        return build_library(SOURCE, flags)
+
+
+def measure_here(threads: int, array_mib: int) -> dict:
+    """The measurement itself, in this process (it loads GNU OpenMP: see the module doc)."""
+    from clothbench.native import compiler
+
+    lib, fast = _library(FLAGS), _library(FLAGS + FAST)
+    stream = lib.mb_stream
+    stream.restype = ctypes.c_int
+    stream.argtypes = [ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
+    streamed = (ctypes.c_double * 4)()  # fastest chunks: triad, scale; whole passes: triad, scale
+    wanted = array_mib
+    while stream(array_mib * (1 << 20) // 4, threads, STREAM_ROUNDS, streamed) != 0:
+        if array_mib // 2 < min(wanted, SMALLEST_MIB):
+            raise ClothbenchError(f"machine bounds: could not allocate 3 x {array_mib} MiB for the bandwidth test")
+        array_mib //= 2
+    triad, scale, triad_pass, scale_pass = (v / 1e9 for v in streamed)
+
+    def rate(library, name: str) -> float:
+        fn = getattr(library, name)
+        fn.restype, fn.argtypes = ctypes.c_double, [ctypes.c_double, ctypes.c_int, ctypes.c_int]
+        return fn(ARITH_SECONDS, threads, ARITH_REPEATS)
+
+    ops = ("sqrt", "div", "sqrt_div", "addmul")
+    f32 = Rates(*(rate(lib, f"mb_{op}_f32") for op in ops), rate(fast, "mb_rsqrt_f32"))
+    f64 = Rates(*(rate(lib, f"mb_{op}_f64") for op in ops))
+    measured = {"triad": triad, "copy": scale, **{f"f32 {k}": v for k, v in asdict(f32).items()}}
+    measured.update({f"f64 {k}": v for k, v in asdict(f64).items() if k != "rsqrt"})
+    nothing = [name for name, value in measured.items() if not (math.isfinite(value) and value > 0)]
+    if nothing:  # a clock that did not advance, or a test the compiler emptied: no bound from it
+        raise ClothbenchError(f"machine bounds: the {', '.join(nothing)} test measured no rate")
+    return dict(
+        threads=threads, triad_gb_s=triad, copy_gb_s=scale, triad_pass_gb_s=triad_pass, copy_pass_gb_s=scale_pass,
+        f32=asdict(f32), f64=asdict(f64), array_mib=array_mib, compiler=compiler().version, seconds=0.0,
+    )  # fmt: skip
+
+
+# --- counting --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Ops:
+    """Work of one step, or of one unit of it: bytes streamed and operations by kind."""
+
+    bytes: float = 0.0
+    fp: float = 0.0  # add, subtract, multiply (fused multiply-add: one)
+    sqrt: float = 0.0
+    div: float = 0.0
+    rsqrt: float = 0.0
+
+    def values(self) -> tuple[float, ...]:
+        return (self.bytes, self.fp, self.sqrt, self.div, self.rsqrt)
+
+    def __add__(self, other: "Ops") -> "Ops":
+        return Ops(*(a + b for a, b in zip(self.values(), other.values())))
+
+    def __mul__(self, times: float) -> "Ops":
+        return Ops(*(a * times for a in self.values()))
+
+
+# Elements streamed per particle, by state layout (neighbours come from the cache). The
+# bound takes the least any kernel here moves: a bound must hold for every backend.
+LAYOUT_ELEMENTS = {
+    # kernels/verlet_cloth.c: pos and prev read (3 + 3), inverse mass (1), x(t+dt) written
+    # over x(t-dt) in place (3): two state buffers, ping-ponged
+    "ping-pong": 10,
+    # kernels/verlet_cloth.cl specialised: the same reads, pos_out and pos_prev_out written
+    "soa": 13,
+    # float4 state (the generic kernel, GL textures): pos, prev read, both outputs written
+    "float4": 16,
+}
+BOUND_LAYOUT = "ping-pong"
+NORMAL_ELEMENTS = 3  # normal_out x y z
+# Operations counted from kernels/verlet_cloth.cl's specialised interior kernel
+# (docs/bounds.md has the line-by-line count). Strict: every add and multiply separate,
+# sqrt and '/' (kernels/verlet_cloth.c does the same). Fast: mul+add contracted to one FMA,
+# one rsqrt per spring, the damping folded into the integration (the c kernel's 1/sqrt is
+# a sqrt and a division: more work, so this count is a floor for it too).
+COUNTS = {
+    True: dict(
+        particle=Ops(fp=24, div=3),  # vel (3 sub, 3 div), b*vel (3 mul), integrate (18)
+        spring=Ops(fp=19, sqrt=1, div=1),  # d 3, L2 5, L-rest 1, k* 1, s*d 3, -bv 3, force+ 3
+        sphere=Ops(fp=14, sqrt=1, div=1),
+        cylinder=Ops(fp=42, sqrt=1, div=1),
+        plane=Ops(fp=14),
+        face=Ops(fp=23, sqrt=1, div=3),  # normals: one face of the ring
+        normal=Ops(fp=5, sqrt=1, div=3),  # normals: the sum made a unit vector
+    ),
+    False: dict(
+        particle=Ops(fp=15),
+        spring=Ops(fp=10, rsqrt=1),
+        sphere=Ops(fp=9, sqrt=1, div=1),
+        cylinder=Ops(fp=32, sqrt=1, div=1),
+        plane=Ops(fp=9),
+        face=Ops(fp=18, sqrt=1, div=3),
+        normal=Ops(fp=3, sqrt=1, div=3),
+    ),
+}
+PRECISION_BYTES = {"f32": 4, "f64": 8}
+
+
+def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: bool = False,
+               layout: str = BOUND_LAYOUT) -> Ops:  # fmt: skip
+    """Bytes streamed and operations done by one Verlet step of `scene` with the state in
+    `layout` (LAYOUT_ELEMENTS). float64 has only the strict arithmetic (the numpy
+    reference): its count is the strict one."""
+    if precision not in PRECISION_BYTES:
+        raise ClothbenchError(f"precision must be one of {', '.join(PRECISION_BYTES)}, got {precision!r}")
+    if layout not in LAYOUT_ELEMENTS:
+        raise ClothbenchError(f"layout must be one of {', '.join(LAYOUT_ELEMENTS)}, got {layout!r}")
+    c = COUNTS[strict or precision == "f64"]
+    n, particles = scene.grid, scene.particles
+    elements = LAYOUT_ELEMENTS[layout] + (NORMAL_ELEMENTS if normals else 0)
+    per_particle = (
+        c["particle"]
+        + c["sphere"] * len(scene.spheres)
+        + c["cylinder"] * len(scene.cylinders)
+        + c["plane"] * len(scene.planes)
+        + (c["normal"] if normals else Ops())
+    )
+    total = Ops(bytes=elements * PRECISION_BYTES[precision] * particles) + per_particle * particles
+    total = total + c["spring"] * scene.springs  # each spring seen from both ends, as the kernel does
+    if normals:
+        total = total + c["face"] * (6 * (n - 1) ** 2)  # 2(n-1)^2 triangles, each seen from its 3 corners
+    return total
+
+
+def step_bound_ms(scene, precision: str, bounds: MachineBounds | None, *, strict: bool = False,
+                  normals: bool = False, solver=None, layout: str = BOUND_LAYOUT) -> dict | None:  # fmt: skip
+    """The lower bound on one step's wall time on this machine, in ms, with its parts; None
+    without measured bounds, or for the pbd solver (docs/bounds.md: not counted)."""
+    from clothbench.solver import Pbd
+
+    if bounds is None or isinstance(solver, Pbd):
+        return None
+    work = step_count(scene, precision, strict=strict, normals=normals, layout=layout)
+    r = bounds.rates(precision)
+    memory_ms = work.bytes / (bounds.bandwidth_gb_s * 1e9) * 1e3
+    # sqrt and division may share one unit (measured pairs show it): whatever they share, the
+    # step takes at least each one alone and at least its min(sqrt, div) pairs at the pair rate
+    divider_ms = max(work.sqrt / r.sqrt, work.div / r.div, min(work.sqrt, work.div) / r.sqrt_div) * 1e3
+    rsqrt_ms = work.rsqrt / r.rsqrt * 1e3 if work.rsqrt else 0.0
+    fp_ms = work.fp / r.fp * 1e3
+    arithmetic_ms = max(divider_ms, rsqrt_ms, fp_ms)  # the busiest unit: all may overlap
+    return dict(
+        bound_ms=max(memory_ms, arithmetic_ms),
+        bound_kind="memory" if memory_ms >= arithmetic_ms else "arithmetic",
+        memory_ms=memory_ms, arithmetic_ms=arithmetic_ms, divider_ms=divider_ms, rsqrt_ms=rsqrt_ms, fp_ms=fp_ms,
+        bytes=work.bytes, fp=work.fp, sqrt=work.sqrt, div=work.div, rsqrt=work.rsqrt,
+    )  # fmt: skip
+
+
+# --- CSV cells -------------------------------------------------------------------------
+
+
+def bound_columns(scene, precision: str, ms_median, solver=None, *, strict: bool = False, normals: bool = False,
+                  bounds: MachineBounds | None = None, layout: str = BOUND_LAYOUT) -> dict[str, str]:  # fmt: skip
+    """The row's bound_ms, bound_kind and bound_fraction cells ('' where there is no bound).
+    `strict` counts the strict arithmetic (the default, fast, is the smaller count: a bound
+    for either mode); `layout` the bytes of one kernel's state rather than the least any
+    moves (LAYOUT_ELEMENTS). `bounds` defaults to this process's measure_machine() (measured on
+    first use)."""
+    if bounds is None and (solver is None or solver.name == "verlet"):
+        bounds = machine_or_reason()[0]
+    result = step_bound_ms(scene, precision, bounds, strict=strict, normals=normals, solver=solver, layout=layout)
+    if result is None:
+        return dict.fromkeys(BOUND_COLUMN_DOCS, "")
+    try:
+        ms = float(ms_median)
+    except (TypeError, ValueError):
+        ms = math.nan
+    fraction = result["bound_ms"] / ms if math.isfinite(ms) and ms > 0 else None
+    return {"bound_ms": fmt(result["bound_ms"]), "bound_kind": result["bound_kind"], "bound_fraction": fmt(fraction)}
+
+
+def machine_columns(bounds: MachineBounds | None = None) -> dict[str, str]:
+    """The machine's measured limits as CSV cells ('' each where they could not be measured)."""
+    if bounds is None:
+        bounds = machine_or_reason()[0]
+    if bounds is None:
+        return dict.fromkeys(MACHINE_COLUMN_DOCS, "")
+    return {
+        "bandwidth_gb_s": fmt(bounds.bandwidth_gb_s),
+        "triad_gb_s": fmt(bounds.triad_gb_s),
+        "copy_gb_s": fmt(bounds.copy_gb_s),
+        "triad_pass_gb_s": fmt(bounds.triad_pass_gb_s),
+        "sqrt_gops": fmt(bounds.f32.sqrt / 1e9),
+        "div_gops": fmt(bounds.f32.div / 1e9),
+        "fp_gops": fmt(bounds.f32.fp / 1e9),
+        "rsqrt_gops": fmt(bounds.f32.rsqrt / 1e9),
+        "bound_threads": str(bounds.threads),
+    }
+
+
+def _main(argv: list[str]) -> int:
+    """python -m clothbench.harness.bounds [--threads N] [--array-mib M] [--json]: measure
+    here and print what was measured (--json: the one line measure_machine reads)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m clothbench.harness.bounds")
+    parser.add_argument("--threads", type=int, default=0, help="threads (default: every CPU this process may use)")
+    parser.add_argument("--array-mib", type=int, default=ARRAY_MIB, help="MiB per streamed array")
+    parser.add_argument("--json", action="store_true", help="one JSON line (what measure_machine reads)")
+    args = parser.parse_args(argv)
+    from clothbench import environment
+
+    threads = args.threads or environment.cores() or 1
+    try:
+        if args.threads < 0 or args.array_mib < 1:
+            raise ClothbenchError(f"--threads must be >= 0 and --array-mib >= 1, got {args.threads}, {args.array_mib}")
+        t0 = time.perf_counter()
+        result = measure_here(threads, args.array_mib)
+        result["seconds"] = time.perf_counter() - t0
+    except ClothbenchError as e:
+        print(json.dumps({"error": str(e)}) if args.json else f"error: {e}")
+        return 0 if args.json else 2
+    print(json.dumps(result) if args.json else MachineBounds.from_dict(result).what())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

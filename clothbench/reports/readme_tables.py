@@ -1,0 +1,113 @@
+"""README's performance tables, computed from one sweep CSV: so that every number and ratio
+in README is the CSV's (tests/test_readme_tables.py regenerates them and looks for them in
+README.md). `python -m clothbench.reports.readme_tables results/FILE.csv` prints them.
+
+Ratios are taken within the one file, on the one machine that wrote it: the fastest
+GPU-style backend (opencl, glsl, glsl-compute, cuda) against the native `c` line, the
+fastest peer and the machine's bound (`bound_ms`, docs/bounds.md)."""
+
+from __future__ import annotations
+
+import csv
+import sys
+
+from clothbench.backends import BACKENDS
+from clothbench.reports.tables import GPU_STYLE
+
+
+def _ok(rows: list[dict], grid: int) -> list[dict]:
+    return [
+        r for r in rows
+        if r["status"] == "ok" and int(r["grid"]) == grid and r["solver"] == "verlet" and not r["local_size"]
+        and r["precision"] == "f32"
+    ]  # fmt: skip
+
+
+def _fastest(rows: list[dict]) -> dict | None:
+    return min(rows, key=lambda r: float(r["ms_median"])) if rows else None
+
+
+def limits_rows(rows: list[dict]) -> list[dict]:
+    """Per grid: the c line, the fastest GPU-style row and peer, and the fastest row's bound."""
+    out = []
+    for grid in sorted({int(r["grid"]) for r in rows}):
+        here = _ok(rows, grid)
+        native = _fastest([r for r in here if r["backend"] == "c"])
+        best = _fastest([r for r in here if r["backend"] in GPU_STYLE])
+        peer = _fastest([r for r in here if r["peer"] == "true"])
+        if native is None or best is None:
+            continue
+        ms = float(best["ms_median"])
+        line = {
+            "grid": grid,
+            "c_ms": float(native["ms_median"]),
+            "c_mode": native["mode"],
+            "best": f"{best['backend']} {best['mode']}",
+            "best_ms": ms,
+            "vs_c": ms / float(native["ms_median"]),
+            "peer": f"{peer['backend']} {peer['mode']}" if peer else "",
+            "peer_ms": float(peer["ms_median"]) if peer else None,
+            "peer_ratio": float(peer["ms_median"]) / ms if peer else None,
+            "bound_ms": float(best["bound_ms"]) if best.get("bound_ms") else None,
+            "bound_kind": best.get("bound_kind", ""),
+        }
+        fastest_any = _fastest(here)
+        line["fastest_any"] = f"{fastest_any['backend']} {fastest_any['mode']}"
+        line["fraction"] = float(fastest_any["bound_fraction"]) if fastest_any.get("bound_fraction") else None
+        out.append(line)
+    return out
+
+
+def _x(value: float | None, digits: int = 2) -> str:
+    return "–" if value is None else f"{value:.{digits}f}×"
+
+
+def limits_markdown(rows: list[dict]) -> str:
+    lines = [
+        "| grid | c, ms | fastest GPU-style backend | ms | × c | fastest peer | ms | peer / it | bound, ms | fastest row's share of the bound |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in limits_rows(rows):
+        peer_ms = "–" if r["peer_ms"] is None else f"{r['peer_ms']:.3f}"
+        bound = "–" if r["bound_ms"] is None else f"{r['bound_ms']:.3f} ({r['bound_kind']})"
+        share = "–" if r["fraction"] is None else f"{100 * r['fraction']:.0f} % ({r['fastest_any']})"
+        lines.append(
+            f"| {r['grid']}×{r['grid']} | {r['c_ms']:.3f} | {r['best']} | {r['best_ms']:.3f} | {_x(r['vs_c'])} | "
+            f"{r['peer'] or '–'} | {peer_ms} | {_x(r['peer_ratio'], 1)} | {bound} | {share} |"
+        )
+    return "\n".join(lines)
+
+
+def ms_markdown(rows: list[dict]) -> str:
+    """ms/step of every backend and mode (f32 and f64, default local size) at every grid, in
+    registry order, with each row's ratio to the c line at the largest grid it reached."""
+    grids = sorted({int(r["grid"]) for r in rows if r["status"] == "ok"})
+    order = list(BACKENDS)
+    table: dict[tuple, dict[int, dict]] = {}
+    for r in rows:
+        if r["status"] != "ok" or r["solver"] != "verlet" or r["local_size"]:
+            continue
+        label = (order.index(r["backend"]) if r["backend"] in order else len(order), r["backend"], r["mode"])
+        table.setdefault(label, {})[int(r["grid"])] = r
+    head = " | ".join(f"{g}²" for g in grids)
+    lines = [f"| backend | mode | {head} | × c at the largest |", "| --- | --- |" + " --- |" * (len(grids) + 1)]
+    for (_, backend, mode), cells in sorted(table.items()):
+        values = " | ".join(f"{float(cells[g]['ms_median']):.3f}" if g in cells else "–" for g in grids)
+        largest = cells[max(cells)]
+        vs_c = f"{float(largest['vs_c']):.2f}× ({max(cells)}²)" if largest.get("vs_c") else "–"
+        lines.append(f"| {backend} | {mode} | {values} | {vs_c} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print("usage: python -m clothbench.reports.readme_tables SWEEP.csv", file=sys.stderr)
+        return 2
+    rows = list(csv.DictReader(open(argv[0], newline="")))
+    print(limits_markdown(rows), end="\n\n")
+    print(ms_markdown(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
