@@ -166,3 +166,12 @@ def test_warp_says_nothing_about_a_missing_cuda_driver():
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "Could not find or load the NVIDIA CUDA driver" not in out.stderr + out.stdout
+
+
+def test_backends_table_prints_an_install_hint_with_its_brackets(capsys):
+    # rich would read "[peers]" as markup and drop it, leaving a command that installs nothing
+    from clothbench.reports.tables import print_backends
+
+    print_backends([{"backend": "x", "kind": "peer", "usable": False, "device": "",
+                     "reason": "pip install 'clothbench[peers]'"}])  # fmt: skip
+    assert "clothbench[peers]" in capsys.readouterr().out

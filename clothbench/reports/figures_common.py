@@ -223,17 +223,18 @@ def _widened(lim: tuple[float, float], fraction: float, log: bool) -> tuple[floa
 
 def draw_bound_lines(ax, rows: list, x: Callable, y: Callable) -> bool:
     """The machine's bound (the rows' `bound_ms`, where a sweep measured it) as a grey line per
-    device across its grids; nothing when no row has one. Whether a line was drawn."""
-    by_device: dict[str, dict] = {}
+    machine (its CPU: every backend's device on it shares the one bound) across its grids;
+    nothing when no row has one. Whether a line was drawn."""
+    by_machine: dict[str, dict] = {}
     for r in rows:
         if r.bound_ms:
-            by_device.setdefault(r.device, {}).setdefault(x(r), []).append(y(r))
-    for device, points in by_device.items():
+            by_machine.setdefault(r.raw.get("cpu", ""), {}).setdefault(x(r), []).append(y(r))
+    for machine, points in by_machine.items():
         xs = sorted(points)
-        label = "machine bound" + (f" ({device})" if len(by_device) > 1 else "")
+        label = "machine bound" + (f" ({machine})" if len(by_machine) > 1 else "")
         ax.plot(xs, [min(points[v]) for v in xs], color=BOUND_COLOR, linewidth=2.4, alpha=0.7,
                 linestyle=(0, (6, 2)), zorder=1, label=label)  # fmt: skip
-    return bool(by_device)
+    return bool(by_machine)
 
 
 def draw_native_line(ax, rows: list, x: Callable, y: Callable) -> bool:

@@ -237,10 +237,10 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
         front = pareto_front(mine, cost=lambda r: r.cost, error=lambda r: r.err_rms, tolerance=FRONT_TOLERANCE)
         chart.fronts[panel] = [label_of[id(r)] for r in front]
         labels += draw_front(ax, [(max(r.err_rms, floor), r.cost, label_of[id(r)]) for r in front])
-        for device in dict.fromkeys(r.device for r in mine if r.bound_ms):
+        for machine in dict.fromkeys(r.raw.get("cpu", "") for r in mine if r.bound_ms):  # one bound per machine
             bound = True
-            ax.axhline(min(r.bound_ms / r.dt for r in mine if r.bound_ms and r.device == device), color=BOUND_COLOR,
-                       linewidth=2.4, alpha=0.7, linestyle=(0, (6, 2)), zorder=1)  # fmt: skip
+            ax.axhline(min(r.bound_ms / r.dt for r in mine if r.bound_ms and r.raw.get("cpu", "") == machine),
+                       color=BOUND_COLOR, linewidth=2.4, alpha=0.7, linestyle=(0, (6, 2)), zorder=1)  # fmt: skip
         ax.axhline(1000.0, color="0.5", linestyle="-.", linewidth=0.8)
         ax.text(0.01, 1000.0, " real time", transform=ax.get_yaxis_transform(), fontsize=6.5, color="0.35",
                 ha="left", va="bottom")  # fmt: skip

@@ -9,6 +9,7 @@ fastest peer and the machine's bound (`bound_ms`, docs/bounds.md)."""
 from __future__ import annotations
 
 import csv
+import re
 import sys
 
 from clothbench.backends import BACKENDS
@@ -78,16 +79,24 @@ def limits_markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def base_mode(mode: str) -> str:
+    """The mode without the kernel shape tuned for the grid (from the first ls= or threads=
+    on): 'fast/resident' of 'fast/resident/ls=32/rows/v16/wg=32'. A sweep's rows of one
+    variant then share a line whatever shape won on each grid."""
+    return re.sub(r"/(ls|threads)=.*$", "", mode)
+
+
 def ms_markdown(rows: list[dict]) -> str:
     """ms/step of every backend and mode (f32 and f64, default local size) at every grid, in
-    registry order, with each row's ratio to the c line at the largest grid it reached."""
+    registry order, with each row's ratio to the c line at the largest grid it reached. The
+    mode is the base mode: the shape tuned on each grid is in the CSV's mode column."""
     grids = sorted({int(r["grid"]) for r in rows if r["status"] == "ok"})
     order = list(BACKENDS)
     table: dict[tuple, dict[int, dict]] = {}
     for r in rows:
         if r["status"] != "ok" or r["solver"] != "verlet" or r["local_size"]:
             continue
-        label = (order.index(r["backend"]) if r["backend"] in order else len(order), r["backend"], r["mode"])
+        label = (order.index(r["backend"]) if r["backend"] in order else len(order), r["backend"], base_mode(r["mode"]))
         table.setdefault(label, {})[int(r["grid"])] = r
     head = " | ".join(f"{g}²" for g in grids)
     lines = [f"| backend | mode | {head} | × c at the largest |", "| --- | --- |" + " --- |" * (len(grids) + 1)]
@@ -99,13 +108,57 @@ def ms_markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def runtime_cells(rows: list[dict]) -> dict[int, tuple[float, float]]:
+    """Per grid: (ms, ms / the c fast row's ms) of the opencl fast resident row of one sweep."""
+    out = {}
+    for grid in sorted({int(r["grid"]) for r in rows}):
+        here = _ok(rows, grid)
+        native = _fastest([r for r in here if r["backend"] == "c" and r["strict"] == "false"])
+        ocl = _fastest([r for r in here if r["backend"] == "opencl" and r["strict"] == "false" and r["generic"] != "true"
+                        and (r["transfer"] or "resident") == "resident"])  # fmt: skip
+        if native and ocl:
+            out[grid] = (float(ocl["ms_median"]), float(ocl["ms_median"]) / float(native["ms_median"]))
+    return out
+
+
+def short_driver(driver: str) -> str:
+    """'PoCL 3.1+debian, LLVM 15.0.6' or 'Intel(R) OpenCL, driver 2026...' from a row's driver."""
+    pocl, llvm = re.search(r"PoCL [\w.+-]+", driver), re.search(r"LLVM [\d.]+", driver)
+    if pocl:
+        return pocl.group(0) + (f", {llvm.group(0)}" if llvm else "")
+    platform, _, rest = driver.partition(":")
+    version = re.search(r"driver ([^;]+)", rest)
+    return platform.strip() + (f", driver {version.group(1).strip()}" if version else "")
+
+
+def runtimes_markdown(sweeps: dict[str, list[dict]]) -> str:
+    """One line per OpenCL runtime (a sweep each, with its own c line): opencl fast ms/step and
+    its ratio to c fast at every grid, and the driver that ran it."""
+    cells = {name: runtime_cells(rows) for name, rows in sweeps.items()}
+    grids = sorted({g for c in cells.values() for g in c})
+    lines = [f"| runtime | driver | {' | '.join(f'{g}²' for g in grids)} |", "| --- | --- |" + " --- |" * len(grids)]
+    for name, rows in sweeps.items():
+        drivers = sorted({short_driver(r["driver"]) for r in rows if r["backend"] == "opencl" and r["status"] == "ok"})
+        values = " | ".join(
+            f"{cells[name][g][0]:.3f} ({cells[name][g][1]:.2f}×)" if g in cells[name] else "–" for g in grids
+        )
+        lines.append(f"| {name} | {'; '.join(drivers)} | {values} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str]) -> int:
-    if len(argv) != 1:
-        print("usage: python -m clothbench.reports.readme_tables SWEEP.csv", file=sys.stderr)
+    if not argv or argv[0].startswith("-"):
+        print("usage: python -m clothbench.reports.readme_tables SWEEP.csv [NAME=RUNTIME_SWEEP.csv ...]", file=sys.stderr)
         return 2
     rows = list(csv.DictReader(open(argv[0], newline="")))
     print(limits_markdown(rows), end="\n\n")
-    print(ms_markdown(rows))
+    print(ms_markdown(rows), end="\n\n")
+    if argv[1:]:
+        sweeps = {}
+        for spec in argv[1:]:
+            name, _, path = spec.partition("=")
+            sweeps[name] = list(csv.DictReader(open(path, newline="")))
+        print(runtimes_markdown(sweeps))
     return 0
 
 

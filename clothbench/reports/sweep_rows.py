@@ -215,7 +215,11 @@ def footer(rows: list[Row]) -> str:
         return sorted({r.raw.get(col, "") for r in rows} - {""})
 
     dts = ", ".join(f"{float(v) * 1e3:g}" for v in values("dt"))
-    chunks = ", ".join(f"{r} chunks x {s} steps" for r, s in sorted({(r.raw["repeats"], r.raw["steps"]) for r in rows}))
+    cut = [r for r in rows if r.raw.get("note", "").startswith("time budget")]  # harness/sweep.py BUDGET_NOTE
+    planned = {(r.raw["repeats"], r.raw["steps"]) for r in rows if r not in cut} or {(r.raw["repeats"], r.raw["steps"]) for r in rows}
+    chunks = ", ".join(f"{r} chunks x {s} steps" for r, s in sorted(planned))
+    if cut:
+        chunks += f" ({len(cut)} slow rows fewer, cut by the per-row time budget: see their notes)"
     parts = [
         f"scene {', '.join(values('scene'))}, dt {dts} ms; {chunks} timed after warm-up; "
         "median of chunks, bars min-max; upload and readback not timed (except per-step transfer modes)"

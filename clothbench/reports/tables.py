@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 
@@ -43,7 +44,8 @@ def print_backends(rows: list[dict]) -> None:
         table.add_column(col)
     for r in rows:
         usable = "[green]yes[/green]" if r["usable"] else "[red]no[/red]"
-        table.add_row(r["backend"], r["kind"], usable, r["device"] if r["usable"] else r["reason"])
+        # escaped: a reason's install hint ("pip install 'clothbench[peers]'") is not markup
+        table.add_row(r["backend"], r["kind"], usable, escape(r["device"] if r["usable"] else r["reason"]))
     Console().print(table)
 
 
@@ -79,7 +81,7 @@ def peer_ratios(rows: list[dict]) -> list[dict]:
 
 def peer_ratio_markdown(rows: list[dict]) -> str:
     lines = [
-        "| grid | fastest clothbench backend | ms/step | fastest peer | ms/step | peer / clothbench |",
+        "| grid | fastest GPU-style backend | ms/step | fastest peer | ms/step | peer / it |",
         "| --- | --- | --- | --- | --- | --- |",
     ]
     for r in peer_ratios(rows):
