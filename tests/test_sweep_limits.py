@@ -111,3 +111,16 @@ def test_rows_are_compared_with_the_c_row_of_the_same_grid_and_arithmetic(tmp_pa
         if r["backend"] == "c" and r["precision"] == "f32" and r["strict"] == numpy_f32["strict"]
     )  # fmt: skip
     assert float(numpy_f32["vs_c"]) == pytest.approx(float(numpy_f32["ms_median"]) / float(c_same["ms_median"]), rel=1e-4)
+
+
+def test_limits_that_cannot_be_measured_are_tried_once_and_the_rows_say_nothing(tmp_path, monkeypatch, capsys):
+    from clothbench.harness import bounds
+
+    calls = []
+    monkeypatch.setattr(bounds, "machine_or_reason", lambda *a: calls.append(a) or (None, "no C compiler found"))
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "--backends", "numpy", "--grids", "16,20", *TINY, "--out", str(out)]) == 0
+    assert len(calls) == 1  # once for the sweep, not again for each of its 4 rows
+    rows = rows_of(out)
+    assert len(rows) == 4 and all(r["bound_ms"] == "" and r["bandwidth_gb_s"] == "" for r in rows)
+    assert "no machine bound measured: no C compiler found" in capsys.readouterr().err

@@ -30,6 +30,7 @@ from clothbench.harness.executor import DEFAULT_ROW_TIMEOUT, Outcome, fork_safe,
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.harness.simulate import position_error, reference
 from clothbench.harness.sweep_csv import (
+    BUDGET_NOTE,
     COLUMNS,
     RETRY_STATUSES,
     PER_STEP_TRANSFERS,
@@ -45,7 +46,6 @@ from clothbench.solver import Solver
 
 
 NATIVE = "c"  # the backend every row's vs_c is taken against: the native CPU line
-BUDGET_NOTE = "time budget"  # how the note of a row its budget shortened begins
 
 
 # --- plan ------------------------------------------------------------------------------
@@ -168,7 +168,6 @@ def measure_row(
                 backend, total, chunk=steps, on_progress=on_progress, raise_on_blowup=False, build_s=build_s,
                 budget_s=budget_s,
             )
-            out["mode"] = backend.mode  # a shape tuned during the warm-up is part of it
     except MemoryError as e:  # a Python-side allocation the machine could not hold
         out.update(status="crashed", note=one_line(f"out of memory: {e}"), **environment.collect())
         return out
@@ -393,17 +392,19 @@ def _specialised_twin(row: dict[str, str], rows: list[dict[str, str]]) -> dict[s
     return None
 
 
-def _compared_columns(result: dict[str, str], rows: list[dict[str, str]], settings, row) -> dict[str, str]:
-    """The row's bound (harness/bounds.py: the machine measured once, in this process) and its
-    ratio to the c backend's row of the same grid, solver, precision and strictness."""
+def _compared_columns(result: dict[str, str], rows: list[dict[str, str]], settings, row, machine) -> dict[str, str]:
+    """The row's bound from `machine` (harness/bounds.py, measured once at the sweep's start;
+    None: not measured, and not tried again per row) and its ratio to the c backend's row of
+    the same grid, solver, precision and strictness."""
     out: dict[str, str] = {}
     ms = float(result["ms_median"])
-    if settings.bounds:
+    if machine is not None:
         from clothbench.harness.bounds import bound_columns, machine_columns
 
         scene, o = settings.setups[row.grid].scene, row.options
-        out.update(bound_columns(scene, o.precision, ms, row.solver, strict=o.strict, normals=o.normals))
-        out.update(machine_columns())
+        bound = bound_columns(scene, o.precision, ms, row.solver, strict=o.strict, normals=o.normals, bounds=machine)
+        out.update(bound)
+        out.update(machine_columns(machine))
     same = ("grid", "solver", "pbd_method", "precision", "strict", "scene")
     native = [
         r for r in [*rows, result]
@@ -467,7 +468,7 @@ def run_sweep(
                 if twin is not None:
                     result["specialised_speedup"] = fmt(float(result["ms_median"]) / float(twin["ms_median"]))
             if result["status"] == "ok":
-                result.update(_compared_columns(result, f.rows, settings, row))
+                result.update(_compared_columns(result, f.rows, settings, row, progress.machine))
             f.append(result)
             progress.measured.append(result)
             if on_row:

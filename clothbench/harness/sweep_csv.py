@@ -19,6 +19,7 @@ from typing import Iterable
 from clothbench.errors import ClothbenchError
 
 PER_STEP_TRANSFERS = frozenset({"per-step"})  # transfer modes that move the state host<->device every step
+BUDGET_NOTE = "time budget"  # how the note of a row its per-row time budget shortened begins
 
 # The columns of the machine's limits (harness/bounds.py), with what each means.
 BOUND_COLUMN_DOCS = {

@@ -114,9 +114,9 @@ def run_timed(
     budget_s: float | None = None,
 ) -> RunResult:
     """Run `steps` steps of the backend's scene and solver from the solver's start in timed
-    chunks, checking health after each. With `budget_s`, the slowest warm-up step sets how
-    many steps fit in that many seconds of timed run, and a run that would not fit is
-    shortened (fit_budget; result.steps and result.chunk say what ran)."""
+    chunks, checking health after each. With `budget_s`, one synchronised step timed after the
+    warm-up sets how many steps fit in that many seconds of timed run, and a run that would
+    not fit is shortened (fit_budget; result.steps and result.chunk say what ran)."""
     chunk = chunk or default_chunk(steps)
     scene, solver = backend.scene, backend.solver
     result = RunResult(backend.name, backend.device, backend.mode, scene, solver, steps)

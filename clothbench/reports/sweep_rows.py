@@ -13,7 +13,7 @@ from collections import defaultdict
 from dataclasses import dataclass
 
 from clothbench.errors import ClothbenchError
-from clothbench.harness.sweep_csv import read_sweep
+from clothbench.harness.sweep_csv import BUDGET_NOTE, read_sweep
 from clothbench.reports.figures_common import platform_of, series_style
 
 # Columns the figures need; a CSV without them is refused with their names.
@@ -215,11 +215,15 @@ def footer(rows: list[Row]) -> str:
         return sorted({r.raw.get(col, "") for r in rows} - {""})
 
     dts = ", ".join(f"{float(v) * 1e3:g}" for v in values("dt"))
-    cut = [r for r in rows if r.raw.get("note", "").startswith("time budget")]  # harness/sweep.py BUDGET_NOTE
-    planned = {(r.raw["repeats"], r.raw["steps"]) for r in rows if r not in cut} or {(r.raw["repeats"], r.raw["steps"]) for r in rows}
+    def budget_cut(r: Row) -> bool:
+        return r.raw.get("note", "").startswith(BUDGET_NOTE)
+
+    cut = sum(map(budget_cut, rows))
+    planned = {(r.raw["repeats"], r.raw["steps"]) for r in rows if not budget_cut(r)}
+    planned = planned or {(r.raw["repeats"], r.raw["steps"]) for r in rows}
     chunks = ", ".join(f"{r} chunks x {s} steps" for r, s in sorted(planned))
     if cut:
-        chunks += f" ({len(cut)} slow rows fewer, cut by the per-row time budget: see their notes)"
+        chunks += f" ({cut} slow rows fewer, cut by the per-row time budget: see their notes)"
     parts = [
         f"scene {', '.join(values('scene'))}, dt {dts} ms; {chunks} timed after warm-up; "
         "median of chunks, bars min-max; upload and readback not timed (except per-step transfer modes)"
