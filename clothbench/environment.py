@@ -25,22 +25,30 @@ PACKAGES = (
     "pocl-binary-distribution",
     "moderngl",
     "glcontext",
+    "cupy-cuda13x",
     "cupy-cuda12x",
     "cupy-cuda11x",
     "cupy",
     "taichi",
     "warp-lang",
     "numba",
+    "numba-cuda",
+    "torch",
+    "jax",
+    "jaxlib",
+    "newton",
+    "trimesh",
 )
 
 # Environment variables that change how a library or driver runs (thread pools, device
 # choice, JIT and compiler settings), by exact name or by prefix: OpenMP (and Intel's and
 # GNU's runtimes), Numba, MKL, OpenBLAS, llvmpipe, Mesa, PoCL, the OpenCL ICD loader,
-# pyopencl, CUDA's device list, CuPy, Taichi, Warp.
+# pyopencl, CUDA's device list, CuPy, Taichi, Warp, XLA (jax: XLA_FLAGS changes its arithmetic),
+# PyTorch's own switches.
 ENV_VARS = ("GALLIUM_DRIVER", "CUDA_VISIBLE_DEVICES")
 ENV_PREFIXES = (
     "OMP_", "KMP_", "GOMP_", "NUMBA_", "MKL_", "OPENBLAS_", "LP_", "MESA_", "POCL_", "OCL_ICD_",
-    "PYOPENCL_", "CUPY_", "TI_", "WARP_",
+    "PYOPENCL_", "CUPY_", "TI_", "WARP_", "XLA_", "TORCH",
 )  # fmt: skip
 # Set by clothbench itself (peers/taichi.py, to keep Taichi from phoning home), and no
 # change to any result: not recorded, so a row does not depend on which probe ran first.

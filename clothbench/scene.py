@@ -16,6 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from clothbench.colliders.analytic import _COLLIDER_KEYS, _COLLIDER_OPTIONAL_KEYS, ANCHOR, COLLIDER_KINDS, Cylinder, Plane, Sphere, body_pose  # noqa: F401 (body_pose, ANCHOR: re-exported)
+from clothbench.colliders.mesh import Mesh
+from clothbench.colliders.motion import Frame, Motion, frames_from_toml, motion_from_toml
 from clothbench.errors import SceneError
 from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, solver_for_spec
 
@@ -36,71 +39,10 @@ EDGES = ("top", "bottom", "left", "right")
 # Keys the scene file may use, per table: anything else is a typo and is refused.
 _CLOTH_KEYS = {"grid", "size", "height", "mass", "stiffness", "damping"}
 _SIM_KEYS = {"dt", "steps", "gravity", "start", "solver"}
-_PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance"}
-_PIN_KEYS = {"indices", "corners", "edge"}
-_COLLIDER_KEYS = {
-    "sphere": ("center", "radius"),
-    "cylinder": ("start", "end", "radius"),
-    "plane": ("point", "normal"),
-}
-_TABLES = {"name", "description", "cloth", "sim", "pbd", "pins", *_COLLIDER_KEYS}
-
-
-@dataclass(frozen=True)
-class Sphere:
-    center: tuple[float, float, float]
-    radius: float
-
-    kind = "sphere"
-
-
-@dataclass(frozen=True)
-class Cylinder:
-    """A capped cylinder around the segment start-end."""
-
-    start: tuple[float, float, float]
-    end: tuple[float, float, float]
-    radius: float
-
-    kind = "cylinder"
-
-    @property
-    def length(self) -> float:
-        return math.dist(self.start, self.end)
-
-    @property
-    def axis(self) -> tuple[float, float, float]:
-        """Unit vector from start to end (float64)."""
-        length = self.length
-        return tuple((e - s) / length for s, e in zip(self.start, self.end))
-
-    @property
-    def radial(self) -> tuple[float, float, float]:
-        """A fixed unit vector perpendicular to the axis, for a particle exactly on it."""
-        u = self.axis
-        # cross the axis with the world axis it is least aligned with
-        helper = min(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), key=lambda e: abs(sum(a * b for a, b in zip(u, e))))
-        c = (u[1] * helper[2] - u[2] * helper[1], u[2] * helper[0] - u[0] * helper[2], u[0] * helper[1] - u[1] * helper[0])
-        norm = math.sqrt(sum(x * x for x in c))
-        return tuple(x / norm for x in c)
-
-
-@dataclass(frozen=True)
-class Plane:
-    """A one-sided half-space: the solid is where (x - point) . normal < 0."""
-
-    point: tuple[float, float, float]
-    normal: tuple[float, float, float]
-
-    kind = "plane"
-
-    @property
-    def unit_normal(self) -> tuple[float, float, float]:
-        norm = math.sqrt(sum(x * x for x in self.normal))
-        return tuple(x / norm for x in self.normal)
-
-
-COLLIDER_KINDS = {"sphere": Sphere, "cylinder": Cylinder, "plane": Plane}
+_PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance", "chebyshev_rho"}
+_PIN_KEYS = {"indices", "corners", "edge", "attach"}
+_MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *_COLLIDER_OPTIONAL_KEYS}
+_TABLES = {"name", "description", "cloth", "sim", "pbd", "pins", *_COLLIDER_KEYS, "mesh", "frame"}
 
 
 @dataclass(frozen=True)
@@ -125,6 +67,10 @@ class Scene:
     pin_indices: tuple[int, ...] = ()
     pin_corners: tuple[str, ...] = ()
     pin_edge: str | None = None
+    # triangle meshes (applied after the planes), kinematic frames, and the body the pins follow
+    meshes: tuple[Mesh, ...] = ()
+    frames: tuple[Frame, ...] = ()
+    pin_attach: str | None = None
 
     def __post_init__(self):
         _validate(self)
@@ -144,8 +90,21 @@ class Scene:
 
     @property
     def colliders(self) -> tuple:
-        """Every collider in the order the step applies them: spheres, cylinders, planes."""
+        """The analytic colliders in the order the step applies them: spheres, cylinders,
+        planes (the meshes come after them: `meshes`)."""
         return self.spheres + self.cylinders + self.planes
+
+    @property
+    def has_motion(self) -> bool:
+        """Whether a collider moves or the pins follow a body (per-step constants)."""
+        return self.pin_attach is not None or any(c.motion is not None for c in self.colliders + self.meshes)
+
+    def body(self, name: str):
+        """The collider or kinematic frame called `name`."""
+        for b in self.colliders + self.meshes + self.frames:
+            if b.name == name:
+                return b
+        raise SceneError(f"no collider or frame named {name!r}")
 
     def rest_lengths(self) -> tuple[float, ...]:
         """Rest length of each stencil offset, |(dr, dc)| * h, in float64."""
@@ -255,6 +214,28 @@ def _validate(s: Scene) -> None:
             raise SceneError(f"unknown pin corner {c!r} (known: {', '.join(CORNERS)})")
     if s.pin_edge is not None and s.pin_edge not in EDGES:
         raise SceneError(f"unknown pin edge {s.pin_edge!r} (known: {', '.join(EDGES)})")
+    _validate_bodies(s)
+
+
+def _validate_bodies(s: Scene) -> None:
+    """Meshes (loaded once here), names, motions and the body the pins follow."""
+    for mesh in s.meshes:
+        mesh.check()
+        for what, v in (("position", max(map(abs, mesh.position))), ("margin", mesh.margin)):
+            if v > FLOAT32_MAX:
+                raise SceneError(f"mesh {what} {v!r} is too large for float32 (max {FLOAT32_MAX:.4g})")
+    names = [b.name for b in s.colliders + s.meshes + s.frames if b.name]
+    for name in names:
+        if not isinstance(name, str) or names.count(name) > 1:
+            raise SceneError(f"collider or frame name {name!r} is used more than once")
+    if s.pin_attach is not None:
+        if s.pin_attach not in names:
+            raise SceneError(
+                f"pins attach to {s.pin_attach!r}, which names no collider or frame "
+                f"(named: {', '.join(names) or 'none'})"
+            )
+        if not (s.pin_indices or s.pin_corners or s.pin_edge):
+            raise SceneError("[pins] attach needs pinned particles (indices, corners or edge)")
 
 
 def _check_float32_range(s: Scene) -> None:
@@ -267,6 +248,8 @@ def _check_float32_range(s: Scene) -> None:
     for c in s.colliders:
         for f in dataclasses.fields(c):
             v = getattr(c, f.name)
+            if f.name in _COLLIDER_OPTIONAL_KEYS:
+                continue  # a name, and a motion (an overflowing pose shows as a blow-up)
             values[f"{c.kind} {f.name}"] = max(map(abs, v)) if isinstance(v, tuple) else v
     for name, value in values.items():
         if abs(value) > FLOAT32_MAX:
@@ -323,18 +306,64 @@ def _colliders(data: dict, kind: str, where: str) -> tuple:
     for table in raw:
         if not isinstance(table, dict):
             raise SceneError(f"{where}: each [[{kind}]] must be a table")
-        unknown = set(table) - set(keys)
+        optional = _optional_keys(table, kind, where)
+        unknown = set(table) - set(keys) - set(_COLLIDER_OPTIONAL_KEYS)
         missing = set(keys) - set(table)
         if unknown or missing:
             raise SceneError(
-                f"{where}: [[{kind}]] needs exactly {', '.join(keys)}"
+                f"{where}: [[{kind}]] needs {', '.join(keys)} (optional: {', '.join(_COLLIDER_OPTIONAL_KEYS)})"
                 + (f" (unknown: {sorted(unknown)[0]!r})" if unknown else "")
                 + (f" (missing: {sorted(missing)[0]!r})" if missing else "")
             )
         values = {
             k: table[k] if k == "radius" else _vec3(table[k], f"{kind} {k}") for k in keys
         }
-        out.append(COLLIDER_KINDS[kind](**values))
+        out.append(COLLIDER_KINDS[kind](**values, **optional))
+    return tuple(out)
+
+
+def _optional_keys(table: dict, kind: str, where: str) -> dict:
+    """A collider's name and motion, checked."""
+    out = {}
+    if "name" in table:
+        if not isinstance(table["name"], str) or not table["name"]:
+            raise SceneError(f"{where}: [[{kind}]] name must be a non-empty string, got {table['name']!r}")
+        out["name"] = table["name"]
+    if "motion" in table:
+        out["motion"] = motion_from_toml(table["motion"], f"{where}: [[{kind}]]")
+    return out
+
+
+def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
+    """The [[mesh]] tables; a relative file is read from the scene file's folder."""
+    raw = data.get("mesh", [])
+    if not isinstance(raw, list):
+        raise SceneError(f"{where}: meshes are written [[mesh]] (an array of tables)")
+    out = []
+    for table in raw:
+        if not isinstance(table, dict):
+            raise SceneError(f"{where}: each [[mesh]] must be a table")
+        unknown = set(table) - _MESH_KEYS
+        if unknown:
+            raise SceneError(f"{where}: unknown key {sorted(unknown)[0]!r} in [[mesh]] (allowed: {', '.join(sorted(_MESH_KEYS))})")
+        values = _optional_keys(table, "mesh", where)
+        if "file" in table:
+            if not isinstance(table["file"], str):
+                raise SceneError(f"{where}: [[mesh]] file must be a path, got {table['file']!r}")
+            path = Path(table["file"])
+            values["file"] = str(path if path.is_absolute() or folder is None else folder / path)
+        if "shape" in table:
+            values["shape"] = table["shape"]
+        for k in ("position", "rotation"):
+            if k in table:
+                values[k] = _vec3(table[k], f"mesh {k}")
+        if "scale" in table:
+            scale = table["scale"]
+            values["scale"] = (float(scale),) * 3 if _finite(scale) else _vec3(scale, "mesh scale (one number or three)")
+        for k in ("subdivisions", "margin"):
+            if k in table:
+                values[k] = table[k]
+        out.append(Mesh(**values))
     return tuple(out)
 
 
@@ -376,7 +405,7 @@ class Setup:
         )
 
 
-def setup_from_dict(data: dict, where: str = "scene") -> Setup:
+def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None) -> Setup:
     unknown = set(data) - _TABLES
     if unknown:
         raise SceneError(
@@ -388,6 +417,8 @@ def setup_from_dict(data: dict, where: str = "scene") -> Setup:
     pins = _table(data, "pins", _PIN_KEYS, where)
     pbd = _table(data, "pbd", _PBD_KEYS, where)
     colliders = {kind: _colliders(data, kind, where) for kind in COLLIDER_KINDS}
+    meshes = _meshes(data, where, folder)
+    frames = frames_from_toml(data.get("frame", []), where)
     scene_kwargs = dict(cloth)
     if "gravity" in sim:
         scene_kwargs["gravity"] = _vec3(sim.pop("gravity"), "gravity")
@@ -409,6 +440,9 @@ def setup_from_dict(data: dict, where: str = "scene") -> Setup:
             pin_indices=tuple(indices),
             pin_corners=tuple(corners),
             pin_edge=pins.get("edge"),
+            **({"meshes": meshes} if meshes else {}),
+            **({"frames": frames} if frames else {}),
+            **({"pin_attach": pins["attach"]} if "attach" in pins else {}),
             **scene_kwargs,
         )
         pbd_settings = Pbd(**sim, **pbd)  # sim now holds dt and start only
@@ -432,8 +466,10 @@ def load_setup(name_or_path: str) -> Setup:
     """A built-in scene by name (`sphere`, `drape`, ...) or a TOML file by path: the model,
     its solver settings and run length."""
     path = Path(name_or_path)
+    folder = resources.files("clothbench") / "scenes"  # a built-in scene's meshes ship beside it
     if name_or_path.endswith(".toml") or path.exists():
         where = str(path)
+        folder = path.parent
         try:
             text = path.read_text(encoding="utf-8")
         except IsADirectoryError:
@@ -455,10 +491,10 @@ def load_setup(name_or_path: str) -> Setup:
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{where}: not valid TOML: {e}") from None
     data.setdefault("name", path.stem if where == str(path) else name_or_path)
-    return setup_from_dict(data, where)
+    return setup_from_dict(data, where, Path(str(folder)))
 
 
 __all__ = [
-    "Scene", "Setup", "Sphere", "Cylinder", "Plane", "OFFSETS",
+    "Scene", "Setup", "Sphere", "Cylinder", "Plane", "Mesh", "Frame", "Motion", "OFFSETS",
     "count_springs", "load_scene", "load_setup", "builtin_scenes",
 ]  # fmt: skip

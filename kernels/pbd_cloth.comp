@@ -9,8 +9,9 @@
 //   STAGE_PREDICT   x, v -> v, xs
 //   STAGE_JACOBI    X -> Y, per iteration one dispatch for the interior and one for the
 //                   border (PART); the host then swaps X and Y; or
-//   STAGE_COLOURED  one dispatch per batch of constraints sharing no particle, 12 per iteration
-//   STAGE_COLLIDE   xs in place (only when the scene has colliders)
+//   STAGE_COLOURED  one dispatch per batch of constraints sharing no particle, 12 per iteration,
+//   or STAGE_COLOURED_SWEEP: the 12 batches in one dispatch of one work-group (barriers)
+//   STAGE_COLLIDE   xs in place (only when the scene has colliders or meshes)
 //   STAGE_UPDATE    x, xs -> v, x
 //
 // The host prepends #version 430 and:
@@ -22,11 +23,19 @@
 //   STRICT       bit-exact with the numpy float32 reference: the documented operation order,
 //                every temporary `precise`, no dot/length/normalize. Without it (fast): dot()
 //                and one inversesqrt per constraint.
+//   CHEBYSHEV    the Jacobi stage extrapolates its iterate and multipliers from the ones
+//                before (docs/pbd.md, "Chebyshev"); the weight is the uniform omega
 //   N_VALUE, H_VALUE, GH_VALUE, AT_VALUE, REST_VALUE, DAMP_VALUE, RELAX_VALUE and the
 //                collider constants: exact float32 literals, rounded once from float64.
+//   MESH_*, MOTION, PIN_ATTACH  meshes (kernels/collide_mesh.glsl, in collide after the planes),
+//                moving colliders and pins attached to a body, as the Verlet kernels take them
+//                (gl/context.py body_defines, GLBodies): with MOTION the collider rows and pin
+//                targets are one block per substep, at its end (docs/pbd.md); attached pins
+//                take their target in the predict stage.
 // lambda: 12 per particle in the Jacobi form (lam[o * n2 + i]: each end of a constraint keeps
-// its own copy, and both compute the same value), one per constraint in the coloured form.
-// The first pass of a substep (uniform first_pass) reads lambda as 0 instead of clearing it.
+// its own copy, taking the share relax / cnt of its dlam that its position takes), one per
+// constraint in the coloured form. The first pass of a substep (uniform iteration = 0 in the
+// Jacobi stage, first_pass in the coloured) reads lambda as 0 instead of clearing it.
 
 #ifdef STRICT
 #define P precise
@@ -39,6 +48,7 @@
 #define STAGE_COLOURED 2
 #define STAGE_COLLIDE 3
 #define STAGE_UPDATE 4
+#define STAGE_COLOURED_SWEEP 5
 #define PART_ALL 0  // which particles a Jacobi dispatch covers: every one, with bounds tests,
 #define PART_INTERIOR 1  // the (n - 4)^2 with all 12 neighbours, without,
 #define PART_BORDER 2  // or the 8n - 16 others, with
@@ -72,12 +82,27 @@ int item()
            + int(gl_LocalInvocationID.x);
 }
 
+#ifdef MOTION
+// A scene that moves: this substep's collider rows, mesh poses and attached-pin targets,
+// MOTION_STRIDE vec4s per substep at the offsets of gl/context.py motion_offsets (the Verlet
+// kernels' layout), uploaded by the host in blocks before the dispatches that read them.
+layout(std430, binding = 6) readonly buffer MotionRows { vec4 motion_rows[]; };
+uniform int motion_step;  // this substep's place in the uploaded block
+#define MOTION_ROW(j) motion_rows[motion_step * MOTION_STRIDE + (j)]
+#endif
+
 #if STAGE == STAGE_PREDICT
 layout(std430, binding = 0) readonly buffer Pos { vec4 x[]; };
 layout(std430, binding = 1) buffer Vel { vec4 v[]; };
 layout(std430, binding = 2) writeonly buffer Pred { vec4 xs[]; };
 
-// v += g*h, xs = x + v*h; pinned particles stay and have no velocity
+#ifdef PIN_ATTACH
+// pins that follow a body: per particle its row among the pin targets, or -1
+layout(std430, binding = 10) readonly buffer PinSlots { int pin_slot[]; };
+#endif
+
+// v += g*h, xs = x + v*h; pinned particles stay and have no velocity, but a pin following a
+// body goes to its target at the end of the substep
 void main()
 {
     int i = item();
@@ -86,6 +111,11 @@ void main()
     vec4 p = x[i];
     if (p.w == 0.0) {
         v[i] = vec4(0.0);
+#ifdef PIN_ATTACH
+        int slot = pin_slot[i];
+        if (slot >= 0)
+            p = vec4(MOTION_ROW(MOTION_PINS + slot).xyz, p.w);
+#endif
         xs[i] = p;
         return;
     }
@@ -104,9 +134,19 @@ layout(rgba32f, binding = 0) readonly uniform imageBuffer X;
 layout(std430, binding = 0) readonly buffer From { vec4 X[]; };
 #define LOAD_X(i) X[i]
 #endif
+#ifdef CHEBYSHEV
+// Y holds the iterate before X until this pass writes the next one; lam_out likewise the
+// lambdas before lam (docs/pbd.md, "Chebyshev")
+layout(std430, binding = 1) buffer To { vec4 Y[]; };
+layout(std430, binding = 2) readonly buffer Lambda { float lam[]; };
+layout(std430, binding = 3) buffer LambdaOut { float lam_out[]; };
+uniform float omega;  // this pass's Chebyshev weight
+#else
 layout(std430, binding = 1) writeonly buffer To { vec4 Y[]; };   // next iterate
 layout(std430, binding = 2) buffer Lambda { float lam[]; };
-uniform int first_pass;
+#define lam_out lam
+#endif
+uniform int iteration;  // the pass's index in its substep
 
 // the 12-spring stencil (d_row, d_col) in the order docs/semantics.md fixes
 const ivec2 OFFSETS[12] = ivec2[12](
@@ -149,20 +189,24 @@ void main()
     vec4 xi = LOAD_X(i);
     float w = xi.w;
     P vec3 corr = vec3(0.0);
-    int cnt = 0;
+    int cnt = 0;  // constraints inside the grid
+    for (int o = 0; o < 12; ++o) {
+        ivec2 rj = rc + OFFSETS[o];
+        cnt += all(greaterThanEqual(rj, ivec2(0))) && all(lessThan(rj, ivec2(n))) ? 1 : 0;
+    }
+    P float scale = relax / float(cnt);  // the share of each correction, and of its dlam
     for (int o = 0; o < 12; ++o) {
         ivec2 rj = rc + OFFSETS[o];
 #if PART != PART_INTERIOR
         if (any(lessThan(rj, ivec2(0))) || any(greaterThanEqual(rj, ivec2(n))))
-            continue;  // outside the grid: not counted, nothing added
+            continue;  // outside the grid: nothing added
 #endif
-        cnt = cnt + 1;
         int kind = o >> 2;
         vec4 xj = LOAD_X(rj.x * n + rj.y);
         P vec3 d = xi.xyz - xj.xyz;
         P float L2 = dot3(d, d);
         P float denom = (w + xj.w) + at[kind];
-        float lam_o = first_pass != 0 ? 0.0 : lam[o * n2 + i];
+        float lam_o = iteration == 0 ? 0.0 : lam[o * n2 + i];
         P float dlam = 0.0;
         if (L2 > 0.0 && denom > 0.0) {  // coincident, or both pinned and rigid: no change
 #ifdef STRICT
@@ -176,53 +220,69 @@ void main()
 #endif
             corr = corr + d * s;
         }
-        P float lam_new = lam_o + dlam;
-        lam[o * n2 + i] = lam_new;
+        P float lam_new = lam_o + dlam * scale;
+#ifdef CHEBYSHEV
+        if (iteration > 0) {
+            float before = iteration == 1 ? 0.0 : lam_out[o * n2 + i];
+            P float e = omega * (lam_new - before) + before;
+            lam_new = e;
+        }
+#endif
+        lam_out[o * n2 + i] = lam_new;
     }
-    P float scale = relax / float(cnt);
     P vec3 y = xi.xyz + corr * scale;
+#ifdef CHEBYSHEV
+    if (iteration > 0) {
+        vec3 before = Y[i].xyz;
+        P vec3 e = omega * (y - before) + before;
+        y = e;
+    }
+#endif
     Y[i] = vec4(y, w);
 }
 
-#elif STAGE == STAGE_COLOURED
+#elif STAGE == STAGE_COLOURED || STAGE == STAGE_COLOURED_SWEEP
 // updated in place; with IMAGE_READS read through an imageBuffer view of the same buffer (an
-// invocation reads only the two particles it writes, and no other invocation touches them)
+// invocation reads only the two particles it writes, and no other invocation touches them).
+// The sweep reads the SSBO itself, coherent: a batch reads what the batch before it wrote.
 #ifdef IMAGE_READS
 layout(rgba32f, binding = 0) readonly uniform imageBuffer X_in;
 #define LOAD_X(i) imageLoad(X_in, i)
 #else
 #define LOAD_X(i) X[i]
 #endif
-layout(std430, binding = 0) buffer State { vec4 X[]; };
+#if STAGE == STAGE_COLOURED_SWEEP
+#define COHERENT coherent
+#else
+#define COHERENT
+#endif
+layout(std430, binding = 0) COHERENT buffer State { vec4 X[]; };
 layout(std430, binding = 1) readonly buffer Pairs { ivec2 ij[]; };  // every batch's (i, j)
 layout(std430, binding = 2) buffer Lambda { float lam[]; };       // one per constraint
-uniform int batch_offset, batch_count, batch_kind, first_pass;
+uniform int first_pass;
 
-// constraint k of this batch moves both its ends; no two constraints of a batch share one
-void main()
+// constraint c (of a batch of `kind`) moves both its ends; no two constraints of a batch
+// share one
+void project(int c, int kind, bool first)
 {
-    int k = item();
-    if (k >= batch_count)
-        return;
-    int c = batch_offset + k;
     ivec2 e = ij[c];
     vec4 xi = LOAD_X(e.x);
     vec4 xj = LOAD_X(e.y);
-    float at_c = at[batch_kind];
+    float at_c = at[kind];
     P vec3 d = xi.xyz - xj.xyz;
     P float L2 = dot3(d, d);
     P float denom = (xi.w + xj.w) + at_c;
-    float lam_c = first_pass != 0 ? 0.0 : lam[c];
+    float lam_c = first ? 0.0 : lam[c];
     P float dlam = 0.0;
     if (L2 > 0.0 && denom > 0.0) {
 #ifdef STRICT
         P float L = sqrt(L2);
-        dlam = ((-(L - rest[batch_kind])) - at_c * lam_c) / denom;
+        dlam = ((-(L - rest[kind])) - at_c * lam_c) / denom;
         P vec3 yi = xi.xyz + d * ((xi.w * dlam) / L);
         P vec3 yj = xj.xyz - d * ((xj.w * dlam) / L);
 #else
         float inv_L = inversesqrt(L2);
-        dlam = (rest[batch_kind] - L2 * inv_L - at_c * lam_c) / denom;
+        dlam = (rest[kind] - L2 * inv_L - at_c * lam_c) / denom;
         float s = dlam * inv_L;
         vec3 yi = xi.xyz + d * (xi.w * s);
         vec3 yj = xj.xyz - d * (xj.w * s);
@@ -234,11 +294,40 @@ void main()
     lam[c] = lam_new;
 }
 
+#if STAGE == STAGE_COLOURED
+uniform int batch_offset, batch_count, batch_kind;
+
+// one batch: constraint k of it per invocation
+void main()
+{
+    int k = item();
+    if (k >= batch_count)
+        return;
+    project(batch_offset + k, batch_kind, first_pass != 0);
+}
+#else
+const int batch_start[13] = BATCH_OFFSETS_VALUE;  // where each batch starts, and the end
+
+// all 12 batches of one iteration in one dispatch of one work-group, a barrier between
+// batches (valid within a work-group): the invocations stride over each batch
+void main()
+{
+    int first_item = int(gl_LocalInvocationID.x);
+    for (int b = 0; b < 12; ++b) {  // batches 0-3 structural, 4-7 shear, 8-11 bend
+        for (int c = batch_start[b] + first_item; c < batch_start[b + 1]; c += LOCAL_SIZE)
+            project(c, b >> 2, first_pass != 0);
+        memoryBarrierBuffer();
+        barrier();
+    }
+}
+#endif
+
 #elif STAGE == STAGE_COLLIDE
 layout(std430, binding = 0) buffer Pred { vec4 xs[]; };
 
 // `vec3 collide(vec3 x)`: the scene's colliders in the fixed order (spheres, cylinders,
-// planes), from kernels/collide_KIND.glsl (the host puts them here)
+// planes, meshes), from kernels/collide_KIND.glsl and collide_mesh.glsl (the host puts them
+// here; with MOTION they read this substep's rows)
 #include <colliders>
 
 // collisions as position projections, free particles only

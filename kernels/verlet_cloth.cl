@@ -8,7 +8,8 @@
  *   generic (-DCLOTH_GENERIC): kernel verlet_cloth. The listing as written: float4 positions
  *       (w = inverse mass), one work item per particle, every neighbour bounds-checked. One
  *       program serves every scene: the grid side, the constants and every collider kind
- *       with its count come in as kernel arguments. `--generic`.
+ *       with its count come in as kernel arguments (meshes and motion, where the scene has
+ *       them, as the -D options below). `--generic`.
  *   specialised (the default): built for one scene's shape: SoA planes, V particles per
  *       work item as explicit vectors, grid side and collider counts as -D constants, and
  *       the code of a collider kind compiled in only when the scene has one. Three ways to
@@ -38,6 +39,18 @@
  *                           code, and a kind the scene lacks is not compiled at all.
  *       CLOTH_VECTOR_WIDTH  particles per work item (1 for the border kernel).
  *       CLOTH_PAD           floats before and after the planes in each state buffer.
+ *   Meshes, motion and attached pins (docs/semantics.md), either build, each only where the
+ *       scene has it (the host sets them; a scene without them compiles none of it):
+ *       CLOTH_MESHES        triangle meshes: their code is kernels/collide_mesh.cl, in the
+ *                           source only then (`#include <mesh_colliders>`); CLOTH_MESH_BVH
+ *                           picks the accelerated search (the host's BVH) over the naive loop.
+ *       CLOTH_PER_STEP      a collider moves or the pins follow a body: the collider table
+ *                           holds one table per step of the launch (poses evaluated on the
+ *                           host in float64, rounded once) and the kernel takes the index
+ *                           `step` of its first step in it.
+ *       CLOTH_ATTACHED_PINS, CLOTH_PINS
+ *                           pins following a body: pin_slot (per particle, -1 for none)
+ *                           indexes pin_target, CLOTH_PINS float3 targets per step.
  *   -DCLOTH_NORMALS (either build): also write each particle's normal (docs/normals.md) of
  *       the state the step read, x(t), to one more buffer, normal_out; without it the
  *       kernels neither compute nor take it.
@@ -50,7 +63,8 @@
  *
  * The collider table (one __constant float4 array, rows rounded once from float64): spheres
  * (centre, radius); then cylinders, three rows each: (start, length), (unit axis, radius),
- * (radial_r, 0); then planes, two rows each: (point, 0), (unit normal, 0). The generic build
+ * (radial_r, 0); then planes, two rows each: (point, 0), (unit normal, 0); then meshes, MESH_ROWS
+ * each (collide_mesh.cl has them). The generic build
  * takes its colliders from collide.cl (included by the host, as pbd_cloth.cl does); the
  * specialised build has its own vectorised ones below, the same operations lane by lane.
  */
@@ -67,6 +81,37 @@ __constant int2 OFFSETS[12] = {
     (int2)(-1, -1), (int2)(-1, 1), (int2)(1, -1), (int2)(1, 1),
     (int2)(-2, -2), (int2)(-2, 2), (int2)(2, -2), (int2)(2, 2),
 };
+
+/* The extra arguments of a scene with meshes, motion or attached pins: BODY_ARG in a kernel's
+ * parameters (after the normals), BODY_PARAMS and BODY_PASS through the helpers. */
+#ifndef CLOTH_MESHES
+#define CLOTH_MESHES 0
+#endif
+#define MESH_ROWS 6 /* collider-table rows per mesh: pose, margins, box (collide_mesh.cl) */
+#if CLOTH_MESHES > 0
+#define MESH_ARG , __global const float4 *mesh_geometry, __global const int *mesh_ints
+#define MESH_PASS , mesh_geometry, mesh_ints
+#else
+#define MESH_ARG
+#define MESH_PASS
+#endif
+#ifdef CLOTH_ATTACHED_PINS
+#define PIN_ARG , __global const int *pin_slot, __global const float *pin_target
+#define PIN_PASS , pin_slot, pin_target
+#define PIN_STEP_TARGETS(first) (pin_target += 3 * CLOTH_PINS * (first)) /* this step's */
+#else
+#define PIN_ARG
+#define PIN_PASS
+#define PIN_STEP_TARGETS(first)
+#endif
+#ifdef CLOTH_PER_STEP
+#define STEP_ARG , const int step
+#else
+#define STEP_ARG
+#endif
+#define BODY_ARG STEP_ARG MESH_ARG PIN_ARG
+#define BODY_PARAMS MESH_ARG PIN_ARG
+#define BODY_PASS MESH_PASS PIN_PASS
 
 #ifdef CLOTH_NORMALS
 /* docs/normals.md: the six triangles around a particle (each grid quad split along its
@@ -100,6 +145,8 @@ float dot3(float3 a, float3 b)
 
 /* The colliders and collide(x, colliders, counts...), shared with pbd_cloth.cl. */
 #include "collide.cl"
+/* The meshes: collide_meshes(x, rows, geometry, ints), only where the scene has them. */
+#include <mesh_colliders>
 
 #ifdef CLOTH_NORMALS
 /* v / |v|, or 0 for a zero vector (a degenerate triangle has no direction) */
@@ -135,12 +182,17 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
                            const int n, const float k, const float b, const float dt,
                            const float dt2, const float4 g, const float4 rest,
                            __constant float4 *colliders, const int num_spheres,
-                           const int num_cylinders, const int num_planes NORMALS_ARG)
+                           const int num_cylinders, const int num_planes NORMALS_ARG BODY_ARG)
 {
     int i = get_global_id(0);
     if (i >= n * n)
         return; /* the launch is padded when the work-group size does not divide n*n */
     int row = i / n, col = i % n;
+    int analytic_rows = num_spheres + 3 * num_cylinders + 2 * num_planes;
+#ifdef CLOTH_PER_STEP
+    colliders += step * (analytic_rows + MESH_ROWS * CLOTH_MESHES); /* this step's poses */
+    PIN_STEP_TARGETS(step);
+#endif
 
     float3 x = pos[i].xyz;       /* 1. */
     float3 xp = pos_prev[i].xyz; /* 2. */
@@ -162,7 +214,17 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
     if (w != 0.0f) {
         float3 acc = g.xyz + force * w;           /* (m*g + force) / m */
         x_new = (2.0f * x - xp) + acc * dt2;      /* 6. */
+    }
+#ifdef CLOTH_ATTACHED_PINS
+    int slot = pin_slot[i]; /* a pin following a body goes to its target */
+    if (slot >= 0)
+        x_new = (float3)(pin_target[3 * slot], pin_target[3 * slot + 1], pin_target[3 * slot + 2]);
+#endif
+    if (w != 0.0f) {
         x_new = collide(x_new, colliders, num_spheres, num_cylinders, num_planes);
+#if CLOTH_MESHES > 0
+        x_new = collide_meshes(x_new, colliders + analytic_rows, mesh_geometry, mesh_ints); /* after the planes */
+#endif
     }
     pos_out[i] = (float4)(x_new, w); /* 7. */
     pos_prev_out[i] = (float4)(x, w); /* 8. */
@@ -357,6 +419,41 @@ INLINE void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *collid
 #endif
 }
 
+#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 2 * CLOTH_PLANES)
+#define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a step's collider table */
+
+#if CLOTH_MESHES > 0
+/* (a.x*b.x + a.y*b.y) + a.z*b.z, for collide_mesh.cl: not dot(), whose order is the driver's */
+INLINE float dot3(float3 a, float3 b)
+{
+    return (a.x * b.x + a.y * b.y) + a.z * b.z;
+}
+#endif
+/* The meshes: collide_meshes_v(x, y, z, w, rows, geometry, ints), only where the scene has them. */
+#include <mesh_colliders>
+
+#ifdef CLOTH_ATTACHED_PINS
+/* The lanes that are pins following a body take their targets (the others keep x). */
+INLINE void pin_targets_v(int i, __global const int *pin_slot, __global const float *pin_target,
+                          floatv *x, floatv *y, floatv *z)
+{
+#if V == 1
+    int slot = pin_slot[i];
+    if (slot >= 0)
+        *x = pin_target[3 * slot], *y = pin_target[3 * slot + 1], *z = pin_target[3 * slot + 2];
+#else
+    float lx[V], ly[V], lz[V];
+    *(floatv_u *)lx = *x, *(floatv_u *)ly = *y, *(floatv_u *)lz = *z;
+    for (int l = 0; l < V; ++l) {
+        int slot = pin_slot[i + l];
+        if (slot >= 0)
+            lx[l] = pin_target[3 * slot], ly[l] = pin_target[3 * slot + 1], lz[l] = pin_target[3 * slot + 2];
+    }
+    *x = *(floatv_u *)lx, *y = *(floatv_u *)ly, *z = *(floatv_u *)lz;
+#endif
+}
+#endif
+
 /* Store lanes first_lane .. V-1 of v at p[j..]: all of them, except in the last vector of
  * an interior row, whose first lanes the vector before it has written already. */
 INLINE void store_lanes(floatv v, __global float *p, int j, int first_lane)
@@ -419,7 +516,7 @@ INLINE void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z,
                      floatv zp, floatv fx, floatv fy, floatv fz, floatv springs,
                      __global const float *inv_mass, __global float *pos_out,
                      __global float *pos_prev_out, __constant float4 *colliders, float b,
-                     float dt, float dt2, float4 g)
+                     float dt, float dt2, float4 g BODY_PARAMS)
 {
     floatv w = LOADV(inv_mass, i);
 #ifdef CLOTH_STRICT
@@ -434,11 +531,19 @@ INLINE void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z,
     floatv ny = (2.0f * y - yp) + (g.y + (fy - b_dt * (y - yp)) * w) * dt2;
     floatv nz = (2.0f * z - zp) + (g.z + (fz - b_dt * (z - zp)) * w) * dt2;
 #endif
-    collide_v(&nx, &ny, &nz, colliders);
     intv pinned = w == 0.0f; /* never integrated nor collided */
-    store_lanes(SELECT(nx, x, pinned), pos_out, i, first_lane);
-    store_lanes(SELECT(ny, y, pinned), pos_out, N2 + i, first_lane);
-    store_lanes(SELECT(nz, z, pinned), pos_out, 2 * N2 + i, first_lane);
+    nx = SELECT(nx, x, pinned), ny = SELECT(ny, y, pinned), nz = SELECT(nz, z, pinned);
+#ifdef CLOTH_ATTACHED_PINS
+    pin_targets_v(i, pin_slot, pin_target, &nx, &ny, &nz); /* before the colliders, as NumPy */
+#endif
+    floatv cx = nx, cy = ny, cz = nz;
+    collide_v(&cx, &cy, &cz, colliders);
+#if CLOTH_MESHES > 0
+    collide_meshes_v(&cx, &cy, &cz, w, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints);
+#endif
+    store_lanes(SELECT(cx, nx, pinned), pos_out, i, first_lane);
+    store_lanes(SELECT(cy, ny, pinned), pos_out, N2 + i, first_lane);
+    store_lanes(SELECT(cz, nz, pinned), pos_out, 2 * N2 + i, first_lane);
     store_lanes(x, pos_prev_out, i, first_lane);
     store_lanes(y, pos_prev_out, N2 + i, first_lane);
     store_lanes(z, pos_prev_out, 2 * N2 + i, first_lane);
@@ -490,11 +595,15 @@ __kernel void verlet_cloth_interior(__global const float *pos, __global const fl
                                     __global const float *inv_mass, __global float *pos_out,
                                     __global float *pos_prev_out, const float k, const float b,
                                     const float dt, const float dt2, const float4 g,
-                                    const float4 rest, __constant float4 *colliders NORMALS_ARG)
+                                    const float4 rest, __constant float4 *colliders NORMALS_ARG BODY_ARG)
 {
     int item = get_global_id(0);
     if (item >= INTERIOR_ITEMS)
         return; /* the launch is padded when the work-group size does not divide it */
+#ifdef CLOTH_PER_STEP
+    colliders += step * TABLE_ROWS; /* this step's poses */
+    PIN_STEP_TARGETS(step);
+#endif
     pos += PAD, pos_prev += PAD, pos_out += PAD, pos_prev_out += PAD;
     int row = 2 + item / VECTORS_PER_ROW, vector = item % VECTORS_PER_ROW;
     int last = vector == VECTORS_PER_ROW - 1;
@@ -505,7 +614,7 @@ __kernel void verlet_cloth_interior(__global const float *pos, __global const fl
     floatv fx = 0.0f, fy = 0.0f, fz = 0.0f;
     springs_inside(x, y, z, pos, i, k, rest, bx, by, bz, &fx, &fy, &fz);
     integrate_store(i, last ? LAST_FIRST_LANE : 0, x, y, z, xp, yp, zp, fx, fy, fz,
-                    (floatv)(12.0f), inv_mass, pos_out, pos_prev_out, colliders, b, dt, dt2, g);
+                    (floatv)(12.0f), inv_mass, pos_out, pos_prev_out, colliders, b, dt, dt2, g BODY_PASS);
 #ifdef CLOTH_NORMALS
     floatv sx = 0.0f, sy = 0.0f, sz = 0.0f;
     faces_inside(x, y, z, pos, i, &sx, &sy, &sz);
@@ -522,11 +631,15 @@ __kernel void verlet_cloth_border(__global const float *pos, __global const floa
                                   __global float *pos_prev_out, const float k, const float b,
                                   const float dt, const float dt2, const float4 g,
                                   const float4 rest, __constant float4 *colliders,
-                                  __global const int *particles, const int count NORMALS_ARG)
+                                  __global const int *particles, const int count NORMALS_ARG BODY_ARG)
 {
     int item = get_global_id(0);
     if (item >= count)
         return;
+#ifdef CLOTH_PER_STEP
+    colliders += step * TABLE_ROWS; /* this step's poses */
+    PIN_STEP_TARGETS(step);
+#endif
     pos += PAD, pos_prev += PAD, pos_out += PAD, pos_prev_out += PAD;
     int i = particles[item];
     int row = i / N, col = i % N;
@@ -544,7 +657,7 @@ __kernel void verlet_cloth_border(__global const float *pos, __global const floa
         springs += 1.0f;
     }
     integrate_store(i, 0, x, y, z, xp, yp, zp, fx, fy, fz, springs, inv_mass, pos_out,
-                    pos_prev_out, colliders, b, dt, dt2, g);
+                    pos_prev_out, colliders, b, dt, dt2, g BODY_PASS);
 #ifdef CLOTH_NORMALS
     float sx = 0.0f, sy = 0.0f, sz = 0.0f;
     for (int e = 0; e < 6; ++e) {
@@ -631,7 +744,7 @@ INLINE void face_add_masked(floatv x, floatv y, floatv z, __global const float *
 INLINE void rows_item(int item, __global const float *pos, __global const float *pos_prev,
                __global const float *inv_mass, __global float *pos_out,
                __global float *pos_prev_out, float k, float b, float dt, float dt2, float4 g,
-               float4 rest, __constant float4 *colliders NORMALS_ARG)
+               float4 rest, __constant float4 *colliders NORMALS_ARG BODY_PARAMS)
 {
     int row = item / ROW_VECTORS, vector = item % ROW_VECTORS;
     int last = vector == ROW_VECTORS - 1;
@@ -662,7 +775,7 @@ INLINE void rows_item(int item, __global const float *pos, __global const float 
         }
     }
     integrate_store(i, first_lane, x, y, z, xp, yp, zp, fx, fy, fz, springs, inv_mass, pos_out,
-                    pos_prev_out, colliders, b, dt, dt2, g);
+                    pos_prev_out, colliders, b, dt, dt2, g BODY_PASS);
 #ifdef CLOTH_NORMALS
     floatv sx = 0.0f, sy = 0.0f, sz = 0.0f;
     if (inside) {
@@ -693,13 +806,17 @@ __kernel void verlet_cloth_rows(__global const float *pos, __global const float 
                                 __global const float *inv_mass, __global float *pos_out,
                                 __global float *pos_prev_out, const float k, const float b,
                                 const float dt, const float dt2, const float4 g,
-                                const float4 rest, __constant float4 *colliders NORMALS_ARG)
+                                const float4 rest, __constant float4 *colliders NORMALS_ARG BODY_ARG)
 {
     int item = get_global_id(0);
     if (item >= ROWS_ITEMS)
         return; /* the launch is padded when the work-group size does not divide it */
+#ifdef CLOTH_PER_STEP
+    colliders += step * TABLE_ROWS; /* this step's poses */
+    PIN_STEP_TARGETS(step);
+#endif
     rows_item(item, pos + PAD, pos_prev + PAD, inv_mass, pos_out + PAD, pos_prev_out + PAD, k, b,
-              dt, dt2, g, rest, colliders NORMALS_PASS);
+              dt, dt2, g, rest, colliders NORMALS_PASS BODY_PASS);
 }
 
 /* `steps` steps from (pos, pos_prev); the result is in (pos_out, pos_prev_out) after an odd
@@ -709,15 +826,23 @@ __kernel void verlet_cloth_steps(__global float *pos, __global float *pos_prev,
                                  __global float *pos_prev_out, const float k, const float b,
                                  const float dt, const float dt2, const float4 g,
                                  const float4 rest, __constant float4 *colliders,
-                                 const int steps NORMALS_ARG)
+                                 const int steps NORMALS_ARG BODY_ARG)
 {
     int first = get_local_id(0), stride = get_local_size(0);
     __global float *in = pos + PAD, *in_prev = pos_prev + PAD;
     __global float *out = pos_out + PAD, *out_prev = pos_prev_out + PAD;
+#ifdef CLOTH_PER_STEP
+    colliders += step * TABLE_ROWS; /* the launch's first step's poses; one table per step */
+    PIN_STEP_TARGETS(step);
+#endif
     for (int s = 0; s < steps; ++s) {
         for (int item = first; item < ROWS_ITEMS; item += stride)
             rows_item(item, in, in_prev, inv_mass, out, out_prev, k, b, dt, dt2, g, rest,
-                      colliders NORMALS_PASS);
+                      colliders NORMALS_PASS BODY_PASS);
+#ifdef CLOTH_PER_STEP
+        colliders += TABLE_ROWS; /* the next step's */
+        PIN_STEP_TARGETS(1);
+#endif
         barrier(CLK_GLOBAL_MEM_FENCE); /* the next step reads what every work item wrote */
         __global float *t = in, *t_prev = in_prev;
         in = out, in_prev = out_prev, out = t, out_prev = t_prev;

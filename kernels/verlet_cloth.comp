@@ -90,6 +90,9 @@ void main()
     if (rc.x < 0)
         return;
     int i = rc.x * n + rc.y;
+#ifdef MOTION
+    motion_base = motion_step * MOTION_STRIDE;  // this step's rows (verlet_cloth_step.glsl)
+#endif
     vec4 self = LOAD(pos_in, i);
     vec3 x = self.xyz;                // step 1
     vec3 xp = LOAD(prev_in, i).xyz;  // step 2

@@ -28,6 +28,13 @@
  *                  code of a collider kind the scene lacks is not compiled at all.
  *   CLOTH_NORMALS  also write the normal of x(t) to a fifth buffer; without it there is no
  *                  normal code and no normal buffer.
+ *   CLOTH_MESH_COUNT (specialised) / CLOTH_MESHES (generic)   the scene has triangle meshes:
+ *                  collide_mesh.cuh, with two buffers uploaded once (docs/cuda.md, "Meshes");
+ *                  CLOTH_MESH_BVH picks the accelerated search. Without it there is no mesh code.
+ *   CLOTH_MOTION   the scene has moving colliders or pins attached to a body: every collider's
+ *                  rows, each mesh's pose and the attached pins' targets come from a per-step
+ *                  table (`motion`, the rows of one step after another) instead of constants.
+ *                  Without it there is no motion code.
  */
 
 // A neighbour's offset in the grid: (row, column), as docs/semantics.md writes it.
@@ -39,6 +46,19 @@ struct Offset {
 #define HAS_SPHERES 1
 #define HAS_CYLINDERS 1
 #define HAS_PLANES 1
+#ifdef CLOTH_MESHES
+#define HAS_MESHES 1
+#define MESH_COUNT mesh_count
+#else
+#define HAS_MESHES 0
+#define MESH_COUNT 0
+#endif
+#ifdef CLOTH_MOTION
+#define HAS_PIN_TARGETS 1  // pin_slot is an argument; -1 everywhere where no pin is attached
+#endif
+#define SPHERE_COUNT sphere_count
+#define CYLINDER_COUNT cylinder_count
+#define PLANE_COUNT plane_count
 #elif !defined(CLOTH_N)
 #error "build with -DCLOTH_GENERIC, or with the scene's -D values (clothbench.backends.cuda.verlet.kernel_defines)"
 #else
@@ -55,16 +75,59 @@ constexpr float rest_structural = CLOTH_REST_STRUCTURAL, rest_shear = CLOTH_REST
 // the colliders, in the row layout the generic kernel takes as arguments (see verlet_step)
 #if HAS_SPHERES
 constexpr int sphere_count = CLOTH_SPHERE_COUNT;
-static __device__ const float4 spheres[sphere_count] = CLOTH_SPHERES;
 #endif
 #if HAS_CYLINDERS
 constexpr int cylinder_count = CLOTH_CYLINDER_COUNT;
-static __device__ const float4 cylinders[3 * cylinder_count] = CLOTH_CYLINDERS;
 #endif
 #if HAS_PLANES
 constexpr int plane_count = CLOTH_PLANE_COUNT;
+#endif
+#ifndef CLOTH_MOTION  // a moving scene reads every collider's rows from the step's table
+#if HAS_SPHERES
+static __device__ const float4 spheres[sphere_count] = CLOTH_SPHERES;
+#endif
+#if HAS_CYLINDERS
+static __device__ const float4 cylinders[3 * cylinder_count] = CLOTH_CYLINDERS;
+#endif
+#if HAS_PLANES
 static __device__ const float4 planes[2 * plane_count] = CLOTH_PLANES;
 #endif
+#endif
+#ifdef CLOTH_MESH_COUNT
+#define HAS_MESHES 1
+constexpr int mesh_count = CLOTH_MESH_COUNT;
+#define MESH_COUNT CLOTH_MESH_COUNT
+#else
+#define HAS_MESHES 0
+#define MESH_COUNT 0
+#endif
+#ifdef CLOTH_MOTION
+constexpr int motion_rows = CLOTH_MOTION_ROWS;  // rows of the table per step
+#define HAS_PIN_TARGETS (CLOTH_PIN_COUNT > 0)
+#endif
+#define SPHERE_COUNT CLOTH_SPHERE_COUNT
+#define CYLINDER_COUNT CLOTH_CYLINDER_COUNT
+#define PLANE_COUNT CLOTH_PLANE_COUNT
+#endif
+#ifndef HAS_PIN_TARGETS
+#define HAS_PIN_TARGETS 0  // no motion: pinned particles stay where they are
+#endif
+
+// Where a step finds its colliders' rows: the fixed ones, or its part of the per-step table,
+// `step_rows` (docs/semantics.md, "Moving colliders"): the rows of every sphere, cylinder and
+// plane in the fixed layout, then three rows (R row i, T_i) per mesh, then one row per
+// attached pin (its target), in that order.
+#ifdef CLOTH_MOTION
+#define SPHERE_ROWS (step_rows)
+#define CYLINDER_ROWS (step_rows + SPHERE_COUNT)
+#define PLANE_ROWS (step_rows + SPHERE_COUNT + 3 * CYLINDER_COUNT)
+#define MESH_POSE(m) (step_rows + SPHERE_COUNT + 3 * CYLINDER_COUNT + 2 * PLANE_COUNT + 3 * (m))
+#define PIN_TARGETS (step_rows + SPHERE_COUNT + 3 * CYLINDER_COUNT + 2 * PLANE_COUNT + 3 * MESH_COUNT)
+#else
+#define SPHERE_ROWS spheres
+#define CYLINDER_ROWS cylinders
+#define PLANE_ROWS planes
+#define MESH_POSE(m) (mesh_rows + MESH_HEADER_ROWS * (m) + 2)  // the fixed pose, in the header
 #endif
 
 __device__ __forceinline__ bool inside_grid(int r, int c, int n)
@@ -179,6 +242,10 @@ struct SharedPositions {
     __device__ __forceinline__ float3 operator()(int j) const { return make_float3(x[j], y[j], z[j]); }
 };
 
+#if HAS_MESHES
+#include "collide_mesh.cuh"
+#endif
+
 #ifdef CLOTH_NORMALS
 // docs/normals.md: v / |v|, or 0 for a zero vector (a degenerate triangle has no direction)
 __device__ __forceinline__ float3 unit_or_zero(float3 v)
@@ -221,27 +288,71 @@ __device__ __forceinline__ float3 normal_at(Positions pos, int row, int col, int
 // The scene's values: kernel parameters of the generic build (the same names as the
 // specialised build's constants above, so the code below reads the same in both).
 #ifdef CLOTH_GENERIC
+#ifdef CLOTH_MOTION  // the collider rows are in the step's table: only their counts
+#define COLLIDER_PARAMS int sphere_count, int cylinder_count, int plane_count
+#define COLLIDER_ARGS sphere_count, cylinder_count, plane_count
+#else
+#define COLLIDER_PARAMS                                                                     \
+    const float4* __restrict__ spheres, int sphere_count,     /* (centre, radius) */        \
+    const float4* __restrict__ cylinders, int cylinder_count, /* 3 rows, collide_cylinder */ \
+    const float4* __restrict__ planes, int plane_count        /* 2 rows, collide_plane */
+#define COLLIDER_ARGS spheres, sphere_count, cylinders, cylinder_count, planes, plane_count
+#endif
 #define SCENE_PARAMS                                                                        \
     , int n,                              /* particles per side */                          \
     float dt, float dt2,                  /* dt2 = dt*dt rounded once on the host */        \
     float k, float b,                     /* spring stiffness and damping */                \
     float gx, float gy, float gz,         /* gravity, an acceleration (not scaled by 1/m) */ \
     float rest_structural, float rest_shear, float rest_bend, /* |(dr, dc)| * h */          \
-    const float4* __restrict__ spheres, int sphere_count,     /* (centre, radius) */        \
-    const float4* __restrict__ cylinders, int cylinder_count, /* 3 rows, collide_cylinder */ \
-    const float4* __restrict__ planes, int plane_count        /* 2 rows, collide_plane */
-#define SCENE_ARGS , n, dt, dt2, k, b, gx, gy, gz, rest_structural, rest_shear, rest_bend, \
-    spheres, sphere_count, cylinders, cylinder_count, planes, plane_count
+    COLLIDER_PARAMS
+#define SCENE_ARGS , n, dt, dt2, k, b, gx, gy, gz, rest_structural, rest_shear, rest_bend, COLLIDER_ARGS
 #else
 #define SCENE_PARAMS
 #define SCENE_ARGS
+#endif
+
+// The meshes' two buffers (collide_mesh.cuh), in both builds; generic: and their count.
+#if HAS_MESHES && defined(CLOTH_GENERIC)
+#define MESH_PARAMS , const float4* __restrict__ mesh_rows, const int* __restrict__ mesh_ints, int mesh_count
+#define MESH_ARGS , mesh_rows, mesh_ints, mesh_count
+#elif HAS_MESHES
+#define MESH_PARAMS , const float4* __restrict__ mesh_rows, const int* __restrict__ mesh_ints
+#define MESH_ARGS , mesh_rows, mesh_ints
+#else
+#define MESH_PARAMS
+#define MESH_ARGS
+#endif
+
+// Motion: a launch takes the table of its steps (`motion`, motion_rows rows a step) and, with
+// attached pins, each particle's row among the pin targets (pin_slot, -1: not attached); a
+// step reads its own rows (`step_rows`). Generic: motion_rows is an argument.
+#if HAS_PIN_TARGETS
+#define PIN_PARAMS , const int* __restrict__ pin_slot
+#define PIN_ARGS , pin_slot
+#else
+#define PIN_PARAMS
+#define PIN_ARGS
+#endif
+#if defined(CLOTH_MOTION) && defined(CLOTH_GENERIC)
+#define MOTION_PARAMS , const float4* __restrict__ motion, int motion_rows PIN_PARAMS
+#elif defined(CLOTH_MOTION)
+#define MOTION_PARAMS , const float4* __restrict__ motion PIN_PARAMS
+#else
+#define MOTION_PARAMS
+#endif
+#ifdef CLOTH_MOTION
+#define STEP_ROWS_PARAMS , const float4* __restrict__ step_rows PIN_PARAMS
+#define STEP_ROWS_ARGS(step) , motion + (step) * motion_rows PIN_ARGS
+#else
+#define STEP_ROWS_PARAMS
+#define STEP_ROWS_ARGS(step)
 #endif
 
 // Steps 1-6 of docs/semantics.md for the particle at (row, col), at x(t) = x with x(t - dt) =
 // xp and inverse mass w, its neighbours' x(t) read through pos: x(t + dt).
 template <class Positions>
 __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int col, float3 x,
-                                                  float3 xp, float w SCENE_PARAMS)
+                                                  float3 xp, float w SCENE_PARAMS MESH_PARAMS STEP_ROWS_PARAMS)
 {
     // steps 1-3: the lagged velocity, its damping term
     const float3 vel = make_float3((x.x - xp.x) / dt, (x.y - xp.y) / dt, (x.z - xp.z) / dt);
@@ -272,24 +383,38 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
         force.z += s * d.z - bv.z;
     }
 
-    // step 6: position Verlet, then collisions; pinned particles (w = 0) do not move
+    // step 6: position Verlet, then collisions; pinned particles (w = 0) do not move, or
+    // follow their body: the step's pin target
+#if HAS_PIN_TARGETS
+    if (w == 0.0f) {
+        const int slot = pin_slot[row * n + col];
+        if (slot < 0) return x;
+        const float4 target = PIN_TARGETS[slot];
+        return make_float3(target.x, target.y, target.z);
+    }
+#else
     if (w == 0.0f) return x;
+#endif
     const float3 acc = make_float3(force.x * w + gx, force.y * w + gy, force.z * w + gz);
     float3 x_new = make_float3((2.0f * x.x - xp.x) + acc.x * dt2,
                                (2.0f * x.y - xp.y) + acc.y * dt2,
                                (2.0f * x.z - xp.z) + acc.z * dt2);
-    // every collider in the fixed order: all spheres, all cylinders, all planes
+    // every collider in the fixed order: all spheres, all cylinders, all planes, all meshes
 #if HAS_SPHERES
     for (int s = 0; s < sphere_count; ++s)
-        x_new = collide_sphere(x_new, spheres[s]);
+        x_new = collide_sphere(x_new, SPHERE_ROWS[s]);
 #endif
 #if HAS_CYLINDERS
     for (int c = 0; c < cylinder_count; ++c)
-        x_new = collide_cylinder(x_new, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
+        x_new = collide_cylinder(x_new, CYLINDER_ROWS[3 * c], CYLINDER_ROWS[3 * c + 1], CYLINDER_ROWS[3 * c + 2]);
 #endif
 #if HAS_PLANES
     for (int f = 0; f < plane_count; ++f)
-        x_new = collide_plane(x_new, planes[2 * f], planes[2 * f + 1]);
+        x_new = collide_plane(x_new, PLANE_ROWS[2 * f], PLANE_ROWS[2 * f + 1]);
+#endif
+#if HAS_MESHES
+    for (int m = 0; m < mesh_count; ++m)
+        x_new = collide_mesh(x_new, mesh_rows, mesh_ints, m, MESH_POSE(m));
 #endif
     return x_new;
 }
@@ -302,7 +427,7 @@ extern "C" __global__ void verlet_step(
 #ifdef CLOTH_NORMALS
     , float4* __restrict__ normal_out     // the normal of x(t), w = 0 (docs/normals.md)
 #endif
-    SCENE_PARAMS)
+    SCENE_PARAMS MESH_PARAMS MOTION_PARAMS)
 {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= n * n) return;
@@ -312,7 +437,7 @@ extern "C" __global__ void verlet_step(
     const float4 q = pos_prev[i];
     const float3 x = make_float3(p.x, p.y, p.z);
     const float3 x_new = verlet_particle(GlobalPositions{pos}, row, col, x, make_float3(q.x, q.y, q.z),
-                                         p.w SCENE_ARGS);
+                                         p.w SCENE_ARGS MESH_ARGS STEP_ROWS_ARGS(0));
     // steps 7-8: the new position, and the current one as the next step's previous
     pos_out[i] = make_float4(x_new.x, x_new.y, x_new.z, p.w);
     pos_prev_out[i] = p;
@@ -347,7 +472,7 @@ extern "C" __global__ void __launch_bounds__(MULTISTEP_MAX_THREADS) verlet_steps
     , float4* __restrict__ normal_out     // the normal of pos_prev_out, w = 0
 #endif
     , int steps                           // steps in this launch, >= 1
-    SCENE_PARAMS)
+    SCENE_PARAMS MESH_PARAMS MOTION_PARAMS)  // motion: the rows of `steps` steps
 {
     const int count = n * n;
     float* cur_x = cloth_shared;
@@ -367,7 +492,7 @@ extern "C" __global__ void __launch_bounds__(MULTISTEP_MAX_THREADS) verlet_steps
         for (int i = threadIdx.x; i < count; i += blockDim.x) {
             const float3 x_new = verlet_particle(now, i / n, i % n, now(i),
                                                  make_float3(old_x[i], old_y[i], old_z[i]),
-                                                 pos[i].w SCENE_ARGS);
+                                                 pos[i].w SCENE_ARGS MESH_ARGS STEP_ROWS_ARGS(s));
             old_x[i] = x_new.x, old_y[i] = x_new.y, old_z[i] = x_new.z;  // was x(t - dt)
         }
         __syncthreads();  // every x(t + dt) written before any is read as a neighbour

@@ -38,6 +38,9 @@ void main()
     // (A branch that skips the bounds tests for interior particles, as the compute shader
     // does, made llvmpipe's fragment shader slower, not faster: measured.)
     ivec2 rc = ivec2(gl_FragCoord.yx);  // (row, col)
+#ifdef MOTION
+    motion_base = motion_step * MOTION_STRIDE;  // this step's rows (verlet_cloth_step.glsl)
+#endif
     vec4 self = LOAD(pos_tex, rc);
     vec3 x = self.xyz;                // step 1
     vec3 xp = LOAD(prev_tex, rc).xyz;  // step 2

@@ -74,10 +74,27 @@ vec3 spring(vec3 x, vec3 xj, vec3 bv, float rest_o)
     return f;
 }
 
+#ifdef MOTION
+// A scene that moves (docs/semantics.md, "Moving colliders"): this step's collider rows, mesh
+// poses and attached-pin targets, MOTION_STRIDE vec4s per step at the offsets MOTION_CYLINDERS,
+// MOTION_PLANES, MOTION_MESHES, MOTION_PINS (clothbench/backends/gl/context.py,
+// motion_offsets), evaluated on the host in float64 and rounded once. The host uploads the
+// rows of a block of steps before dispatching them; the kernel sets motion_base per step.
+layout(std430, binding = 6) readonly buffer MotionRows { vec4 motion_rows[]; };
+uniform int motion_step;  // the (first) step's place in the uploaded block
+int motion_base = 0;
+#define MOTION_ROW(j) motion_rows[motion_base + (j)]
+#endif
+#ifdef PIN_ATTACH
+// pins that follow a body: per particle its row among the pin targets, or -1
+layout(std430, binding = 10) readonly buffer PinSlots { int pin_slot[]; };
+#endif
+
 // Collisions (section 22.3): `vec3 collide(vec3 x)`, every collider in the fixed order
-// (spheres, cylinders, planes). The host puts here the file of each collider kind the
-// program handles (kernels/collide_sphere.glsl, collide_cylinder.glsl, collide_plane.glsl:
-// only the kinds the scene has, or all three with GENERIC) and collide() calling them.
+// (spheres, cylinders, planes, then meshes). The host puts here the file of each collider
+// kind the program handles (kernels/collide_sphere.glsl, collide_cylinder.glsl,
+// collide_plane.glsl: only the kinds the scene has, or all three with GENERIC; and
+// collide_mesh.glsl only where the scene has meshes) and collide() calling them.
 #include <colliders>
 
 // One step for the particle at rc (Listing 22.1 steps 3-6); returns x(t + dt).
@@ -104,8 +121,14 @@ vec3 verlet(ivec2 rc, vec3 x, vec3 xp, float w)
     }
 
     // step 6: Verlet with acceleration g + force * w; pinned particles (w = 0) stay put
-    if (w == 0.0)
+    if (w == 0.0) {
+#ifdef PIN_ATTACH
+        int slot = pin_slot[rc.x * n + rc.y];
+        if (slot >= 0)
+            return MOTION_ROW(MOTION_PINS + slot).xyz;  // or follow their body: the host's target
+#endif
         return x;
+    }
     P vec3 acc = g + force * w;
     P vec3 x_new = (2.0 * x - xp) + acc * dt2;
     return collide(x_new);

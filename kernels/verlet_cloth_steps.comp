@@ -10,6 +10,7 @@
 // half and writes the other, then barrier() makes the writes visible before the next step
 // reads them (one barrier per step: the half a step writes was last read before the
 // previous barrier). `steps` (a uniform) steps run; the host dispatches K at most at a time.
+// A scene that moves reads step s's rows at motion_step + s of the block the host uploaded.
 // Input: the (pos, prev) pair at bindings 0-1; output: the pair after the last step at
 // bindings 2-3 (and, with NORMALS, the normals of the state the last step read at 4).
 //
@@ -77,6 +78,9 @@ void main()
     }
     SYNC();
     for (int s = 0; s < steps; ++s) {
+#ifdef MOTION
+        motion_base = (motion_step + s) * MOTION_STRIDE;  // this step's rows (verlet_cloth_step.glsl)
+#endif
         vec3 x_new[PPI];
         for (int j = 0; j < PPI; ++j) {
             int t = first + j * LOCAL_SIZE;

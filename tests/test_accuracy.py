@@ -29,8 +29,11 @@ from clothbench.solver import Pbd
 from conftest import VERLET, setup
 
 F64 = Variant("numpy", BackendOptions(precision="f64"), VERLET, "f64")
-PBD_F32 = Variant("numpy", BackendOptions(precision="f32"), Pbd(method="jacobi"), "f32")
-PBD_F64 = Variant("numpy", BackendOptions(precision="f64"), Pbd(method="coloured"), "f64")
+# ten passes in one substep: the setting these checks were measured with (not the default)
+PBD_F32 = Variant("numpy", BackendOptions(precision="f32"), Pbd(method="jacobi", iterations=10, substeps=1), "f32")
+PBD_F64 = Variant("numpy", BackendOptions(precision="f64"), Pbd(method="coloured", iterations=10, substeps=1), "f64")
+# how the default PBD's iterations and substeps appear in labels: '1itx10'
+DEFAULT_IT = f"{Pbd().iterations}it" + (f"x{Pbd().substeps}" if Pbd().substeps > 1 else "")
 
 
 @pytest.mark.parametrize("order", [1.0, 2.0, 4.0])
@@ -181,7 +184,7 @@ def test_pbd_variants_come_from_each_backends_pbd_class():
     }
     assert pbd[0].solver.name == "pbd" and variants[0].solver.name == "verlet"
     f32 = [v for v in variants if v.options.precision == "f32"]
-    assert f32[1].name == "numpy f32/pbd-jacobi/10it"
+    assert f32[1].name == "numpy f32/pbd-jacobi/10it" + (f"x{Pbd().substeps}" if Pbd().substeps > 1 else "")
     assert f32[0].name == "numpy f32"  # Verlet labels are as before
 
 
@@ -260,17 +263,17 @@ def test_accuracy_cli_puts_both_solvers_in_one_csv_and_states_the_model_differen
     assert {r["solver"] for r in rows} == {"verlet", "pbd"}
     pbd = [r for r in rows if r["solver"] == "pbd"]
     assert len(pbd) == 2 * 2 and {r["pbd_method"] for r in pbd} == {"jacobi"}
-    assert {r["iterations"] for r in pbd} == {"10"}
+    assert {r["iterations"] for r in pbd} == {str(Pbd().iterations)}
     assert {float(r["dt"]) for r in pbd} == {0.004, 0.002}
-    assert all(r["ref_model"].startswith("pbd-jacobi/10it") for r in pbd)
+    assert all(r["ref_model"].startswith(f"pbd-jacobi/{DEFAULT_IT}") for r in pbd)
     assert all(r["ref_model"] == "verlet" and r["pbd_method"] == "" for r in rows if r["solver"] == "verlet")
     # PBD's error is against its own converged model, and also written against Verlet's
     assert all(float(r["disc_rms"]) > 0 and float(r["vs_verlet_rms"]) > 0 for r in pbd)
     assert len({r["label"] for r in rows}) == 4  # numpy f32, f64 and their two PBD lines
     line = next(t for t in text.splitlines() if t.startswith("converged models differ"))
-    assert "verlet vs pbd-jacobi/10it" in line
+    assert f"verlet vs pbd-jacobi/{DEFAULT_IT}" in line
     assert math.isfinite(float(line.split("RMS ")[1].split(" m")[0]))
-    assert "fitted convergence order: numpy f64/pbd-jacobi/10it: 1.0" in text  # first order, as Verlet's rest start
+    assert f"fitted convergence order: numpy f64/pbd-jacobi/{DEFAULT_IT}: 1.0" in text  # first order, as Verlet's rest start
     assert (tmp_path / "both-speed.png").read_bytes()[:4] == b"\x89PNG"
 
 

@@ -254,7 +254,7 @@ def test_backend_compiles_the_kernel_the_way_it_loads_it(using):
     # would split at without escaping.
     pytest.importorskip("cupy", reason="cupy not installed (pip install 'clothbench[cuda]')")
     if using == "nvrtc" and not cuda._nvrtc_available():
-        pytest.skip("libnvrtc not loadable (pip install nvidia-cuda-nvrtc-cu12)")
+        pytest.skip("libnvrtc not loadable (pip install 'clothbench[cuda]', or [cuda13] for CuPy's CUDA 13 build)")
     if using == "nvcc" and not cuda._nvcc_available():
         pytest.skip("nvcc not found by cupy")
     specialised = cuda.kernel_defines(every_kind(), VERLET, normals=True)
@@ -747,7 +747,29 @@ def test_cuda_backend_reports_event_times_per_chunk(cuda_on_cpu):
         assert backend.read_normals() is None  # not asked for
         result = run_timed(backend, 20, chunk=5)
     assert result.mode == "fast/swap/ls=64/block=64"
+    assert result.device_timer == "cuda-events"
     assert len(result.device_ms_per_step) == 4 and all(t > 0 for t in result.device_ms_per_step)
+    # the events are recorded inside advance(), so each chunk's event time lies within its
+    # wall time (the stand-in's events read perf_counter, as the harness does)
+    assert all(d <= w for d, w in zip(result.device_ms_per_step, result.chunk_ms_per_step))
+
+
+def test_a_cuda_sweep_row_carries_its_event_time(cuda_on_cpu):
+    from clothbench.harness.sweep import measure_row, plan_sweep
+
+    backend, _ = cuda_on_cpu(sphere(16))  # installs the stand-in cupy for the sweep's own backend
+    backend.close()
+    availability.cache_clear()  # the registry probes the stand-in, not this machine's cupy
+    try:
+        plan = plan_sweep(["cuda"], [16], [VERLET])
+        rows = [measure_row(r, setup("sphere", 16), steps=4, repeats=3) for r in plan.rows if r.backend == "cuda"]
+    finally:
+        availability.cache_clear()
+    assert len(rows) == 3, [r["mode"] for r in rows]  # strict, fast, fast with the chapter's copy
+    for row in rows:
+        assert row["status"] == "ok", row["note"]
+        assert row["device_timer"] == "cuda-events" and float(row["device_ms_median"]) > 0
+        assert float(row["device_ms_median"]) <= float(row["ms_max"])
 
 
 def test_cuda_backend_generic_mode_says_so(cuda_on_cpu):
@@ -788,6 +810,9 @@ def test_cuda_timing_reports_positive_times():
         result = run_timed(b, 40, chunk=10)
     assert len(result.chunk_ms_per_step) == 4 and all(t > 0 for t in result.chunk_ms_per_step)
     assert len(result.device_ms_per_step) == 4 and all(t > 0 for t in result.device_ms_per_step)
+    # the events lie between the harness's two synchronised clock reads (1 us of rounding)
+    assert result.device_timer == "cuda-events"
+    assert all(d <= w + 1e-3 for d, w in zip(result.device_ms_per_step, result.chunk_ms_per_step))
 
 
 @pytest.mark.parametrize("build", BUILDS)
@@ -829,11 +854,117 @@ def test_probe_reason_is_one_of_the_documented_ones():
     if a.usable:
         pytest.skip(f"a CUDA device is present: {a.device}")
     assert (
-        a.reason == "cupy not installed (pip install 'clothbench[cuda]')"
-        or (a.reason.startswith("no CUDA device (cupy: ") and a.reason.endswith(")"))
-        or a.reason.startswith("no CUDA compiler (")
+        a.reason == cuda.INSTALL_HINT
+        or (a.reason.startswith("no CUDA device (cupy") and " runtime: " in a.reason and a.reason.endswith(")"))
+        or a.reason.startswith("no CUDA compiler for cupy")
+        or a.reason.startswith("cupy failed to import: ")
     ), a.reason
     assert "\n" not in a.reason
+
+
+def fake_cupy(runtime: int, driver: int, devices: int | Exception, nvcc: str | None = None) -> types.ModuleType:
+    """A cupy module that answers what probe() asks: its CUDA runtime and the driver's versions
+    (CUDA's encoding, 13020 = 13.2), the device count (or the error getDeviceCount raises),
+    one device's name, and nvcc's path."""
+
+    def count():
+        if isinstance(devices, Exception):
+            raise devices
+        return devices
+
+    cp = types.ModuleType("cupy")
+    cp.__version__ = "14.2.0"
+    rt = types.SimpleNamespace(
+        runtimeGetVersion=lambda: runtime, driverGetVersion=lambda: driver, getDeviceCount=count,
+        getDeviceProperties=lambda index: {"name": b"NVIDIA H200"},
+    )  # fmt: skip
+    cp.cuda = types.SimpleNamespace(runtime=rt, get_nvcc_path=lambda: nvcc)
+    return cp
+
+
+@pytest.fixture
+def cupy_of(monkeypatch):
+    """install(package, cupy module): `import cupy` gives that module, installed as `package`."""
+
+    def install(package: str, module: types.ModuleType) -> None:
+        monkeypatch.setitem(sys.modules, "cupy", module)
+        monkeypatch.setitem(sys.modules, "cupy.cuda", module.cuda)
+        monkeypatch.setattr(cuda, "_installed", lambda name: module.__version__ if name == package else None)
+
+    return install
+
+
+NO_DRIVER = RuntimeError("cudaErrorInsufficientDriver: CUDA driver version is insufficient for CUDA runtime version")
+
+
+@pytest.mark.parametrize(
+    "package, runtime, extra",
+    [("cupy-cuda12x", 12090, "cuda"), ("cupy-cuda13x", 13020, "cuda13")],
+)
+def test_probe_names_the_cupy_build_and_its_cuda_major(cupy_of, monkeypatch, package, runtime, extra):
+    major = runtime // 1000
+    cupy_of(package, fake_cupy(runtime, driver=0, devices=NO_DRIVER))
+    assert cuda.probe().reason == (
+        f"no CUDA device ({package} 14.2.0, CUDA {major}.{runtime % 1000 // 10} runtime: cudaErrorInsufficientDriver)"
+    )
+    # a device, but neither NVRTC nor nvcc: the extra of CuPy's own CUDA major installs NVRTC
+    cupy_of(package, fake_cupy(runtime, driver=13000, devices=1))
+    monkeypatch.setattr(cuda, "compiler", lambda: None)
+    reason = cuda.probe().reason
+    assert reason.startswith(f"no CUDA compiler for {package} 14.2.0, CUDA {major}.")
+    assert f"pip install 'clothbench[{extra}]' for NVRTC, or put nvcc on PATH" in reason
+
+
+def test_probe_says_when_the_driver_is_older_than_cupys_cuda(cupy_of):
+    # cupy-cuda13x on a CUDA 12 driver: the fix is the CUDA 12 wheel, not a new device
+    cupy_of("cupy-cuda13x", fake_cupy(13020, driver=12040, devices=NO_DRIVER))
+    assert cuda.probe().reason == (
+        "no CUDA device (cupy-cuda13x 14.2.0, CUDA 13.2 runtime: cudaErrorInsufficientDriver; the NVIDIA driver "
+        "supports CUDA 12.4: use cupy-cuda12x (pip install 'clothbench[cuda]'))"
+    )
+
+
+@pytest.mark.parametrize("release", ["12.9", "13.0"])
+def test_a_usable_probe_names_the_compiler_it_found(cupy_of, monkeypatch, tmp_path, release):
+    # nvcc of either major, found where CuPy looks: its release is read from `nvcc --version`
+    nvcc = tmp_path / "nvcc"
+    nvcc.write_text(f"#!/bin/sh\necho 'Cuda compilation tools, release {release}, V{release}.1'\n")
+    nvcc.chmod(0o755)
+    cupy_of("cupy-cuda13x", fake_cupy(13020, driver=13000, devices=1, nvcc=str(nvcc)))
+    monkeypatch.setattr(cuda, "compiler", lambda: "nvcc")
+    a = cuda.probe()
+    assert a.usable and a.device == "NVIDIA H200"
+    assert a.reason == f"cupy-cuda13x 14.2.0, CUDA 13.2 runtime, nvcc {release} ({nvcc})"
+
+
+def test_nvrtc_refuses_a_device_older_than_its_cuda_in_one_line(monkeypatch):
+    # CUDA 13's NVRTC compiles sm_75 and newer: an sm_70 device is told to use CUDA 12's
+    nvrtc = types.SimpleNamespace(getSupportedArchs=lambda: (75, 80, 90), getVersion=lambda: (13, 0))
+    libs = types.ModuleType("cupy_backends.cuda.libs")
+    libs.nvrtc = nvrtc
+    for name, module in [("cupy_backends", types.ModuleType("cupy_backends")),
+                         ("cupy_backends.cuda", types.ModuleType("cupy_backends.cuda")),
+                         ("cupy_backends.cuda.libs", libs), ("cupy_backends.cuda.libs.nvrtc", nvrtc)]:  # fmt: skip
+        monkeypatch.setitem(sys.modules, name, module)
+    with pytest.raises(ClothbenchError) as e:
+        cuda.compile_kernel(True, "70", "nvrtc", "cubin", ("-DCLOTH_GENERIC",))
+    assert str(e.value) == (
+        "NVRTC 13.0 compiles for sm_75 and newer, not this sm_70 device: use a CuPy and NVRTC of an older CUDA "
+        "(pip install 'clothbench[cuda]' for CUDA 12)"
+    )
+
+
+def test_each_cuda_major_has_the_extra_the_messages_name():
+    import tomllib
+
+    extras = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"
+    ]
+    for major, extra in cuda.EXTRAS.items():
+        assert any(r.startswith(f"cupy-cuda{major}x") for r in extras[extra]), (extra, extras[extra])
+        assert any(r.startswith("nvidia-cuda-nvrtc") for r in extras[extra]), (extra, extras[extra])
+    assert f"'clothbench[{cuda.EXTRAS[12]}]' for CUDA 12" in cuda.INSTALL_HINT
+    assert f"'clothbench[{cuda.EXTRAS[13]}]' for CUDA 13" in cuda.INSTALL_HINT
 
 
 def test_cli_run_without_a_device_exits_2_with_one_line():
@@ -859,11 +990,10 @@ def test_without_cupy_the_module_imports_and_says_how_to_install():
         "sys.exit(main(['run', '--backend', 'cuda']))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    hint = "cupy not installed (pip install 'clothbench[cuda]' for CUDA 12, 'clothbench[cuda13]' for CUDA 13)"
     assert done.returncode == 2, done.stderr
-    assert done.stdout.strip() == "cupy not installed (pip install 'clothbench[cuda]')"
-    assert done.stderr.strip() == (
-        "clothbench: error: cuda unavailable: cupy not installed (pip install 'clothbench[cuda]')"
-    )
+    assert done.stdout.strip() == hint
+    assert done.stderr.strip() == f"clothbench: error: cuda unavailable: {hint}"
 
 
 def test_backends_lists_cuda_with_its_reason(capsys):

@@ -17,7 +17,8 @@ MAX_LINES = 500
 # bottom; backends (clothbench's and the peers) run one step; the harness times and checks
 # them; analysis measures with the harness; reports draw what was measured; the CLI drives all.
 LAYERS = {
-    "scene": 0, "solver": 0, "errors": 0, "environment": 0, "constraints": 0, "kernel_source": 0, "native": 0,
+    "scene": 0, "colliders": 0, "solver": 0, "errors": 0, "environment": 0, "constraints": 0, "kernel_source": 0,
+    "native": 0,
     "backends": 1, "peers": 1,
     "harness": 2,
     "analysis": 3,

@@ -96,10 +96,12 @@ def test_gauss_seidel_converges_faster_than_jacobi():
 
 
 def test_free_fall_without_constraints_matches_symplectic_euler():
-    # no damping, compliance so large the constraints do nothing: x_S = x0 + g h^2 S(S+1)/2
+    # no damping, compliance so large the constraints do nothing: after S substeps of
+    # h = dt / substeps, x_S = x0 + g h^2 S(S+1)/2
     s, solver, steps = Scene(grid=4, damping=0.0), Pbd(compliance=(1e30, 1e30, 1e30)), 50
     pos, _ = simulate("numpy", s, solver, steps, BackendOptions(precision="f64"))
-    closed = s.height + s.gravity[1] * solver.dt**2 * steps * (steps + 1) / 2
+    h, substeps = solver.dt / solver.substeps, steps * solver.substeps
+    closed = s.height + s.gravity[1] * h**2 * substeps * (substeps + 1) / 2
     assert np.abs(pos[:, 1] - closed).max() < 1e-12
 
 
@@ -127,3 +129,44 @@ def _create_unusual(run):
         if entry.pbd is None and availability(name).usable:
             return create_backend(name, run.scene, run.solver)
     pytest.skip("every usable backend has a pbd solver")
+
+
+def test_chebyshev_jacobi_at_rho_095_and_10_iterations_stays_bounded():
+    # docs/pbd.md: at 10 iterations rho = 0.99 blows up within 300 steps at 60 Hz (curtain
+    # and drape, 24^2 and 64^2: steps 35-75), 0.95 does not; run_timed raises BlowUp
+    run = curtain_pbd("jacobi", 10, grid=24, steps=300)
+    with create_backend("numpy", run.scene, run.solver.replace(chebyshev_rho=0.95), F32) as b:
+        result = run_timed(b, run.steps)
+    assert max_penetration(result.pos, run.scene) < 1e-5
+
+
+@pytest.mark.parametrize("rho", [1.0, -0.1, "0.9", True, float("nan")])
+def test_chebyshev_rho_outside_0_to_1_is_refused_in_one_line(rho):
+    from clothbench.errors import SceneError
+    from clothbench.scene import setup_from_dict
+
+    with pytest.raises(SceneError) as err:
+        setup_from_dict({"sim": {"solver": "pbd"}, "pbd": {"chebyshev_rho": rho}})
+    message = str(err.value)
+    assert "\n" not in message and "chebyshev_rho must be in [0, 1)" in message, message
+
+
+def test_cli_refuses_a_bad_chebyshev_rho_in_one_line_and_exit_2(tmp_path, capsys):
+    from clothbench.cli import main
+
+    scene = tmp_path / "bad.toml"
+    scene.write_text('[sim]\nsolver = "pbd"\n[pbd]\nchebyshev_rho = 1.5\n')
+    assert main(["run", "--backend", "numpy", "--scene", str(scene), "--steps", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "chebyshev_rho must be in [0, 1)" in err and "Traceback" not in err, err
+
+
+def test_chebyshev_weights_follow_wang_2015():
+    # omega_1 = 1, omega_2 = 2 / (2 - rho^2), omega_k+1 = 4 / (4 - rho^2 omega_k): falling from
+    # omega_2 to 2 / (1 + sqrt(1 - rho^2)), the optimal over-relaxation for spectral radius rho
+    rho = 0.9
+    omega = Pbd(iterations=60, chebyshev_rho=rho).chebyshev_omega()
+    assert omega[0] == 1 and omega[1] == pytest.approx(2 / (2 - rho**2))
+    assert all(a >= b for a, b in zip(omega[1:], omega[2:])) and omega[1] > omega[-1]
+    assert omega[-1] == pytest.approx(2 / (1 + (1 - rho**2) ** 0.5), rel=1e-9)
+    assert Pbd(iterations=5).chebyshev_omega() == (1.0,) * 5

@@ -95,19 +95,25 @@ def test_the_collider_scene_touches_every_collider_kind(method):
     assert (touched > 0).all(), f"particles on sphere, cylinder, plane: {touched.tolist()}"
 
 
-@pytest.mark.parametrize("n", [3, 5, 9, 21, 37])
+@pytest.mark.parametrize("n", [3, 5, 9, 21, 24, 37, 64])
 def test_opencl_jacobi_split_covers_every_particle_once(n):
-    # the interior goes in vectors of V = 4, 8 or 16 particles of a row, the rest (border,
-    # and interior columns no whole vector covers) from an index list: any particle missed
-    # or done twice would change bits
+    # the interior goes in vectors of V = 4, 8 or 16 particles of a row, the last of a row
+    # overlapping the one before and storing only the lanes it leaves (as pbd_cloth.cl
+    # places them), the rest from an index list: any particle missed or done twice would
+    # change bits (a lane stored twice would add its dlam to lambda twice)
     require("opencl")
     scene, solver = curtain("jacobi", grid=n)
     with create_backend("opencl", scene, solver, STRICT) as b:
-        covered = np.zeros(n * n, int)
-        covered[b.border_particles] += 1
-        per_row = b.interior_vectors // max(n - 4, 1)
-        covered.reshape(n, n)[2 : n - 2, 2 : 2 + b.vector_width * per_row] += 1
+        covered = np.zeros((n, n), int)
+        covered.reshape(-1)[b.border_particles] += 1
+        v, per_row = b.vector_width, b.interior_vectors // max(n - 4, 1)
+        for k in range(per_row):
+            last = k == per_row - 1
+            c0, first_lane = (n - 2 - v, v * per_row - (n - 4)) if last else (2 + v * k, 0)
+            covered[2 : n - 2, c0 + first_lane : c0 + v] += 1
         assert (covered == 1).all()
+        if n - 4 >= v:  # the scalar list is only the 2-wide ring
+            assert len(b.border_particles) == 8 * n - 16
     assert_bit_exact(
         simulate("opencl", scene, solver, 30, STRICT)[0], simulate("numpy", scene, solver, 30, F32)[0], f"n={n}"
     )
@@ -126,6 +132,24 @@ def test_glsl_compute_ssbo_reads_are_exact_too(method, monkeypatch):
         assert not b.image_reads
     assert_bit_exact(
         simulate("glsl-compute", scene, solver, 60, STRICT)[0], simulate("numpy", scene, solver, 60, F32)[0], method
+    )
+
+
+@pytest.mark.parametrize("grid", [4, 13])
+def test_glsl_compute_coloured_sweep_in_one_dispatch_is_exact_too(grid, monkeypatch):
+    # off by default (slower on llvmpipe, docs/pbd.md); where it runs, the 12 batches in one
+    # work-group with barriers must give the per-batch dispatches' bits. n = 4: empty batches
+    require("glsl-compute")
+    from clothbench.backends.gl import compute_pbd
+
+    monkeypatch.setattr(compute_pbd, "COLOURED_SWEEP_MAX_PARTICLES", grid * grid)
+    scene, solver = three_colliders("coloured", grid=grid)
+    with create_backend("glsl-compute", scene, solver, STRICT) as b:
+        assert b.coloured_sweep and b.mode.endswith("/coloured-sweep"), b.mode
+        b.upload(*b.initial_state())
+        assert list(b.profile_stages(1)) == expected_stages(scene, solver, nonempty=True)
+    assert_bit_exact(
+        simulate("glsl-compute", scene, solver, 60, STRICT)[0], simulate("numpy", scene, solver, 60, F32)[0], f"n={grid}"
     )
 
 
@@ -212,11 +236,13 @@ def test_fast_pbd_error_is_of_the_order_of_numpy_f32s_own(backend, scene_name, m
 # --- profiling, modes, options ---------------------------------------------------------------
 
 
-def expected_stages(scene: Scene, solver: Pbd) -> list[str]:
+def expected_stages(scene: Scene, solver: Pbd, nonempty: bool = False) -> list[str]:
+    """The profile's stages; `nonempty`: only the batches a small grid has constraints in
+    (GL launches no empty batch)."""
     if solver.method == "jacobi":
         project = ["project (jacobi)"]
     else:
-        batches = coloured_batches(scene.grid)
+        batches = [b for b in coloured_batches(scene.grid) if len(b.i) or not nonempty]
         project = [f"batch ({b.direction[0]},{b.direction[1]:+d}) parity {b.parity}" for b in batches]
     return ["predict", *project, *(["collide"] if scene.colliders else []), "update"]
 
@@ -250,15 +276,44 @@ def test_profile_has_no_collide_stage_without_colliders(backend):
         assert list(b.profile_stages(2)) == ["predict", "project (jacobi)", "update"]
 
 
-@pytest.mark.parametrize("backend, default_size", [("opencl", "auto"), ("glsl-compute", "64")])
-def test_modes_name_solver_method_arithmetic_and_work_group(backend, default_size):
+@pytest.mark.parametrize("backend, default_size, shape", [("opencl", "auto", "/per-stage"), ("glsl-compute", "64", "")])
+def test_modes_name_solver_method_arithmetic_work_group_and_shape(backend, default_size, shape):
+    # the test suite runs with tuning off: OpenCL takes its first shape, per-stage
     require(backend)
     with create_backend(backend, *curtain("jacobi", grid=8), STRICT) as b:
-        assert b.mode == f"strict/pbd-jacobi/ls={default_size}"
+        assert b.mode == f"strict/pbd-jacobi/ls={default_size}{shape}"
         assert b.capabilities.local_size
         assert b.capabilities.sweep_variants == ({"strict": True}, {"strict": False})
     with create_backend(backend, *curtain("coloured", grid=8), BackendOptions(local_size=32)) as b:
-        assert b.mode == "fast/pbd-coloured/ls=32"
+        assert b.mode == f"fast/pbd-coloured/ls=32{shape}"
+
+
+def test_opencl_one_launch_mode_names_its_work_group_and_large_grids_do_not_offer_it():
+    require("opencl")
+    from clothbench.backends.opencl import pbd as opencl_pbd
+
+    with create_backend("opencl", *curtain("jacobi", grid=8), BackendOptions(shape="one-launch")) as b:
+        assert b.mode.endswith("/one-launch") and "/ls=" in b.mode, b.mode
+        assert b.one_launch
+    side = int(opencl_pbd.ONE_LAUNCH_MAX_PARTICLES**0.5) + 1
+    scene, _ = curtain("jacobi", grid=side)
+    assert opencl_pbd.OpenCLPbdBackend.kernel_shapes(scene, FAST) == ("per-stage",)
+
+
+@pytest.mark.parametrize("grid", [4, STRICT_GRID])
+@pytest.mark.parametrize("backend", GPU)
+def test_strict_chebyshev_jacobi_matches_numpy_bit_for_bit(backend, grid):
+    # the extrapolation y = omega (y - before) + before, of the iterate and of every lambda,
+    # in the reference's order; OpenCL in both of its shapes. n = 4: the border code only
+    require(backend)
+    scene, solver = curtain("jacobi", grid=grid)
+    solver = solver.replace(chebyshev_rho=0.99)
+    ref = simulate("numpy", scene, solver, 60, F32)
+    shapes = ("per-stage", "one-launch") if backend == "opencl" else (None,)
+    for shape in shapes:
+        got = simulate(backend, scene, solver, 60, BackendOptions(strict=True, shape=shape))
+        for a, r, what in zip(got, ref, ("pos", "prev")):
+            assert_bit_exact(a, r, f"{backend} {shape} n={grid} {what}")
 
 
 @pytest.mark.parametrize(

@@ -21,7 +21,7 @@ from clothbench.backends.base import Availability, Backend, BackendOptions, Capa
 @dataclass(frozen=True)
 class BackendEntry:
     name: str
-    verlet: str  # "module:Class" of its Verlet backend; the module's probe() says if it runs
+    verlet: str | None  # "module:Class" of its Verlet backend (None: PBD only); the module's probe() says if it runs
     pbd: str | None = None  # "module:Class" of its PBD backend, if it has one
     peer: bool = False  # a system users would pick instead of clothbench (not ours)
     summary: str = ""
@@ -46,6 +46,14 @@ BACKENDS: dict[str, BackendEntry] = {
         BackendEntry("taichi", "clothbench.peers.taichi:TaichiBackend", peer=True, summary="Taichi (peer)"),
         BackendEntry("warp", "clothbench.peers.warp:WarpBackend", peer=True, summary="NVIDIA Warp (peer)"),
         BackendEntry("numba", "clothbench.peers.numba:NumbaBackend", peer=True, summary="Numba (peer)"),
+        BackendEntry("newton", None, "clothbench.peers.newton:NewtonPbdBackend", peer=True,
+                     summary="NVIDIA Newton XPBD (peer, pbd only)"),
+        BackendEntry("torch", "clothbench.peers.torch:TorchBackend", peer=True, summary="PyTorch tensors (peer)"),
+        BackendEntry("jax", "clothbench.peers.jax:JaxBackend", peer=True, summary="JAX jit (peer)"),
+        BackendEntry("cupy", "clothbench.peers.cupy_numpy:CupyNumpyBackend", peer=True,
+                     summary="the NumPy step on CuPy arrays (peer)"),
+        BackendEntry("numba-cuda", "clothbench.peers.numba_cuda:NumbaCudaBackend", peer=True,
+                     summary="numba-cuda @cuda.jit kernel (peer)"),
     )
 }  # fmt: skip
 
@@ -64,7 +72,8 @@ def _load(target: str):
 @lru_cache(maxsize=None)
 def availability(name: str) -> Availability:
     """Can `name` run on this machine? Never raises for a known backend."""
-    target = check_name(name).verlet
+    entry = check_name(name)
+    target = entry.verlet or entry.pbd  # a PBD-only peer is probed through its PBD module
     try:
         return importlib.import_module(target.partition(":")[0]).probe()
     except Exception as e:  # a probe must not take the whole CLI down

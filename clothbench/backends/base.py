@@ -22,6 +22,9 @@ from clothbench.scene import Scene
 from clothbench.solver import Solver
 
 GL_PROVIDERS = ("egl", "osmesa")
+# how a kernel finds a particle's closest mesh triangle (docs/semantics.md, "Triangle mesh"):
+# every triangle in index order, or a host-built BVH traversed in the kernel; same bits
+MESH_COLLISIONS = ("naive", "accelerated")
 
 
 @dataclass(frozen=True)
@@ -38,6 +41,7 @@ class BackendOptions:
     generic: bool = False  # one kernel for every scene instead of a specialised one
     shape: str | None = None  # kernel shape by name (backends/tuning.py); None = the tuned one
     retune: bool = False  # measure the kernel shapes again instead of reading the cached choice
+    mesh_collision: str | None = None  # naive|accelerated (MESH_COLLISIONS); None = the backend's first
 
     @property
     def dtype(self):
@@ -57,6 +61,14 @@ class Capabilities:
     device: bool = False  # options.device selects among several devices
     gl: bool = False  # options.gl selects the GL context provider
     shapes: bool = False  # has kernel shapes chosen by measurement (options.shape, options.retune)
+    # scene features beyond fixed analytic colliders (docs/semantics.md), as the solvers
+    # (names) for which the backend takes them: triangle meshes, and motion (moving colliders,
+    # pins attached to a body); a scene that needs one is refused in one line where absent.
+    # By solver because one Capabilities may serve a backend's Verlet and PBD classes alike.
+    meshes: tuple[str, ...] = ()
+    moving_colliders: tuple[str, ...] = ()
+    # the mesh algorithms (MESH_COLLISIONS) it implements, the first its default
+    mesh_collisions: tuple[str, ...] = ()
     # option overrides a sweep measures by default, one CSV row each
     sweep_variants: tuple[dict, ...] = ({},)
 
@@ -88,6 +100,19 @@ class Capabilities:
             return no("--gl", options.gl, "no GL context")
         if options.shape is not None and not self.shapes:
             return no("--shape", options.shape, "one kernel shape")
+        if options.mesh_collision is not None and options.mesh_collision not in self.mesh_collisions:
+            return no("--mesh-collision", options.mesh_collision, ", ".join(self.mesh_collisions) or "no mesh colliders")
+        return None
+
+    def scene_refusal(self, backend: str, scene: Scene, solver: str = "verlet") -> str | None:
+        """Why `backend` cannot simulate `scene` with `solver` (a collider kind or motion it
+        lacks), or None."""
+        who = backend if solver == "verlet" else f"{backend} {solver}"
+        if scene.meshes and solver not in self.meshes:
+            return f"{who} does not take mesh colliders yet (it takes: sphere, cylinder, plane; {_takers('meshes', solver)})"
+        if scene.has_motion and solver not in self.moving_colliders:
+            what = "moving colliders" if any(c.motion for c in scene.colliders + scene.meshes) else "pins attached to a body"
+            return f"{who} does not take {what} yet (it takes: fixed colliders and fixed pins; {_takers('moving_colliders', solver)})"
         return None
 
     def adapt(self, options: BackendOptions) -> BackendOptions:
@@ -105,6 +130,7 @@ class Capabilities:
             gl=options.gl if self.gl else "egl",
             shape=options.shape if self.shapes else None,
             retune=options.retune and self.shapes,
+            mesh_collision=options.mesh_collision if options.mesh_collision in self.mesh_collisions else None,
         )
 
     def mode(self, options: BackendOptions, solver: Solver, local_size: int | None = None) -> str:
@@ -126,6 +152,22 @@ class Capabilities:
         return "/".join(parts) or "default"
 
 
+def _takers(feature: str, solver: str) -> str:
+    """'numpy does' (the backends that declare `feature` for `solver`), for a refusal."""
+    from clothbench.backends import BACKENDS, backend_class
+
+    names = []
+    for name, entry in BACKENDS.items():
+        if getattr(entry, solver, None) is None:
+            continue
+        try:
+            if solver in getattr(backend_class(name, solver).capabilities, feature):
+                names.append(name)
+        except Exception:  # a backend whose module cannot load here takes nothing here
+            continue
+    return f"{', '.join(names)} {'does' if len(names) == 1 else 'do'}" if names else "none does yet"
+
+
 @dataclass(frozen=True)
 class Availability:
     """Whether a backend can run here; if not, why (one line a person can act on)."""
@@ -142,7 +184,7 @@ class Backend(ABC):
     capabilities: Capabilities = Capabilities()
 
     def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):
-        refusal = self.capabilities.refusal(self.name, options)
+        refusal = self.capabilities.refusal(self.name, options) or self.capabilities.scene_refusal(self.name, scene, solver.name)
         if refusal:
             raise ClothbenchError(refusal)
         self.scene = scene
@@ -164,7 +206,20 @@ class Backend(ABC):
     def mode(self) -> str:
         """The settings that change speed or results, for tables and CSV rows."""
         shape = f"/{self.shape}" if self.shape else ""
-        return self.capabilities.mode(self.options, self.solver, self.effective_local_size) + shape + self.mode_suffix
+        return self.capabilities.mode(self.options, self.solver, self.effective_local_size) + shape + self.mesh_mode + self.mode_suffix
+
+    @property
+    def mesh_collision(self) -> str | None:
+        """The mesh algorithm this run uses where the scene has meshes (options.mesh_collision,
+        or the backend's default), else None."""
+        if not self.scene.meshes or not self.capabilities.mesh_collisions:
+            return None
+        return self.options.mesh_collision or self.capabilities.mesh_collisions[0]
+
+    @property
+    def mesh_mode(self) -> str:
+        """'/mesh=naive' or '/mesh=accelerated' in the mode of a scene with meshes."""
+        return f"/mesh={self.mesh_collision}" if self.mesh_collision else ""
 
     @classmethod
     def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:

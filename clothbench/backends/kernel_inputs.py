@@ -11,33 +11,103 @@ or plain values (NumPy and the peers).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
-from clothbench.scene import OFFSET_KIND, Scene
+from clothbench.colliders.motion import pose
+from clothbench.scene import OFFSET_KIND, Scene, body_pose
 from clothbench.solver import Pbd, Solver
 
 # float4 rows per collider, by collider_rows' keys
 ROWS_PER_COLLIDER = {"spheres": 1, "cylinders": 3, "planes": 2}
 
 
-def collider_rows(scene: Scene, dtype=np.float32) -> dict[str, np.ndarray]:
+def collider_rows(scene: Scene, dtype=np.float32, time: float = 0.0) -> dict[str, np.ndarray]:
     """The colliders as the kernels take them, float64 values rounded once to `dtype` rows of
     four, in the order the step applies them: spheres (centre, radius); cylinders (start,
-    length), (unit axis, radius), (radial_r, 0); planes (point, 0), (unit normal, 0)."""
+    length), (unit axis, radius), (radial_r, 0); planes (point, 0), (unit normal, 0).
+    A moving collider's rows are its pose at `time` (docs/semantics.md, "Moving colliders"):
+    computed in float64 per step and rounded once, the same layout."""
 
     def rows(values) -> np.ndarray:
         return np.array(values, dtype=np.float64).reshape(-1, 4).astype(dtype)
 
+    def placed(anchor, motion, *directions):
+        # a fixed collider keeps the file's numbers exactly; a moving one its pose at `time`
+        if motion is None:
+            return (anchor, *directions)
+        rot, trans = pose(anchor, np.eye(3), motion, time)
+        return (tuple(trans), *(tuple(rot @ np.array(d, dtype=np.float64)) for d in directions))
+
     def cylinder(c):
-        radial_r = (e * c.radius for e in c.radial)  # multiplied in float64, rounded once
-        return ((*c.start, c.length), (*c.axis, c.radius), (*radial_r, 0.0))
+        start, axis, radial = placed(c.start, c.motion, c.axis, c.radial)
+        radial_r = (e * c.radius for e in radial)  # multiplied in float64, rounded once
+        return ((*start, c.length), (*axis, c.radius), (*radial_r, 0.0))
+
+    def plane(p):
+        point, normal = placed(p.point, p.motion, p.unit_normal)
+        return ((*point, 0.0), (*normal, 0.0))
 
     return {
-        "spheres": rows([(*s.center, s.radius) for s in scene.spheres]),
+        "spheres": rows([(*placed(s.center, s.motion)[0], s.radius) for s in scene.spheres]),
         "cylinders": rows([row for c in scene.cylinders for row in cylinder(c)]),
-        "planes": rows([row for p in scene.planes for row in ((*p.point, 0.0), (*p.unit_normal, 0.0))]),
+        "planes": rows([row for p in scene.planes for row in plane(p)]),
     }
+
+
+def pose_rows(body, time: float, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """(R, T) of a mesh or frame at `time` as a kernel takes them: the 3x3 rotation (row i is
+    row i of R) and the translation, float64 per step, rounded once."""
+    rot, trans = body_pose(body, time)
+    return np.asarray(rot, dtype=np.float64).astype(dtype), np.asarray(trans, dtype=np.float64).astype(dtype)
+
+
+def pin_targets(scene: Scene, time: float, dtype=np.float32) -> np.ndarray:
+    """(pins, 3) positions at `time` of the pinned particles of a scene whose pins follow a
+    body ([pins] attach): R(time) offset + T(time) in float64, rounded once, where offset is
+    the particle's initial position in the body's frame, R(0)^T (x0 - T(0))."""
+    rot, trans = body_pose(scene.body(scene.pin_attach), time)
+    return (pin_offsets(scene) @ rot.T + trans).astype(dtype)
+
+
+@lru_cache(maxsize=16)
+def pin_offsets(scene: Scene) -> np.ndarray:
+    """(pins, 3) body-frame offsets of the attached pins, float64, taken once per scene."""
+    x0 = scene.initial_state(np.float64)[0][scene.pinned(), :3]
+    rot0, trans0 = body_pose(scene.body(scene.pin_attach), 0.0)
+    return (x0 - trans0) @ rot0  # rows: R0^T (x0 - T0)
+
+
+@dataclass(frozen=True)
+class MeshConstants:
+    """docs/semantics.md, "Triangle mesh": what a kernel takes of one mesh, fixed for the run
+    (the body frame does not change when the mesh moves): per triangle its corners a, b, c and
+    its seven pseudo-normals (face, a, b, c, ab, ac, bc), float32 as rounded once on the host;
+    the mesh's box; the margin and its square (float64, rounded once); closed or open."""
+
+    geometry: object  # colliders.mesh.MeshGeometry (its bvh for the accelerated traversal)
+    corners: np.ndarray  # (T, 3, 3)
+    normals: np.ndarray  # (T, 7, 3)
+    lo: np.ndarray  # (3,) box of every corner
+    hi: np.ndarray
+    margin: np.floating
+    margin2: np.floating
+    closed: bool
+
+    @classmethod
+    def of(cls, mesh, dtype=np.float32) -> "MeshConstants":
+        g = mesh.geometry
+        return cls(
+            geometry=g,
+            corners=g.corners.astype(dtype),
+            normals=g.normals.astype(dtype),
+            lo=g.lo.astype(dtype),
+            hi=g.hi.astype(dtype),
+            margin=dtype(mesh.margin),
+            margin2=dtype(mesh.margin * mesh.margin),
+            closed=g.closed,
+        )
 
 
 def rest_by_kind(scene: Scene, dtype=np.float32) -> tuple:
@@ -86,6 +156,7 @@ class PbdConstants:
     rest: tuple  # rest lengths: structural, shear, bend
     damp: np.floating  # 1 - 12 b h / m, clamped at 0
     relax: np.floating  # Jacobi over-relaxation
+    omega: tuple  # Jacobi: the Chebyshev weight of each iteration (all 1: no acceleration)
 
     @classmethod
     def of(cls, scene: Scene, solver: Pbd, dtype=np.float32) -> "PbdConstants":
@@ -99,4 +170,5 @@ class PbdConstants:
             rest=rest_by_kind(scene, t),
             damp=t(max(0.0, 1.0 - 12.0 * scene.damping * h / scene.mass)),
             relax=t(solver.relaxation),
+            omega=tuple(t(w) for w in solver.chebyshev_omega()),
         )

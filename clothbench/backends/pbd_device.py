@@ -39,6 +39,7 @@ class PbdDeviceBackend(Backend):
         self.n2 = scene.particles
         self.constants = PbdConstants.of(scene, solver)
         self.jacobi = solver.method == "jacobi"
+        self.chebyshev = self.jacobi and solver.chebyshev_rho > 0  # Jacobi only (docs/pbd.md)
         self.batches = [] if self.jacobi else coloured_batches(self.n)
         # lambda: 12 per particle (Jacobi) or one per constraint (coloured)
         self.lambda_count = 12 * self.n2 if self.jacobi else sum(len(b.i) for b in self.batches)
@@ -49,6 +50,9 @@ class PbdDeviceBackend(Backend):
             self.batch_pairs = np.ascontiguousarray(pairs.astype(np.int32))
             self.batch_offsets = np.cumsum([0] + [len(b.i) for b in self.batches])[:-1]
         self.launches: list[tuple[str, object]] = []  # one substep: (stage, launch)
+        # what profile_stages() times, where advance() runs fused launches (None: the same)
+        self.stage_launches: list[tuple[str, object]] | None = None
+        self.substeps_done = 0  # since the last upload(): the clock of moving bodies
 
     # --- what a subclass supplies ------------------------------------------------------
     def _write_state(self, x: np.ndarray, v: np.ndarray) -> None:
@@ -64,20 +68,48 @@ class PbdDeviceBackend(Backend):
         """Run one launch on its own, synchronised; its time in seconds."""
         raise NotImplementedError
 
+    # --- moving bodies: per-substep constants (docs/pbd.md, "Colliders, motion and attached pins")
+    def _motion_block(self) -> int:
+        """Substeps whose poses and pin targets one upload holds; 0: the scene does not move."""
+        return 0
+
+    def _upload_motion(self, first: int, count: int) -> None:
+        """Upload the poses and pin targets of substeps first .. first + count - 1 (counted
+        from the last upload(); substep j's at the end of it, (j + 1) * dt / substeps)."""
+
+    def _use_substep(self, j: int) -> None:
+        """Point the next substep's launches at entry j of the last _upload_motion()."""
+
+    def _blocks(self, steps: int):
+        """The substeps of `steps` steps as counts of consecutive substeps, each yielded after
+        its per-substep constants are uploaded (one block where the scene does not move)."""
+        total = steps * self.solver.substeps
+        moving = self._motion_block()
+        block = moving or max(total, 1)
+        for done in range(0, total, block):
+            count = min(block, total - done)
+            if moving:
+                self._upload_motion(self.substeps_done, count)
+            yield count
+            self.substeps_done += count
+
     # --- the substep as launches -------------------------------------------------------
-    def _substep_plan(self):
+    def _substep_plan(self, coloured_sweep: bool = False):
         """One substep as (stage, what, ...) in launch order: ("predict",), ("jacobi",
-        iteration, source index, target index), ("coloured", iteration, batch index),
+        iteration, source index, target index), ("coloured", iteration, batch index) or, with
+        `coloured_sweep`, ("coloured sweep", iteration) for all 12 batches in one launch,
         ("collide", buffer index), ("update", buffer index), where a buffer index names one
         of the two predicted-position buffers (predict writes 0)."""
         plan = [("predict",)]
         for it in range(self.solver.iterations):
             if self.jacobi:
                 plan.append(("jacobi", it, it % 2, 1 - it % 2))
+            elif coloured_sweep:
+                plan.append(("coloured sweep", it))
             else:
                 plan += [("coloured", it, b) for b in range(len(self.batches))]
         final = self.solver.iterations % 2 if self.jacobi else 0
-        if self.scene.colliders:
+        if self.scene.colliders or self.scene.meshes:
             plan.append(("collide", final))
         plan.append(("update", final))
         return plan
@@ -86,12 +118,15 @@ class PbdDeviceBackend(Backend):
         """The launches (one or more) of one step of the plan."""
         raise NotImplementedError
 
-    def _plan_launches(self) -> list[tuple[str, object]]:
-        return [(self.stage_of(step), launch) for step in self._substep_plan() for launch in self._launches_of(step)]
+    def _plan_launches(self, coloured_sweep: bool = False) -> list[tuple[str, object]]:
+        plan = self._substep_plan(coloured_sweep)
+        return [(self.stage_of(step), launch) for step in plan for launch in self._launches_of(step)]
 
     def stage_of(self, step) -> str:
         if step[0] == "jacobi":
             return "project (jacobi)"
+        if step[0] == "coloured sweep":
+            return "project (coloured)"
         if step[0] == "coloured":
             return batch_stage_name(self.batches[step[2]])
         return step[0]
@@ -101,6 +136,7 @@ class PbdDeviceBackend(Backend):
         expected = (self.n2, 4)
         if pos.shape != expected or prev.shape != expected:
             raise ClothbenchError(f"state must be two {expected} arrays, got {pos.shape} and {prev.shape}")
+        self.substeps_done = 0  # the uploaded state is at t = 0: moving bodies start over
         x = np.array(pos, dtype=np.float32)
         v = np.zeros_like(x)
         # docs/pbd.md: v = (x - xp) / dt, once, in float32 as the reference does it
@@ -115,16 +151,21 @@ class PbdDeviceBackend(Backend):
 
     def advance(self, steps: int) -> None:
         enqueue = self._enqueue
-        for _ in range(steps * self.solver.substeps):
-            for _, launch in self.launches:
-                enqueue(launch)
+        for count in self._blocks(steps):
+            for j in range(count):
+                self._use_substep(j)
+                for _, launch in self.launches:
+                    enqueue(launch)
 
     def profile_stages(self, steps: int) -> dict[str, float]:
         """Advance `steps` steps with a synchronisation after every launch; ms per step of
         each stage (a stage's launches summed over iterations and substeps)."""
         self.synchronize()
         totals: dict[str, float] = {}
-        for _ in range(steps * self.solver.substeps):
-            for stage, launch in self.launches:
-                totals[stage] = totals.get(stage, 0.0) + self._timed(launch)
+        launches = self.launches if self.stage_launches is None else self.stage_launches
+        for count in self._blocks(steps):
+            for j in range(count):
+                self._use_substep(j)
+                for stage, launch in launches:
+                    totals[stage] = totals.get(stage, 0.0) + self._timed(launch)
         return {stage: 1e3 * seconds / max(steps, 1) for stage, seconds in totals.items()}

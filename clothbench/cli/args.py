@@ -45,6 +45,8 @@ def setup_from_args(args):
 
 
 def add_backend_args(p: argparse.ArgumentParser) -> None:
+    from clothbench.backends.base import MESH_COLLISIONS
+
     p.add_argument("--precision", choices=["f32", "f64"], default="f32")
     p.add_argument(
         "--strict", action="store_true", help="bit-exact with the numpy f32 reference (no FMA, no fast math)"
@@ -57,6 +59,12 @@ def add_backend_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--shape",
         help="run this kernel shape (as the mode names it, e.g. v8/ls=64) instead of the one tuned for this device",
+    )
+    p.add_argument(
+        "--mesh-collision",
+        choices=MESH_COLLISIONS,
+        help="scenes with [[mesh]] colliders: naive (every triangle) or accelerated (a BVH); same bits "
+        "(default: the backend's first)",
     )
 
 
@@ -87,7 +95,14 @@ def options_from_args(args):
         retune=getattr(args, "retune", False),
         normals=args.save_normals,
         generic=args.generic,
+        mesh_collision=getattr(args, "mesh_collision", None),
     )
+
+
+def check_mesh_collision(algorithm: str | None, scene) -> None:
+    """--mesh-collision only where the scene has a mesh for it to find triangles in."""
+    if algorithm is not None and not scene.meshes:
+        raise ClothbenchError(f"--mesh-collision: scene {scene.name} has no [[mesh]] collider")
 
 
 def solver_specs(text: str, option: str = "--solvers") -> tuple[str, ...]:
@@ -97,6 +112,21 @@ def solver_specs(text: str, option: str = "--solvers") -> tuple[str, ...]:
     if bad or not specs:
         raise ClothbenchError(f"{option} takes {', '.join(SOLVER_SPECS)} (comma-separated), got {text!r}")
     return specs
+
+
+def choice_list(what: str, choices: tuple[str, ...]):
+    """An argparse type for 'naive,accelerated': each one of `choices`, duplicates dropped, order kept."""
+
+    def parse(text: str) -> list[str]:
+        values = list(dict.fromkeys(part.strip() for part in text.split(",") if part.strip()))
+        bad = [v for v in values if v not in choices]
+        if bad or not values:
+            raise argparse.ArgumentTypeError(
+                f"{what} takes {', '.join(choices)} (comma-separated), got {(bad[0] if bad else text)!r}"
+            )
+        return values
+
+    return parse
 
 
 def int_list(what: str, minimum: int):

@@ -30,7 +30,18 @@ def register(subparsers) -> None:
         "and SVG.",
     )
     p.add_argument("csv", help="a CSV written by clothbench sweep")
-    p.add_argument("--out", help="folder for the plots (default: beside the CSV, named after it)")
+    p.add_argument(
+        "--out",
+        help="folder for the plots (default: beside the CSV, named after it); with --kind mesh, the PNG to "
+        "write (default: the CSV's name with .png; an SVG beside it)",
+    )
+    p.add_argument(
+        "--kind",
+        choices=["all", "mesh"],
+        default="all",
+        help="all: every figure the CSV has data for (default); mesh: only ms/step against mesh triangles, "
+        "naive against accelerated with the crossover named (a sweep with --mesh-triangles)",
+    )
     p.set_defaults(func=cmd_plot)
 
     c = subparsers.add_parser(
@@ -57,9 +68,19 @@ def register(subparsers) -> None:
 
 
 def cmd_plot(args) -> int:
-    from clothbench.reports.plots import plot_sweep
+    from clothbench.reports.plots import plot_mesh, plot_sweep
 
     csv_path = Path(args.csv)
+    if args.kind == "mesh":
+        out = Path(args.out) if args.out else csv_path.with_suffix(".png")
+        if out.suffix.lower() != ".png":
+            raise ClothbenchError(f"--kind mesh writes one PNG (and an SVG beside it): --out must end in .png, got {out}")
+        report = plot_mesh(csv_path, out)
+        for note in report.notes:
+            print(note)
+        for path in report.files:
+            print(f"wrote {path}")
+        return 0
     out = Path(args.out) if args.out else csv_path.with_suffix("")
     if out == csv_path:  # a CSV without a suffix
         out = csv_path.with_name(csv_path.name + "-plots")

@@ -15,8 +15,15 @@ f x EVERY steps (f = 1 .. FRAMES; precisely, as the last of those steps read it,
 what its normals belong to). --out decides what is written: cloth.png (the last frame only),
 cloth.gif (every frame, looping) or frames/ (frame_0001.png, ...). The glsl and
 glsl-compute backends are drawn from their own textures / buffers on the GPU; other
-backends' positions are read back and uploaded each frame. Example:
+backends' positions are read back and uploaded each frame. Without --backend the scene is
+stepped on glsl, or on numpy where glsl does not take the scene (a mesh or a motion: said in
+a note). Mesh colliders are drawn with their own triangles, moving colliders where they are
+at the frame's time. Example:
   clothbench render --scene sphere --frames 60 --out cloth.gif"""
+
+
+DEFAULT_BACKEND = "glsl"  # draws from its own textures: nothing read back
+FALLBACK_BACKEND = "numpy"  # the reference, which takes every scene
 
 
 def size(text: str) -> tuple[int, int]:
@@ -38,7 +45,10 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_scene_args(p, run_length=False)
-    p.add_argument("--backend", default="glsl", help="the backend that simulates (default glsl)")
+    p.add_argument(
+        "--backend",
+        help=f"the backend that simulates (default {DEFAULT_BACKEND}, or {FALLBACK_BACKEND} for a scene it does not take)",
+    )
     p.add_argument("--frames", type=int, default=d.frames, help=f"frames to draw (default {d.frames})")
     p.add_argument(
         "--every", "--steps-per-frame", dest="every", type=int, default=d.every,
@@ -59,12 +69,15 @@ def cmd_render(args) -> int:
     from clothbench.harness.preflight import check_memory, check_writable
     from clothbench.reports.render import RenderSettings, check_settings, output_kind, render
 
-    check_name(args.backend)
+    if args.backend is not None:
+        check_name(args.backend)
     output_kind(args.out)  # bad input fails before any work
     settings = RenderSettings(frames=args.frames, every=args.every, size=args.size, fps=args.fps)
     check_settings(settings)
     setup = setup_from_args(args)
     scene, solver = setup.scene, setup.solver
+    if args.backend is None:
+        args.backend = default_backend(scene, solver.name)
     check_memory([scene.grid], reference=False)  # before any work, as every output path is
     first = Path(args.out) / "frame_0001.png" if output_kind(args.out) == "folder" else Path(args.out)
     check_writable(first, "--out")
@@ -82,3 +95,14 @@ def cmd_render(args) -> int:
         f"simulate {report.simulate_s:.2f} s, draw {report.draw_s:.2f} s, write {report.write_s:.2f} s"
     )
     return 0
+
+
+def default_backend(scene, solver: str) -> str:
+    """glsl, or numpy (said in a note on stderr) where glsl does not take the scene."""
+    from clothbench.backends import capabilities
+
+    refusal = capabilities(DEFAULT_BACKEND, solver).scene_refusal(DEFAULT_BACKEND, scene, solver)
+    if refusal is None:
+        return DEFAULT_BACKEND
+    print(f"note: {refusal}: stepped on {FALLBACK_BACKEND} (choose another with --backend)", file=sys.stderr)
+    return FALLBACK_BACKEND

@@ -7,7 +7,14 @@ import statistics
 import sys
 import time
 
-from clothbench.cli.args import add_backend_args, add_scene_args, options_from_args, setup_from_args, sigterm_interrupts
+from clothbench.cli.args import (
+    add_backend_args,
+    add_scene_args,
+    check_mesh_collision,
+    options_from_args,
+    setup_from_args,
+    sigterm_interrupts,
+)
 
 
 def register(subparsers) -> None:
@@ -38,6 +45,7 @@ def cmd_run(args) -> int:
     setup = setup_from_args(args)
     scene, solver, steps = setup.scene, setup.solver, setup.steps
     options = options_from_args(args)
+    check_mesh_collision(options.mesh_collision, scene)
     save = check_writable(_npz(args.save), "--save") if args.save else None  # before the run, not after
     check_memory([scene.grid], [args.precision])
     if warning := predicted_fast_impact(scene, solver):
@@ -86,6 +94,9 @@ def cmd_run(args) -> int:
     }
     if result.device_ms_per_step:
         summary["device_ms_per_step"] = statistics.median(result.device_ms_per_step)
+        summary["device_timer"] = result.device_timer
+    elif note := getattr(backend, "device_timer_note", ""):
+        summary["device_timer_note"] = note  # why a device that has timers reports no device time
     if args.profile:
         summary["stages_ms_per_step"] = stages  # None: this backend has one stage
     if args.json:
@@ -94,7 +105,23 @@ def cmd_run(args) -> int:
         from clothbench.reports.tables import print_run
 
         print_run(summary)
+        if line := device_clock_line(summary):
+            print(line)
     return 0
+
+
+def device_clock_line(summary: dict) -> str:
+    """One line under the table: which device clock timed the steps and what it includes
+    (harness/timing.py DEVICE_TIMERS), or why a device backend has none; '' for a backend
+    without one (numpy, c). The wall clock's ms/step holds the device time and the host's side
+    (launches, the synchronize)."""
+    from clothbench.harness.timing import DEVICE_TIMERS
+
+    if timer := summary.get("device_timer"):
+        return f"device clock: {timer}: {DEVICE_TIMERS[timer]}"
+    if why := summary.get("device_timer_note"):
+        return f"device clock: none ({why}); ms/step is the wall clock alone"
+    return ""
 
 
 def _npz(path: str) -> str:

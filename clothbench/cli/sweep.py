@@ -10,6 +10,7 @@ from clothbench.cli.args import (
     add_device_args,
     add_row_args,
     check_row_args,
+    choice_list,
     int_list,
     sigterm_interrupts,
     solver_specs,
@@ -24,7 +25,11 @@ soon as it is measured: an interrupted sweep keeps every finished row, and --res
 measures only the rows the file lacks. Each row: build and warm up, then R timed chunks
 of S steps (uploads and readbacks outside the clock, except in per-step transfer modes),
 then the final state against the numpy float64 run of the same scene and S*R steps.
-Backends that cannot run here are listed once as skipped, with the reason. Each row runs
+Backends that cannot run here, or cannot take the scene (a mesh or a motion they lack), are
+listed once as skipped, with the reason. A scene with meshes or motion adds dimensions:
+--mesh-collision naive,accelerated (a row per algorithm a backend has), --mesh-triangles
+(each built-in shape subdivided to the level nearest each count) and --motion on,off (the
+scene as written, and with every motion stopped: the cost of motion). Each row runs
 in a worker process: one that crashes (a signal, an abort, out of memory) is written as
 crashed, one past --row-timeout as timeout, and the sweep goes on. Rows already in the
 file are kept whatever their status; --retry-failed measures failed, crashed and timeout
@@ -33,6 +38,9 @@ rows again. Ctrl-C or SIGTERM keeps every finished row and exits 130.
 
 
 def register(subparsers) -> None:
+    from clothbench.backends.base import MESH_COLLISIONS
+    from clothbench.harness.plan import MOTION_CHOICES
+
     p = subparsers.add_parser(
         "sweep",
         help="time every usable backend over grid sizes into a CSV (rows kept as measured)",
@@ -84,6 +92,27 @@ def register(subparsers) -> None:
         default="verlet",
         help="comma-separated: verlet (mass-spring), pbd (docs/pbd.md, the scene's method), "
         "pbd-jacobi, pbd-coloured (default verlet)",
+    )
+    p.add_argument(
+        "--mesh-collision",
+        type=choice_list("--mesh-collision", MESH_COLLISIONS),
+        default=[],
+        help="scenes with meshes: the mesh algorithms to time, a row each where a backend has it "
+        "(naive, accelerated; default: each backend's own)",
+    )
+    p.add_argument(
+        "--mesh-triangles",
+        type=int_list("--mesh-triangles", 1),
+        default=[],
+        help="scenes with built-in mesh shapes: set each shape's subdivisions to the level nearest each count, "
+        "e.g. 20,320,5120,20480 (icosphere 20*4^s, box 12*4^s, torus 256*4^s), a row each",
+    )
+    p.add_argument(
+        "--motion",
+        type=choice_list("--motion", MOTION_CHOICES),
+        default=[],
+        help="scenes with motion: on (as the file says), off (every collider fixed where it is placed, attached "
+        "pins fixed where they start), or on,off: a row each, the cost of motion",
     )
     p.add_argument("--out", default="sweep.csv", help="the CSV to write (default sweep.csv)")
     p.add_argument(
@@ -142,7 +171,12 @@ def cmd_sweep(args) -> int:
         generic=args.generic,
         row_timeout=args.row_timeout,
         row_budget=args.row_budget,
+        mesh_collisions=tuple(args.mesh_collision),
+        mesh_triangles=tuple(args.mesh_triangles),
+        motion=tuple(args.motion),
     )
+    for note in settings.notes:
+        _note(note)
     bar: LazyProgress | None = None
     state: list = []  # the sweep's progress, once it has started
 
@@ -168,10 +202,12 @@ def cmd_sweep(args) -> int:
         if progress.earlier_commits:
             _note(f"rows already in {args.out} were measured at commit {', '.join(sorted(progress.earlier_commits))}")
         backends = sorted({r.backend for r in progress.todo}, key=[r.backend for r in progress.plan.rows].index)
+        variants = [sv.label for sv, _, _ in settings.scene_variants if sv.label]
+        shapes = f" ({'; '.join(variants)})" if len(variants) > 1 else ""
         already = f" ({progress.already} already in the file)" if progress.already else ""
         _note(
             f"sweep: {len(progress.todo)} rows to measure{already}: {', '.join(backends) or 'none'} "
-            f"on {scene.name}, grids {','.join(map(str, args.grids))}, {args.repeat} chunks x {args.steps} steps "
+            f"on {scene.name}{shapes}, grids {','.join(map(str, args.grids))}, {args.repeat} chunks x {args.steps} steps "
             f"-> {args.out}"
         )
         bar = LazyProgress(max(1, len(progress.todo) * args.steps * args.repeat), "sweep")
@@ -243,8 +279,11 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
     if not console.is_terminal:
         console = Console(width=160)  # a log file or a pipe: no reason to wrap at 80
     local = any(r["local_size"] for r in rows)
+    # the scene's mesh size and motion, where a row has them (sweep --mesh-triangles, --motion)
+    shape = {c: head for c, head in (("mesh_triangles", "triangles"), ("motion", "motion")) if any(r.get(c) for r in rows)}
     table = Table(title=title)
-    for col in ("backend", "mode") + (("local",) if local else ()) + ("n", "ms/step", "min-max", "RMS err (m)", "status"):
+    heads = ("backend", "mode") + (("local",) if local else ()) + tuple(shape.values())
+    for col in heads + ("n", "ms/step", "min-max", "RMS err (m)", "status"):
         table.add_column(col, justify="left" if col in ("backend", "mode", "status") else "right")
     reasons: dict[tuple[str, str], list[str]] = {}
     for r in rows:
@@ -254,7 +293,8 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
         else:
             cells = ["", "", "", f"[red]{r['status']}[/red]"]
             reasons.setdefault((r["status"], r["note"]), []).append(f"{r['backend']} n={r['grid']}")
-        lead = [r["backend"], escape(r["mode"])] + ([r["local_size"] or "auto"] if local else []) + [r["grid"]]
+        lead = [r["backend"], escape(r["mode"])] + ([r["local_size"] or "auto"] if local else [])
+        lead += [r.get(c, "") for c in shape] + [r["grid"]]
         table.add_row(*lead, *cells)
     console.print(table)
     for (status, note), where in reasons.items():

@@ -26,8 +26,8 @@ from clothbench import environment
 from clothbench.backends import BackendOptions, availability, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.harness import faults
-from clothbench.harness.executor import DEFAULT_ROW_TIMEOUT, Outcome, fork_safe, run_isolated, start_method
-from clothbench.harness.plan import Variant, plan_variants
+from clothbench.harness.executor import Outcome, fork_safe, run_isolated, start_method
+from clothbench.harness.plan import SceneVariant, Variant, plan_variants
 from clothbench.harness.simulate import position_error, reference
 from clothbench.harness.sweep_csv import (
     BUDGET_NOTE,
@@ -40,6 +40,7 @@ from clothbench.harness.sweep_csv import (
     one_line,
     row_key,
 )
+from clothbench.harness.sweep_settings import SweepSettings
 from clothbench.harness.timing import run_timed
 from clothbench.scene import Setup
 from clothbench.solver import Solver
@@ -53,10 +54,17 @@ NATIVE = "c"  # the backend every row's vs_c is taken against: the native CPU li
 
 @dataclass(frozen=True)
 class PlannedRow:
-    """One row to measure: a variant (backend, complete options, solver) on one grid."""
+    """One row to measure: a variant (backend, complete options, solver) on one grid of one
+    scene variant (its mesh size and motion)."""
 
     variant: Variant
     grid: int
+    scene_variant: SceneVariant = SceneVariant()
+
+    @property
+    def setup_key(self) -> tuple[int, SceneVariant]:
+        """The key of the row's setup in SweepSettings.setups."""
+        return self.grid, self.scene_variant
 
     @property
     def backend(self) -> str:
@@ -88,6 +96,9 @@ class PlannedRow:
             "local_size": fmt(o.local_size),
             "generic": fmt(o.generic),
             "scene": scene_name,
+            "mesh_triangles": fmt(self.scene_variant.mesh_triangles),
+            "mesh_collision": fmt(o.mesh_collision),
+            "motion": self.scene_variant.motion,
             "grid": str(self.grid),
             "timed_region": "steps+transfers" if o.transfer in PER_STEP_TRANSFERS else "steps",
         }
@@ -109,13 +120,23 @@ def plan_sweep(
     base: BackendOptions = BackendOptions(),
     local_sizes: Iterable[int] = (),
     generic: str = "no",
+    scenes: Iterable[tuple[SceneVariant, object]] = (),
+    mesh_collisions: Iterable[str] = (),
 ) -> Plan:
     """harness.plan's variants on every grid, grid-major so an interrupted sweep holds every
-    backend at the small grids; the float64 reference first in each grid and solver."""
-    variants, skipped = plan_variants(names, solvers, base, local_sizes, generic)
-    # the native c line next, so that every later row of its grid has its vs_c ratio
-    variants.sort(key=lambda v: 0 if v.is_reference else 1 if v.backend == NATIVE else 2)
-    return Plan([PlannedRow(v, g) for g in grids for v in variants], skipped)
+    backend at the small grids; the float64 reference first in each grid and solver. With
+    `scenes` ((SceneVariant, Scene) pairs), each grid runs each scene variant in turn, and a
+    backend that refuses a scene is skipped with its refusal (said once), not measured."""
+    names, solvers, scenes = list(names), list(solvers), list(scenes) or [(SceneVariant(), None)]
+    per_scene, skipped = [], []
+    for sv, scene in scenes:
+        variants, skips = plan_variants(names, solvers, base, local_sizes, generic, scene, mesh_collisions)
+        # the native c line next, so that every later row of its grid has its vs_c ratio
+        variants.sort(key=lambda v: 0 if v.is_reference else 1 if v.backend == NATIVE else 2)
+        per_scene.append((sv, variants))
+        skipped += skips
+    rows = [PlannedRow(v, g, sv) for g in grids for sv, variants in per_scene for v in variants]
+    return Plan(rows, list(dict.fromkeys(skipped)))
 
 
 # --- one row ---------------------------------------------------------------------------
@@ -199,6 +220,7 @@ def measure_row(
         ms_iqr=fmt(spread["iqr"]),
         chunk_ms=fmt_chunks(result.chunk_ms_per_step),
         device_ms_median=fmt(statistics.median(result.device_ms_per_step)) if result.device_ms_per_step else "",
+        device_timer=result.device_timer,
         particles_per_s=fmt(scene.particles * 1e3 / ms) if ms > 0 else "",
         ms_per_sim_s=fmt(ms / solver.dt),
         warmup_s=fmt(result.warmup_s),
@@ -235,7 +257,7 @@ def _reference_in_child(scene, solver, steps: int) -> np.ndarray:
 
 
 def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: bool) -> dict[str, str]:
-    setup = settings.setups[row.grid]
+    setup = settings.setups[row.setup_key]
     if not settings.isolate:
         return measure_row(
             row, setup, settings.steps, settings.repeats, references, on_progress=report, budget_s=settings.row_budget
@@ -263,7 +285,7 @@ def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: boo
 
 def _row_of(outcome: Outcome, row: PlannedRow, settings, references: dict) -> dict[str, str]:
     """The CSV row of a worker's outcome: its measurement, or crashed / timeout and why."""
-    setup = settings.setups[row.grid]
+    setup = settings.setups[row.setup_key]
     if not outcome.ok:
         out = base_row(row, setup, settings.steps, settings.repeats)
         out.update(status=outcome.status, note=one_line(outcome.note), **environment.collect())
@@ -280,7 +302,7 @@ def _run_distributed(todo, settings, executor, keep, have, name, on_step, per_ro
     """Every row to the cluster at once; each written as it returns, once per key."""
     futures = {}
     for row in todo:
-        setup = settings.setups[row.grid]
+        setup = settings.setups[row.setup_key]
         args = (row, setup, settings.steps, settings.repeats, None)
         submitted = executor.submit(
             _measure_in_child, *args, budget_s=settings.row_budget, timing=True, timeout=settings.row_timeout
@@ -307,37 +329,6 @@ def _fork_safe(rows: list[PlannedRow]) -> bool:
 
 
 # --- the sweep -------------------------------------------------------------------------
-
-
-@dataclass
-class SweepSettings:
-    setup: Setup  # the scene file; grid and run length are set per row
-    grids: list[int]
-    steps: int  # per chunk
-    repeats: int
-    base: BackendOptions = field(default_factory=BackendOptions)
-    local_sizes: tuple[int, ...] = ()
-    solvers: tuple[str, ...] = ("verlet",)  # solver specs (solver.SOLVER_SPECS)
-    generic: str = "no"  # no | yes | both (plan.GENERIC_CHOICES)
-    isolate: bool = True  # each row in a worker process (harness/executor.py)
-    row_timeout: float | None = DEFAULT_ROW_TIMEOUT  # seconds, per row (isolated rows only)
-    row_budget: float | None = None  # seconds of timed run per row; slower rows run fewer steps
-    bounds: bool = True  # measure the machine's limits once and give every row its bound
-
-    def __post_init__(self):
-        if self.row_timeout is not None and not self.row_timeout > 0:
-            raise ClothbenchError(f"--row-timeout must be > 0 seconds, got {self.row_timeout}")
-        if self.row_budget is not None and not self.row_budget > 0:
-            raise ClothbenchError(f"--row-budget must be > 0 seconds, got {self.row_budget}")
-        if self.steps < 1:
-            raise ClothbenchError(f"--steps must be >= 1 (steps per timed chunk), got {self.steps}")
-        if self.repeats < 1:
-            raise ClothbenchError(f"--repeat must be >= 1 (timed chunks per row), got {self.repeats}")
-        if not self.grids:
-            raise ClothbenchError("no grid size given (e.g. --grids 32,64,128,256)")
-        # every grid and solver is checked now, before anything is measured
-        self.solver_settings = [self.setup.solver_for(spec) for spec in self.solvers]
-        self.setups = {g: self.setup.replace(grid=g, steps=self.steps * self.repeats) for g in self.grids}
 
 
 @dataclass
@@ -401,11 +392,11 @@ def _compared_columns(result: dict[str, str], rows: list[dict[str, str]], settin
     if machine is not None:
         from clothbench.harness.bounds import bound_columns, machine_columns
 
-        scene, o = settings.setups[row.grid].scene, row.options
+        scene, o = settings.setups[row.setup_key].scene, row.options
         bound = bound_columns(scene, o.precision, ms, row.solver, strict=o.strict, normals=o.normals, bounds=machine)
         out.update(bound)
         out.update(machine_columns(machine))
-    same = ("grid", "solver", "pbd_method", "precision", "strict", "scene")
+    same = ("grid", "solver", "pbd_method", "precision", "strict", "scene", "mesh_triangles", "motion")
     native = [
         r for r in [*rows, result]
         if r["backend"] == NATIVE and r["status"] == "ok" and r["ms_median"] and all(r[c] == result[c] for c in same)
@@ -437,8 +428,9 @@ def run_sweep(
     worker machine at a time) and written here, by this process alone, as it comes back.
     """
     plan = plan_sweep(
-        names, settings.grids, settings.solver_settings, settings.base, settings.local_sizes, settings.generic
-    )
+        names, settings.grids, settings.solver_settings, settings.base, settings.local_sizes, settings.generic,
+        [(sv, s) for sv, s, _ in settings.scene_variants], settings.mesh_collisions,
+    )  # fmt: skip
     if not plan.rows:
         raise ClothbenchError(
             "nothing to measure: no backend named can run here ("
@@ -480,7 +472,8 @@ def run_sweep(
         for i, row in enumerate(todo):
             size = f" local {row.options.local_size}" if row.options.local_size else ""
             solver = f" {row.solver.spec}" if row.solver.name != "verlet" else ""
-            description = f"{row.backend}{solver} {row.variant.label}{size} n={row.grid} ({i + 1}/{len(todo)})"
+            shape = f" {row.scene_variant.label}" if row.scene_variant.label else ""
+            description = f"{row.backend}{solver} {row.variant.label}{size}{shape} n={row.grid} ({i + 1}/{len(todo)})"
             report = None
             if on_step:
                 on_step(i * per_row, description)

@@ -59,6 +59,14 @@ COLUMN_DOCS: dict[str, str] = {
     "driver": "the runtime or compiler, with its version, that ran the work (which of several OpenCL runtimes, "
     "the GL renderer, the C compiler)",
     "scene": "scene name",
+    "mesh_triangles": "triangles of the scene's [[mesh]] colliders as the step sees them (after the clean-up rules "
+    "of colliders/mesh.py); sweep --mesh-triangles sets each built-in shape to the subdivision nearest (by ratio) the count "
+    "asked; empty = no meshes",
+    "mesh_collision": "how the closest mesh triangle is found: naive (every triangle, in index order) or "
+    "accelerated (a host-built BVH traversed in the kernel), the same bits (docs/semantics.md); empty = no meshes",
+    "motion": "on = the scene's colliders move and its pins follow a body as the file says; off = the same scene "
+    "with every motion stopped (sweep --motion on,off: the cost of motion, docs/scenes.md); empty = the scene has "
+    "no motion",
     "grid": "n, particles per side",
     "particles": "n*n",
     "springs": "springs counted per particle, each seen from both ends (the chapter's count)",
@@ -77,7 +85,12 @@ COLUMN_DOCS: dict[str, str] = {
     "ms_iqr": "inter-quartile range of the per-chunk ms per step",
     "chunk_ms": "every chunk's ms per step, space-separated, in the order measured (R values; "
     "compare's confidence intervals are drawn from them)",
-    "device_ms_median": "median device-timed ms per step (profiling events), where the backend has them",
+    "device_ms_median": "median over the R chunks of the device's own ms per step (the clock device_timer names), "
+    "where the backend has one it trusts; the wall clock's ms_median also holds the host's launches and the "
+    "synchronize (docs/timing.md)",
+    "device_timer": "the device clock of device_ms_median: cuda-events, gl-timer-query (not on llvmpipe, whose "
+    "timer queries are the host's clock), opencl-events (kernels only); empty = none (files older than the column "
+    "lack it)",
     "particles_per_s": "particles * 1000 / ms_median",
     "ms_per_sim_s": "compute ms per simulated second, ms_median / dt (1000 = real time)",
     "warmup_s": "build (kernel compile) plus warm-up steps, not timed (s)",
@@ -105,9 +118,10 @@ COLUMNS: tuple[str, ...] = tuple(COLUMN_DOCS)
 # What identifies a row: a sweep measures each key once, and --resume skips keys in the file.
 KEY_COLUMNS = (
     "backend", "solver", "pbd_method", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
+    "mesh_triangles", "mesh_collision", "motion",
 )  # fmt: skip
 MEASUREMENT_COLUMNS = (
-    "ms_median", "ms_min", "ms_max", "ms_iqr", "chunk_ms", "device_ms_median", "particles_per_s",
+    "ms_median", "ms_min", "ms_max", "ms_iqr", "chunk_ms", "device_ms_median", "device_timer", "particles_per_s",
     "ms_per_sim_s", "warmup_s", "finite", "max_penetration_m", "err_rms_m", "err_max_m",
 )  # fmt: skip
 NOTE_MAX = 300  # characters

@@ -10,6 +10,11 @@ subnormal floats has a NumPy float32 run stepped beside it, outside the timed re
 
 Warm-up: the backend is built (kernel compiled) and advanced a few steps on a throwaway
 run before the timed run restarts from the initial state.
+
+Beside the wall clock, each chunk also takes the device's own time of the same advance()
+where the backend has a device clock it trusts (backend.device_elapsed_ms): CUDA events, GL
+timestamps, OpenCL profiling events. What each includes is DEVICE_TIMERS (docs/timing.md);
+the wall clock includes all of it and the host's side: launches, and the synchronize.
 """
 
 from __future__ import annotations
@@ -31,6 +36,21 @@ from clothbench.harness.strict_watch import StrictWatch, needs_watch
 
 WARMUP_STEPS = 3
 
+# What a row says of a backend that reports device times without naming its clock
+# (Backend.device_elapsed_ms's contract: the device's own profiling events).
+UNNAMED_DEVICE_TIMER = "device-events"
+# The device clocks a row's device_timer names, and what the device time of one advance()
+# covers with each (docs/timing.md).
+DEVICE_TIMERS = {
+    "cuda-events": "CUDA events recorded on the stream before the first launch and after the last: the kernels, "
+    "the device copies of --transfer copy, and any time the GPU waited for the host to launch the next kernel",
+    "gl-timer-query": "GL timestamps (glQueryCounter) before the first draw or dispatch and after the last: the "
+    "shaders and barriers, and any time the GPU waited for the host to submit the next one",
+    "opencl-events": "each kernel's profiling events, start to end, summed: the kernels only, not the gaps between "
+    "them nor the transfers of --transfer per-step",
+    UNNAMED_DEVICE_TIMER: "the backend's own profiling events of its advance(); it does not name them",
+}
+
 
 @dataclass
 class RunResult:
@@ -41,7 +61,8 @@ class RunResult:
     solver: Solver
     steps: int
     chunk_ms_per_step: list[float] = field(default_factory=list)  # one per timed chunk
-    device_ms_per_step: list[float] = field(default_factory=list)  # profiling events, if any
+    device_ms_per_step: list[float] = field(default_factory=list)  # the device's clock, if any
+    device_timer: str = ""  # which device clock measured device_ms_per_step (DEVICE_TIMERS); '' none
     warmup_s: float = 0.0  # build/compile plus the warm-up steps
     pos: np.ndarray | None = None
     prev: np.ndarray | None = None
@@ -71,6 +92,12 @@ class RunResult:
             return {"min": float("nan"), "max": float("nan"), "iqr": float("nan")}
         q = np.percentile(xs, [25, 75])
         return {"min": xs[0], "max": xs[-1], "iqr": float(q[1] - q[0])}
+
+
+def device_timer(backend) -> str:
+    """The name of the device clock backend.device_elapsed_ms() reads (DEVICE_TIMERS), '' for
+    none; the base Backend has no `device_timer`, so a backend without one names none."""
+    return getattr(backend, "device_timer", "") or ""
 
 
 def default_chunk(steps: int) -> int:
@@ -143,6 +170,7 @@ def run_timed(
             dev = backend.device_elapsed_ms()
             if dev is not None:
                 result.device_ms_per_step.append(dev / c)
+                result.device_timer = device_timer(backend) or UNNAMED_DEVICE_TIMER
             new_pos, new_prev = backend.read()
             problem = state_problem(new_pos, new_prev, scene, solver, done + c)
             if problem is not None:

@@ -1,5 +1,6 @@
-"""The meshes the renderer draws: the cloth's triangles over its particle grid, and unit
-spheres and capped cylinders scaled into place for the colliders."""
+"""The meshes the renderer draws: the cloth's triangles over its particle grid, unit
+spheres and capped cylinders scaled into place for the colliders, and the triangles of a
+mesh collider as the step sees them, in its body frame."""
 
 from __future__ import annotations
 
@@ -43,6 +44,20 @@ def cylinder_mesh(segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
         k = np.arange(1, segments + 1)
         indices.append(base + np.stack([np.zeros_like(k), k, k + 1], axis=1))
     return np.vstack(vertices).astype(np.float32), np.vstack(indices).astype(np.uint32)
+
+
+def triangle_mesh(corners: np.ndarray, shrink: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh collider's (T, 3, 3) body-frame triangles, flat-shaded (each corner with its
+    face's normal), scaled by `shrink` about the centre of their box: (vertices as (x, y, z,
+    nx, ny, nz), triangle indices)."""
+    p = corners.astype(np.float64).reshape(-1, 3, 3)
+    centre = (p.reshape(-1, 3).min(axis=0) + p.reshape(-1, 3).max(axis=0)) / 2
+    p = centre + shrink * (p - centre)
+    face = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    face /= np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-30)
+    normals = np.repeat(face, 3, axis=0)
+    vertices = np.hstack([p.reshape(-1, 3), normals]).astype(np.float32)
+    return vertices, np.arange(len(vertices), dtype=np.uint32).reshape(-1, 3)
 
 
 def grid_triangles(rows: int, cols: int) -> np.ndarray:

@@ -9,6 +9,9 @@
    error to the float64 reference, every backend variant a point coloured by platform, and
    the Pareto front (the points no other point beats on both) drawn and labelled.
 4. local_size: ms per step against work-group / block size, a panel per backend.
+5. mesh_triangles: ms per step against the triangle count of the scene's mesh colliders
+   (sweep --mesh-triangles), a line per backend variant and mesh algorithm (naive solid,
+   accelerated dashed), the count where accelerated overtakes naive named per backend.
 
 A panel carries at most MAX_SERIES lines. More make small multiples sharing both axes: a
 panel per platform (numpy, OpenCL, GL, CUDA, peers) after a first panel of each platform's
@@ -41,6 +44,7 @@ from clothbench.reports.figures_common import (
 from clothbench.reports.sweep_rows import (
     DISPLAY, REQUIRED, Row, Series, by_variant, by_variant_grid, devices_line, footer, group, load,
 )  # fmt: skip
+from clothbench.reports.mesh_plots import MESH_FILE, _mesh_triangles, crossover, plot_mesh_triangles
 
 FILES = ("time_vs_grid", "throughput", "speed_vs_error", "local_size")
 MODEL_MARKERS = {"Verlet": "o", "PBD jacobi": "s", "PBD coloured": "D"}
@@ -341,6 +345,22 @@ def plot_local_size(rows: list[Row], report: PlotReport) -> None:
     report.charts["local_size"] = chart
 
 
+def plot_mesh(path, out) -> PlotReport:
+    """The mesh_triangles figure alone, written to `out` (PNG, and SVG beside it)."""
+    ok, _ = load(path)
+    if not ok:
+        raise ClothbenchError(f"{path} has no row with status ok: nothing to plot")
+    report = PlotReport()
+    plot_mesh_triangles(ok, report)
+    if MESH_FILE not in report.charts:
+        why = report.notes[-1].removeprefix("mesh_triangles: ") if report.notes else (
+            "no row has a mesh (sweep a scene with [[mesh]] colliders, with --mesh-triangles)"
+        )
+        raise ClothbenchError(f"{path}: {why}")
+    report.files += save_figure(report.charts[MESH_FILE].figure, Path(out), dpi=150)
+    return report
+
+
 def draw_sweep(path) -> PlotReport:
     """Every figure the sweep CSV at `path` has data for, drawn (report.charts) but not
     written; what was left out and why in report.notes."""
@@ -354,11 +374,32 @@ def draw_sweep(path) -> PlotReport:
     for (backend, status, note), where in left_out.items():
         rows_ = f"{len(where)} rows" if len(where) > 1 else "1 row"
         report.notes.append(f"left out {rows_} of {backend}, {status}: {note} ({'; '.join(dict.fromkeys(where))})")
+    plot_mesh_triangles(ok, report)
+    ok = _one_scene_variant(ok, report)
     plot_time_vs_grid(ok, report)
     plot_throughput(ok, report)
     plot_speed_vs_error(ok, report)
     plot_local_size(ok, report)
     return report
+
+
+def _one_scene_variant(rows: list[Row], report: PlotReport) -> list[Row]:
+    """The rows the grid figures draw: where a sweep varied the mesh's triangles or the motion
+    (a line would otherwise hold several points per grid), those of the largest count with
+    motion on, said in a note."""
+    counts = {_mesh_triangles(r) for r in rows}
+    motions = {r.raw.get("motion", "") for r in rows}
+    if len(counts) < 2 and len(motions) < 2:
+        return rows
+    top = max((c for c in counts if c is not None), default=None)
+    motion = "on" if "on" in motions else next(iter(motions))
+    report.notes.append(
+        f"the grid figures draw the rows of {top} mesh triangles" * (len(counts) > 1)
+        + (" and " if len(counts) > 1 and len(motions) > 1 else "")
+        + f"motion {motion}" * (len(motions) > 1)
+        + " (the sweep varied them: mesh_triangles draws the triangle counts)"
+    )
+    return [r for r in rows if _mesh_triangles(r) == top and r.raw.get("motion", "") == motion]
 
 
 def plot_sweep(path, out) -> PlotReport:
@@ -370,7 +411,7 @@ def plot_sweep(path, out) -> PlotReport:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ClothbenchError(f"cannot create {out}: {e.strerror}") from None
-    for name in FILES:
+    for name in (*FILES, MESH_FILE):
         if name in report.charts:
             report.files += save_figure(report.charts[name].figure, out / f"{name}.png", dpi=150)
     return report
@@ -379,4 +420,5 @@ def plot_sweep(path, out) -> PlotReport:
 # REQUIRED, Row and load are sweep_rows' and stay importable from here (reports/results_files.py)
 __all__ = [
     "FILES", "REQUIRED", "Row", "PlotReport", "load", "draw_sweep", "plot_sweep", "scaling_exponent", "line_panels",
+    "plot_mesh", "crossover",
 ]  # fmt: skip

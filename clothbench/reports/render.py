@@ -3,7 +3,9 @@
 The cloth is the n x n sheet as indexed triangles (kernels/render_cloth.*), each grid quad
 split along its (r, c)-(r+1, c+1) diagonal as in docs/normals.md, lit on both sides with the
 particles' normals and patterned with a checker so folds show. The colliders are meshes
-(kernels/render_collider.*): spheres, capped cylinders, and a square patch of each plane.
+(kernels/render_collider.*): spheres, capped cylinders, a square patch of each plane, and
+each [[mesh]] collider's own triangles (flat-shaded, as the step sees them); a moving one is
+drawn at its pose for the frame's time (colliders/motion.py).
 A frame shows x(t), the state the last step read, with its normals: what the GL kernels
 compute (read()[1] of any backend).
 
@@ -26,9 +28,10 @@ import numpy as np
 
 from clothbench.backends import BackendOptions, capabilities, create_backend
 from clothbench.backends.gl import context as gl_context
-from clothbench.reports.meshes import cloth_indices, cylinder_mesh, perpendicular, sphere_mesh
+from clothbench.reports.meshes import cloth_indices, cylinder_mesh, perpendicular, sphere_mesh, triangle_mesh
 from clothbench.errors import ClothbenchError
 from clothbench.harness.normals import grid_normals
+from clothbench.reports.render_bounds import _moved, _placed, scene_bounds
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 
@@ -46,34 +49,9 @@ SAMPLES = 4  # multisampling (anti-aliased edges), where the driver has it
 # Colliders are drawn this much smaller than they are, so that the cloth lying on one (whose
 # flat triangles cut slightly into it) is not hidden by it.
 COLLIDER_SHRINK = 0.985
-HANG = 1.5  # a sheet hanging from a pin reaches this many times its side below it
 FLOOR_DROP = 0.003  # m, the floor patch is drawn this far below its plane, for the same reason
 
 OUTPUT_KINDS = "a .png (the last frame), a .gif (every frame) or a folder/ (one PNG per frame)"
-
-
-def scene_bounds(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """A box around where the cloth goes and the round colliders: the sheet, as far down as it
-    is long when pinned (hanging, stretched by its weight: HANG), or down to the lowest
-    collider when it lands on them, and every sphere and cylinder; not below a floor."""
-    lo = np.array([0.0, scene.height - HANG * scene.size, 0.0])
-    hi = np.array([scene.size, scene.height, scene.size])
-    lowest = [s.center[1] - s.radius for s in scene.spheres]
-    lowest += [min(c.start[1], c.end[1]) - c.radius for c in scene.cylinders]
-    if not len(scene.pinned()) and lowest:  # it lands on the colliders and drapes over them
-        lo[1] = min(max(lo[1], min(lowest)), hi[1])
-    for s in scene.spheres:
-        lo = np.minimum(lo, np.array(s.center) - s.radius)
-        hi = np.maximum(hi, np.array(s.center) + s.radius)
-    for c in scene.cylinders:
-        for end in (c.start, c.end):
-            lo = np.minimum(lo, np.array(end) - c.radius)
-            hi = np.maximum(hi, np.array(end) + c.radius)
-    for p in scene.planes:  # a floor (normal up) cuts the box off at its height
-        nrm = np.array(p.unit_normal)
-        if nrm[1] > 0.99:
-            lo[1] = max(lo[1], min(p.point[1], hi[1]))
-    return lo, hi
 
 
 @dataclass(frozen=True)
@@ -90,9 +68,10 @@ class Camera:
         return np.stack([(ndc[:, 0] + 1) / 2 * w, (1 - ndc[:, 1]) / 2 * h], axis=1)
 
 
-def frame_scene(scene: Scene, size: tuple[int, int]) -> Camera:
-    """A fixed camera above and in front of the scene, as close as keeps its bounds in view."""
-    lo, hi = scene_bounds(scene)
+def frame_scene(scene: Scene, size: tuple[int, int], duration: float = 0.0) -> Camera:
+    """A fixed camera above and in front of the scene, as close as keeps its bounds (over
+    `duration` seconds of motion) in view."""
+    lo, hi = scene_bounds(scene, duration)
     centre = (lo + hi) / 2
     back = np.array(VIEW) / np.linalg.norm(VIEW)  # from the centre toward the eye
     right = np.cross((0.0, 1.0, 0.0), back)
@@ -128,17 +107,24 @@ def _matrix(m: np.ndarray) -> bytes:
 @dataclass
 class _Shape:
     vao: object
-    model: np.ndarray
+    model: np.ndarray  # vertices to the world, as the scene file places the body
     colour: tuple[float, float, float]
     tiles: bool = False
+    body: object = None  # a collider that moves: drawn at its pose for the frame's time
+
+    def model_at(self, t: float) -> np.ndarray:
+        if self.body is None or self.body.motion is None:
+            return self.model
+        return _moved(self.body, t) @ self.model
 
 
 class Renderer:
     """Draws frames of one scene into an offscreen framebuffer of `device`'s context."""
 
-    def __init__(self, device: gl_context.GLDevice, scene: Scene, size: tuple[int, int]):
+    def __init__(self, device: gl_context.GLDevice, scene: Scene, size: tuple[int, int], duration: float = 0.0):
         self.gl, self.scene, self.size, self.n = device, scene, size, scene.grid
-        self.camera = frame_scene(scene, size)
+        self.camera = frame_scene(scene, size, duration)
+        self.time = 0.0  # s: the moving colliders are drawn at their pose for this time
         self._vaos: dict = {}  # cloth vertex arrays by the objects they draw from
         self._owned: list = []  # every GL object made here, released by close()
         with device:
@@ -188,7 +174,7 @@ class Renderer:
             for s in self.scene.spheres:
                 model = np.diag([s.radius * COLLIDER_SHRINK] * 3 + [1.0])
                 model[:3, 3] = s.center
-                shapes.append(_Shape(mesh, model, COLLIDER_COLOUR))
+                shapes.append(_Shape(mesh, model, COLLIDER_COLOUR, body=s))
         if self.scene.cylinders:
             mesh = vao(*cylinder_mesh())
             for c in self.scene.cylinders:
@@ -198,7 +184,7 @@ class Renderer:
                 model = np.eye(4)
                 model[:3, 0], model[:3, 1], model[:3, 2] = e1 * r, e2 * r, u * (c.length - 2 * trim)
                 model[:3, 3] = np.array(c.start) + u * trim
-                shapes.append(_Shape(mesh, model, COLLIDER_COLOUR))
+                shapes.append(_Shape(mesh, model, COLLIDER_COLOUR, body=c))
         if self.scene.planes:
             lo, hi = scene_bounds(self.scene)
             half = 4.0 * float(np.max(hi - lo))
@@ -211,7 +197,10 @@ class Renderer:
                 corners = centre + half * (square[:, :1] * e1 + square[:, 1:] * e2)
                 vertices = np.hstack([corners, np.tile(nrm, (4, 1))]).astype(np.float32)
                 square_vao = vao(vertices, np.array([0, 1, 2, 0, 2, 3], np.uint32))
-                shapes.append(_Shape(square_vao, np.eye(4), FLOOR_COLOUR, tiles=True))
+                shapes.append(_Shape(square_vao, np.eye(4), FLOOR_COLOUR, tiles=True, body=p))
+        for m in self.scene.meshes:  # its triangles in the body frame, placed by its pose
+            shapes.append(_Shape(vao(*triangle_mesh(m.geometry.corners, COLLIDER_SHRINK)), _placed(m),
+                                 COLLIDER_COLOUR, body=m))  # fmt: skip
         return shapes
 
     # --- the cloth's sources ---
@@ -283,8 +272,9 @@ class Renderer:
             program["light"].value = tuple(light)
         cp = self.collider_program
         for shape in self.shapes:
-            cp["model"].write(_matrix(shape.model))
-            cp["normal_matrix"].write(_matrix(np.linalg.inv(shape.model[:3, :3]).T))
+            model = shape.model_at(self.time)
+            cp["model"].write(_matrix(model))
+            cp["normal_matrix"].write(_matrix(np.linalg.inv(model[:3, :3]).T))
             cp["base"].value = shape.colour
             cp["tiles"].value = shape.tiles
             shape.vao.render()
@@ -381,7 +371,7 @@ def render(
     images = []
     with create_backend(backend_name, scene, solver, backend_options) as backend:
         device = backend.gl if hasattr(backend, "drawable_state") else gl_context.get_device(options.gl)
-        renderer = Renderer(device, scene, settings.size)
+        renderer = Renderer(device, scene, settings.size, settings.frames * settings.every * solver.dt)
         try:
             backend.upload(*backend.initial_state())
             for frame in range(1, settings.frames + 1):
@@ -391,6 +381,8 @@ def render(
                 t1 = time.perf_counter()
                 report.simulate_s += t1 - t0
                 if kind != "png" or frame == settings.frames:  # a PNG is the last frame only
+                    # the drawn state is the one the last step read, x((steps - 1) dt): the colliders then
+                    renderer.time = (frame * settings.every - 1) * solver.dt
                     images.append(renderer.draw_backend(backend))
                     t2 = time.perf_counter()
                     report.draw_s += t2 - t1

@@ -32,6 +32,11 @@ DISPLAY = {
     "taichi": "Taichi",
     "warp": "Warp",
     "numba": "Numba",
+    "numba-cuda": "Numba CUDA",
+    "torch": "PyTorch",
+    "jax": "JAX",
+    "cupy": "CuPy (NumPy step)",
+    "newton": "Newton",
 }
 
 
@@ -58,6 +63,10 @@ class Row:
     solver: str = "verlet"
     pbd_method: str = ""
     bound_ms: float | None = None  # the machine's lower bound on ms per step, where the sweep has one
+    # the device's own ms per step and its clock (sweep_csv: device_timer), where the row has them;
+    # files older than the device_timer column say nothing of the clock
+    device_ms: float | None = None
+    device_timer: str = ""
 
     @property
     def model(self) -> str:
@@ -128,6 +137,8 @@ def load(path) -> tuple[list[Row], list[dict]]:
                     solver=r.get("solver") or "verlet",
                     pbd_method=r.get("pbd_method") or "",
                     bound_ms=_optional_float(r.get("bound_ms")),
+                    device_ms=_optional_float(r.get("device_ms_median")),
+                    device_timer=r.get("device_timer") or "",
                 )
             )
         except ValueError as e:

@@ -1,11 +1,12 @@
 """The backend contract for the PBD solver (docs/pbd.md), on every backend of the registry
-that implements it: strict is the NumPy float32 reference bit for bit with either method,
-and the work-group size changes no bit."""
+that implements it with a strict mode: strict is the NumPy float32 reference bit for bit with
+either method and in every kernel shape, and the work-group size changes no bit."""
 
 from __future__ import annotations
 
 import pytest
 
+from clothbench.backends import backend_class
 from clothbench.harness import reference, simulate
 from clothbench.scene import Cylinder, Plane, Sphere, load_scene
 from clothbench.solver import PBD_METHODS, Pbd
@@ -39,26 +40,39 @@ SCENES = {"curtain": curtain, "three colliders": three_colliders}
 
 @pytest.mark.parametrize("method", PBD_METHODS)
 @pytest.mark.parametrize("scene_name", list(SCENES))
-@pytest.mark.parametrize("param", backend_params("pbd"))
+@pytest.mark.parametrize("param", backend_params("pbd", needs="strict"))  # a peer has no strict form
 def test_strict_pbd_matches_numpy_f32_bit_for_bit_after_200_steps(param, scene_name, method):
     # docs/pbd.md fixes every operation's order; the strict kernels follow it with no
     # contraction and no dot()/length(), so IEEE rounding leaves no room. Jacobi: each end of
     # a constraint keeps its own lambda, and both compute the same bits. Coloured too: within
     # a batch no two constraints share a particle, so the launch order cannot matter.
+    # Every kernel shape the backend offers (tuning may pick any): they split the work
+    # differently, never the operations on one particle or constraint.
     name, _ = usable(param)
     scene, solver = SCENES[scene_name](STRICT_GRID), Pbd(dt=AT_60HZ, method=method)
     ref_pos, ref_prev = reference(scene, solver, 200, "f32")
-    pos, prev = simulate(name, scene, solver, 200, options(name, "pbd", strict=True))
-    assert_bit_exact(pos, ref_pos, f"{name} {method} {scene_name} pos")
-    assert_bit_exact(prev, ref_prev, f"{name} {method} {scene_name} prev")
+    for shape in shapes_of(name, scene):
+        pos, prev = simulate(name, scene, solver, 200, options(name, "pbd", strict=True, shape=shape))
+        assert_bit_exact(pos, ref_pos, f"{name} {shape} {method} {scene_name} pos")
+        assert_bit_exact(prev, ref_prev, f"{name} {shape} {method} {scene_name} prev")
 
 
 @pytest.mark.parametrize("param", backend_params("pbd", needs="local_size"))
 def test_work_group_size_changes_no_strict_bit(param):
     # 7 divides neither n*n nor any batch: launches are padded and the extra items return
     name, _ = usable(param)
-    scene, solver = three_colliders(13), Pbd(dt=AT_60HZ, method="coloured")
-    ref = reference(scene, solver, 30, "f32")[0]
-    for ls in (7, 128):
-        pos = simulate(name, scene, solver, 30, options(name, "pbd", strict=True, local_size=ls))[0]
-        assert_bit_exact(pos, ref, f"{name} local size {ls}")
+    scene = three_colliders(13)
+    for method in PBD_METHODS:
+        solver = Pbd(dt=AT_60HZ, method=method)
+        ref = reference(scene, solver, 30, "f32")[0]
+        for shape in shapes_of(name, scene):
+            for ls in (7, 128):
+                opts = options(name, "pbd", strict=True, local_size=ls, shape=shape)
+                pos = simulate(name, scene, solver, 30, opts)[0]
+                assert_bit_exact(pos, ref, f"{name} {method} {shape} local size {ls}")
+
+
+def shapes_of(name: str, scene) -> tuple:
+    """The kernel shapes `name` offers for `scene` (None: it has one)."""
+    cls = backend_class(name, "pbd")
+    return cls.kernel_shapes(scene, options(name, "pbd")) if cls.capabilities.shapes else (None,)

@@ -39,6 +39,9 @@ def scene_named(name: str, n: int = N):
 def test_strict_matches_numpy_f32_bit_for_bit(param, scene_name, steps):
     name, generic = usable(param)
     scene = scene_named(scene_name)
+    refusal = backend_class(name).capabilities.scene_refusal(name, scene)
+    if refusal:  # a mesh or moving scene on a backend that does not take it yet
+        pytest.skip(refusal)
     pos, prev = simulate(name, scene, VERLET, steps, options(name, strict=True, generic=generic))
     ref_pos, ref_prev = reference(scene, VERLET, steps, "f32")
     what = f"{name} generic={generic} {scene_name} n={N} steps={steps}"

@@ -170,7 +170,6 @@ class CBackend(Backend):
         self._state = [aligned(3 * self.n2, t) for _ in range(2)]
         self._w = aligned(self.n2, t)
         self._w_prev = self._w  # the prev state's w as uploaded, until a step writes pos's w
-        self.threads = 1
         self.threads = thread_count(self.pick_shape(self._tuning_key(), self._time_shape))
 
     @classmethod

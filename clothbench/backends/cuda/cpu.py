@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.kernel_source import kernel_path
+from clothbench.kernel_source import kernel_path, resolve_includes
 from clothbench.native import cache_dir
 
 SHIM = Path(__file__).parent / "shim"
@@ -57,7 +57,9 @@ def build(strict: bool, defines: tuple[str, ...]) -> ctypes.CDLL:
     if compiler is None:
         raise ClothbenchError("g++ not found: cannot build the CPU shim of the CUDA kernel")
     kernel = kernel_path("verlet_cloth.cu")
-    sources = [kernel, SHIM / "shim.h", SHIM / "verlet_cloth_cpu.cpp"]
+    # every file the build reads: the kernel, the headers it includes, the shim
+    included = resolve_includes(kernel.name, kernel.read_text(), lambda *_: "")[1][1:]
+    sources = [kernel, *map(kernel_path, included), SHIM / "shim.h", SHIM / "verlet_cloth_cpu.cpp"]
     flags = (*GXX_FLAGS, *(["-DCLOTH_STRICT"] if strict else []), *defines)
     text = "\0".join([*(p.read_text() for p in sources), *flags, _gxx_version(compiler)])
     library = cache_dir("cuda_shim") / f"verlet_cloth-{hashlib.sha256(text.encode()).hexdigest()[:20]}.so"
@@ -80,9 +82,10 @@ def build(strict: bool, defines: tuple[str, ...]) -> ctypes.CDLL:
 
 class ShimRuntime:
     """PingPong's runtime (alloc, upload, download, copy, launch) on the CPU: NumPy arrays as
-    device buffers, one kernel of a `build` library ("verlet_step" or "verlet_steps")."""
+    device buffers (float32, or int32 for an int buffer), one kernel of a `build` library
+    ("verlet_step" or "verlet_steps")."""
 
-    CODES = ((np.ndarray, "p"), (np.float32, "f"), (np.int32, "i"))
+    CODES = ((np.float32, "f"), (np.int32, "i"))
 
     def __init__(self, lib: ctypes.CDLL, kernel: str = "verlet_step"):
         self.lib = lib
@@ -103,7 +106,8 @@ class ShimRuntime:
         schedule(seed)
 
     def alloc(self, host):
-        return np.array(host, dtype=np.float32, order="C", copy=True)
+        dtype = np.int32 if np.asarray(host).dtype == np.int32 else np.float32
+        return np.array(host, dtype=dtype, order="C", copy=True)
 
     def upload(self, buffer, host):
         np.copyto(buffer, host)
@@ -116,14 +120,14 @@ class ShimRuntime:
 
     def launch(self, grid: int, block: int, args: tuple, shared_bytes: int = 0) -> None:
         # CuPy would pass a Python float as a double: only exact types may reach the kernel
-        codes = "".join(next((c for t, c in self.CODES if isinstance(a, t)), "?") for a in args)
+        codes = "".join(self.code(a) for a in args)
         if codes != self.signature:
             raise TypeError(f"arguments {codes} != kernel parameters {self.signature}")
         values = []
         for a in args:
             if isinstance(a, np.ndarray):
-                if a.dtype != np.float32 or not a.flags.c_contiguous:
-                    raise TypeError("a buffer must be C-contiguous float32")
+                if a.dtype not in (np.float32, np.int32) or not a.flags.c_contiguous:
+                    raise TypeError("a buffer must be C-contiguous float32 (or int32 for an int buffer)")
                 values.append(ctypes.c_void_p(a.ctypes.data))
             elif isinstance(a, np.float32):
                 values.append(ctypes.c_float(a))
@@ -135,3 +139,11 @@ class ShimRuntime:
             raise RuntimeError(f"{self.kernel} launch failed: {STATUS.get(status, status)}")
         self.launches += 1
         self.shared_bytes.append(shared_bytes)
+
+    @classmethod
+    def code(cls, a) -> str:
+        """The shim's type letter of one argument (shim.h: type_code): 'q' an int buffer, 'p'
+        any other buffer, 'f' float32, 'i' int32."""
+        if isinstance(a, np.ndarray):
+            return "q" if a.dtype == np.int32 else "p"
+        return next((c for t, c in cls.CODES if isinstance(a, t)), "?")

@@ -10,19 +10,26 @@ Two kernels, one module (docs/cuda.md):
 `PingPong` holds the host side once, written against a small runtime (allocate, copy, launch),
 so that the CuPy backend and the CPU build of the same kernels (cpu.py, for the tests) are
 driven with the same argument list, launch geometry, shared memory and swap or copy.
+
+A scene with meshes adds two buffers, uploaded once (`mesh_buffers`); a scene with motion
+(moving colliders, pins attached to a body) adds a table of per-step rows (`MotionTable`),
+uploaded a window of steps at a time, and a pin-slot buffer (docs/cuda.md, "Meshes and motion").
 """
 
 from __future__ import annotations
 
 import math
 import re
+from functools import lru_cache
 
 import numpy as np
 
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver
-from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
+from clothbench.backends.kernel_inputs import (
+    ROWS_PER_COLLIDER, MeshConstants, VerletConstants, collider_rows, pin_targets, pose_rows,
+)  # fmt: skip
 
 TRANSFERS = ("swap", "copy")  # the first is the default
 STEP_KERNEL = "verlet_step"
@@ -38,6 +45,17 @@ SHARED_BYTES_PER_PARTICLE = 24  # x(t) and x(t - dt), three floats each
 SMALLEST_SHARED_OPTIN = 99 * 1024
 
 _SHAPE = re.compile(r"block=(\d+)|steps/launch=(\d+)")
+
+# The mesh buffers' layout (kernels/collide_mesh.cuh): float4 rows and ints per mesh header,
+# float4 rows per triangle (a, b, c and the 7 pseudo-normals)
+MESH_HEADER_ROWS = 5
+MESH_HEADER_INTS = 8
+MESH_TRIANGLE_ROWS = 10
+# Steps of per-step rows on the device at once, at most MOTION_WINDOW_BYTES of them: upload()
+# loads the first window, a launch that would run past it loads the next (docs/cuda.md,
+# "Meshes and motion")
+MOTION_WINDOW = 4096
+MOTION_WINDOW_BYTES = 16 * 2**20
 
 
 def multistep_shared_bytes(particles: int) -> int:
@@ -82,6 +100,110 @@ def kernel_constants(scene: Scene, solver: Solver) -> dict[str, object]:
     }  # fmt: skip
 
 
+def mesh_buffers(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, ints): every mesh of the scene in the layout kernels/collide_mesh.cuh reads, float32
+    rows of four and int32, from kernel_inputs.MeshConstants (rounded once) and the BVH."""
+    meshes = [MeshConstants.of(m) for m in scene.meshes]
+    row, count = MESH_HEADER_ROWS * len(meshes), MESH_HEADER_INTS * len(meshes)
+    headers, header_ints, triangles, boxes, links = [], [], [], [], []
+    for mesh, constants in zip(scene.meshes, meshes):
+        bvh = constants.geometry.bvh
+        rot, trans = pose_rows(mesh, 0.0)  # the fixed pose; a moving mesh's is per step
+        headers += [(*constants.lo, constants.margin), (*constants.hi, constants.margin2),
+                    *np.concatenate([rot, trans[:, None]], axis=1)]  # fmt: skip
+        tris = len(constants.corners)
+        node_row = row + MESH_TRIANGLE_ROWS * tris
+        link, leaves = count, count + 3 * bvh.nodes
+        header_ints += [row, tris, node_row, link, leaves, int(constants.closed), 0, 0]
+        rows = np.zeros((tris, MESH_TRIANGLE_ROWS, 4), np.float32)
+        rows[:, :3, :3] = constants.corners
+        rows[:, 3:, :3] = constants.normals
+        triangles.append(rows.reshape(-1, 4))
+        node = np.zeros((bvh.nodes, 2, 4), np.float32)
+        node[:, 0, :3], node[:, 1, :3] = bvh.lo, bvh.hi
+        boxes.append(node.reshape(-1, 4))
+        links.append(np.concatenate([np.stack([bvh.child, bvh.first, bvh.count], axis=1).reshape(-1), bvh.tris]))
+        row, count = node_row + 2 * bvh.nodes, leaves + len(bvh.tris)
+    # mesh_rows: the headers, then each mesh's triangles and then its node boxes
+    body = [part for pair in zip(triangles, boxes) for part in pair]
+    rows = np.concatenate([np.array(headers, np.float32).reshape(-1, 4), *body])
+    ints = np.concatenate([np.array(header_ints, np.int32), *(a.astype(np.int32) for a in links)])
+    assert len(rows) == row and len(ints) == count
+    return np.ascontiguousarray(rows), np.ascontiguousarray(ints)
+
+
+def pin_slots(scene: Scene) -> np.ndarray:
+    """Per particle, its row among the step's pin targets, or -1 (int32): the pinned particles
+    in scene.pinned() order where the pins follow a body, else none."""
+    slots = np.full(scene.particles, -1, np.int32)
+    if scene.pin_attach is not None:
+        pinned = scene.pinned()
+        slots[pinned] = np.arange(len(pinned), dtype=np.int32)
+    return slots
+
+
+def attached_pins(scene: Scene) -> int:
+    """How many pinned particles follow a body: all of them where [pins] attach, else none."""
+    return len(scene.pinned()) if scene.pin_attach is not None else 0
+
+
+def motion_rows(scene: Scene) -> int:
+    """Rows of the per-step table: every collider's rows, 3 per mesh, one per attached pin."""
+    return sum(len(r) for r in collider_rows(scene).values()) + 3 * len(scene.meshes) + attached_pins(scene)
+
+
+def motion_window(rows: int, steps_per_launch: int | None) -> int:
+    """Steps of per-step rows the device holds at once: MOTION_WINDOW, fewer where they would
+    pass MOTION_WINDOW_BYTES, never fewer than a launch takes."""
+    fits = MOTION_WINDOW_BYTES // (16 * rows)
+    return max(steps_per_launch or 1, min(MOTION_WINDOW, fits))
+
+
+@lru_cache(maxsize=8)
+def motion_table(scene: Scene, dt: float) -> "MotionTable":
+    """One table per scene and dt: every PingPong of it (a backend's, each shape the tuning
+    times) shares the steps already evaluated."""
+    return MotionTable(scene, dt)
+
+
+class MotionTable:
+    """The per-step rows of a moving scene (docs/semantics.md, "Moving colliders", "Pins
+    attached to a body"): for step k since the last upload, the poses at t = (k + 1) dt, evaluated
+    in float64 on the host and rounded once (kernel_inputs), in the layout verlet_cloth.cu reads
+    (`step_rows`): collider rows, then each mesh's (R row i, T_i), then the pins' targets.
+
+    Each step index is evaluated once and kept (an upload starts the clock again at step 0, so
+    a second run reuses them)."""
+
+    def __init__(self, scene: Scene, dt: float):
+        self.scene, self.dt = scene, dt
+        self.rows = max(1, motion_rows(scene))  # never a zero-size buffer
+        self.host = np.zeros((0, self.rows, 4), np.float32)
+
+    def step_rows(self, step: int) -> np.ndarray:
+        time = (step + 1) * self.dt  # the end of the step, t as an integer times dt
+        s = self.scene
+        parts = list(collider_rows(s, np.float32, time).values())
+        for mesh in s.meshes:
+            rot, trans = pose_rows(mesh, time)
+            parts.append(np.concatenate([rot, trans[:, None]], axis=1))
+        if s.pin_attach is not None:
+            targets = pin_targets(s, time)
+            parts.append(np.concatenate([targets, np.zeros((len(targets), 1), np.float32)], axis=1))
+        out = np.zeros((self.rows, 4), np.float32)
+        rows = np.concatenate([p.reshape(-1, 4) for p in parts])
+        out[: len(rows)] = rows
+        return out
+
+    def window(self, first: int, steps: int) -> np.ndarray:
+        """The rows of steps first .. first + steps - 1, (steps * rows, 4)."""
+        end = first + steps
+        if len(self.host) < end:
+            more = [self.step_rows(k) for k in range(len(self.host), end)]
+            self.host = np.concatenate([self.host, np.stack(more)])
+        return self.host[first:end].reshape(-1, 4)
+
+
 class PingPong:
     """The chapter's two pairs of buffers and the launches on them, for any runtime that has
 
@@ -121,13 +243,31 @@ class PingPong:
             self.grid = 1  # the whole grid in one block, its state in shared memory
             self.shared_bytes = multistep_shared_bytes(scene.particles)
         self.scene_args: tuple = ()  # the specialised kernel has the scene compiled in
+        moving = scene.has_motion
         if generic:
             colliders = []
             for kind, rows in collider_rows(scene).items():
-                # never a zero-size buffer: its pointer is passed even when no collider is read
-                buffer = runtime.alloc(rows if len(rows) else np.zeros((1, 4), np.float32))
-                colliders += [buffer, np.int32(len(rows) // ROWS_PER_COLLIDER[kind])]
+                if not moving:  # a moving scene's rows are in the per-step table
+                    # never a zero-size buffer: its pointer is passed even when no collider is read
+                    colliders.append(runtime.alloc(rows if len(rows) else np.zeros((1, 4), np.float32)))
+                colliders.append(np.int32(len(rows) // ROWS_PER_COLLIDER[kind]))
             self.scene_args = (*kernel_constants(scene, solver).values(), *colliders)
+        self.mesh_args: tuple = ()
+        if scene.meshes:  # uploaded once: the body frame does not change when a mesh moves
+            rows, ints = mesh_buffers(scene)
+            self.mesh_args = (runtime.alloc(rows), runtime.alloc(ints))
+            if generic:
+                self.mesh_args += (np.int32(len(scene.meshes)),)
+        # moving scenes: the per-step table, the window of it on the device, the pin slots
+        self.motion = motion_table(scene, solver.dt) if moving else None
+        self.steps_done = 0  # steps since the last upload: the clock of the motion
+        if self.motion is not None:
+            self.motion_steps = motion_window(self.motion.rows, steps_per_launch)
+            self.motion_buffer = runtime.alloc(np.zeros((self.motion_steps * self.motion.rows, 4), np.float32))
+            self.motion_first = 0  # the first step the device window holds
+            with_pins = generic or attached_pins(scene) > 0  # as the kernel's HAS_PIN_TARGETS
+            self.pin_args = (runtime.alloc(pin_slots(scene)),) if with_pins else ()
+            self.generic = generic
         empty = np.zeros((scene.particles, 4), dtype=np.float32)
         self.pos_in, self.prev_in = runtime.alloc(empty), runtime.alloc(empty)
         self.pos_out, self.prev_out = runtime.alloc(empty), runtime.alloc(empty)
@@ -138,15 +278,39 @@ class PingPong:
         self.runtime.upload(self.pos_in, np.ascontiguousarray(pos, dtype=np.float32))
         self.runtime.upload(self.prev_in, np.ascontiguousarray(prev, dtype=np.float32))
         self.has_normals = False
+        self.steps_done = 0  # the uploaded state is at t = 0: the bodies start over
+        if self.motion is not None:  # the first window now, outside any timed advance()
+            self._load_window(0)
+
+    def _load_window(self, first: int) -> None:
+        self.runtime.upload(self.motion_buffer, self.motion.window(first, self.motion_steps))
+        self.motion_first = first
+
+    def motion_args(self, steps: int) -> tuple:
+        """The per-step rows of the next `steps` steps (a view into the device window, reloaded
+        when they would run past it) and the pin slots; () without motion."""
+        if self.motion is None:
+            return ()
+        offset = self.steps_done - self.motion_first
+        if offset < 0 or offset + steps > self.motion_steps:
+            # inside advance(), so inside a timed chunk: one upload of a window of steps (and
+            # their host evaluation, the first time a step index is reached), every
+            # motion_steps steps; upload() loaded the first one outside it
+            self._load_window(self.steps_done)
+            offset = 0
+        view = self.motion_buffer[offset * self.motion.rows :]
+        rows = (np.int32(self.motion.rows),) if self.generic else ()
+        return (view, *rows, *self.pin_args)
 
     def args(self, steps: int = 1) -> tuple:
-        """The kernel's arguments, in its parameter order; `steps` is verlet_steps' count."""
+        """The kernel's arguments, in its parameter order; `steps` is verlet_steps' count (and,
+        in a moving scene, how many steps of rows the launch reads from the step count on)."""
         buffers = (self.pos_in, self.prev_in, self.pos_out, self.prev_out)
         if self.normals is not None:
             buffers += (self.normals,)
         if self.steps_per_launch is not None:
             buffers += (np.int32(steps),)
-        return (*buffers, *self.scene_args)
+        return (*buffers, *self.scene_args, *self.mesh_args, *self.motion_args(steps))
 
     def launches(self, steps: int) -> list[int]:
         """The steps of each launch that advance(steps) makes: all of steps_per_launch, then
@@ -159,6 +323,7 @@ class PingPong:
     def advance(self, steps: int) -> None:
         for count in self.launches(steps):
             self.runtime.launch(self.grid, self.block, self.args(count), self.shared_bytes)
+            self.steps_done += count
             if self.transfer == "copy":  # the chapter: cudaMemcpy(in, out, DeviceToDevice), per launch
                 self.runtime.copy(self.pos_in, self.pos_out)
                 self.runtime.copy(self.prev_in, self.prev_out)

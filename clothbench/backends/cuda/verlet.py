@@ -15,10 +15,17 @@ Specialisation: by default the kernels are built for the scene and solver, its c
 colliders compile-time constants (exact float literals in -D defines) and the code of a
 collider kind the scene lacks left out; `--generic` builds the one module that takes them all
 as arguments. `kernel_defines` gives the -D switches, and compiled modules are cached by them.
+Meshes (kernels/collide_mesh.cuh) and motion are switched in only for a scene that has them
+(docs/cuda.md, "Meshes and motion").
 
 Compilation: we compile the kernels ourselves (NVRTC through CuPy's binding, or nvcc) and
 load the binary with RawModule(path=...). CuPy's own RawModule(code=...) path appends
 `-ftz=true`, flushing denormals that NumPy keeps, which `--strict` cannot allow.
+
+CuPy of either CUDA major runs it: cupy-cuda12x (the `cuda` extra) or cupy-cuda13x
+(`cuda13`), with NVRTC where its library loads (the extra's wheel or a toolkit), else nvcc;
+probe() and `driver` name the CuPy build, its CUDA runtime and the compiler found
+(docs/cuda.md, "CUDA 12 or 13").
 
 cupy is an optional extra and is imported only inside functions: importing this module
 never needs it, and probe() says how to install it.
@@ -34,12 +41,18 @@ from pathlib import Path
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.kernel_source import c_float, read_kernel
+from clothbench.kernel_source import c_float, read_kernel, resolve_includes
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.cuda import launch
-from clothbench.backends.cuda.launch import AUTO_BLOCK, TRANSFERS, PingPong, kernel_constants
+from clothbench.backends.cuda.runtime import (  # noqa: F401 (re-exported: tests and peers use them from here)
+    CUPY_PACKAGES, EXTRAS, INSTALL_HINT, _driver_note, _installed, _nvcc_available, _nvrtc_available,
+    _short, _version, compiler, compiler_name, cuda_major, install_hint,
+)  # fmt: skip
+from clothbench.backends.cuda.launch import (
+    AUTO_BLOCK, TRANSFERS, PingPong, attached_pins, kernel_constants, motion_rows,
+)  # fmt: skip
 from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, collider_rows
 
 __all__ = ["AUTO_BLOCK", "TRANSFERS", "PingPong", "CudaBackend", "kernel_constants", "kernel_defines"]
@@ -48,8 +61,6 @@ KERNEL_FILE = "verlet_cloth.cu"
 KERNEL_NAME = launch.STEP_KERNEL
 TUNING_STEPS = 64  # steps a candidate shape is timed over: a multiple of every steps/launch
 TUNING_REPEATS = 3
-INSTALL_HINT = "cupy not installed (pip install 'clothbench[cuda]')"
-NO_COMPILER = "no CUDA compiler (pip install 'clothbench[cuda]' for NVRTC, or put nvcc on PATH)"
 
 
 def compile_options(strict: bool) -> tuple[str, ...]:
@@ -68,82 +79,86 @@ def compile_options(strict: bool) -> tuple[str, ...]:
 
 
 def kernel_defines(
-    scene: Scene, solver: Solver, normals: bool = False, generic: bool = False
+    scene: Scene, solver: Solver, normals: bool = False, generic: bool = False, mesh_collision: str | None = None
 ) -> tuple[str, ...]:
     """The -D switches that build verlet_cloth.cu for this scene and solver: the
     specialisation key.
 
-    Generic: only CLOTH_GENERIC (and CLOTH_NORMALS), so every scene shares one kernel.
+    Generic: only CLOTH_GENERIC (and CLOTH_NORMALS), so every scene shares one kernel; a
+    scene with meshes adds CLOTH_MESHES (every mesh scene shares one), a moving one CLOTH_MOTION.
     Specialised: the constants as exact float literals, the collider counts, and the
-    colliders of each kind the scene has as a brace list of float4 rows.
+    colliders of each kind the scene has as a brace list of float4 rows (a moving scene: only
+    the counts and the per-step table's size, CLOTH_MOTION_ROWS and CLOTH_PIN_COUNT), and the
+    mesh count. `mesh_collision` (accelerated, the default, or naive) picks CLOTH_MESH_BVH.
     """
     defines = ["-DCLOTH_NORMALS"] if normals else []
+    algorithm = mesh_collision or "accelerated"
+    if algorithm not in CudaBackend.capabilities.mesh_collisions:
+        raise ValueError(f"mesh_collision must be accelerated or naive, got {mesh_collision!r}")
+    mesh = ["-DCLOTH_MESH_BVH"] if scene.meshes and algorithm == "accelerated" else []
+    moving = scene.has_motion
     if generic:
-        return (*defines, "-DCLOTH_GENERIC")
+        return (
+            *defines, "-DCLOTH_GENERIC", *(["-DCLOTH_MESHES", *mesh] if scene.meshes else []),
+            *(["-DCLOTH_MOTION"] if moving else []),
+        )  # fmt: skip
     for name, value in kernel_constants(scene, solver).items():
         literal = str(value) if name == "n" else c_float(value)
         defines.append(f"-DCLOTH_{name.upper()}={literal}")
     for kind, rows in collider_rows(scene).items():
         singular = kind[:-1].upper()
         defines.append(f"-DCLOTH_{singular}_COUNT={len(rows) // ROWS_PER_COLLIDER[kind]}")
-        if len(rows):
+        if len(rows) and not moving:  # a moving scene's rows are per step, not compiled in
             items = ",".join("{" + ",".join(c_float(v) for v in row) + "}" for row in rows)
             defines.append(f"-DCLOTH_{kind.upper()}={{{items}}}")
+    if scene.meshes:  # the triangles are buffers (launch.mesh_buffers): too large for literals
+        defines += [f"-DCLOTH_MESH_COUNT={len(scene.meshes)}", *mesh]
+    if moving:
+        rows, pins = max(1, motion_rows(scene)), attached_pins(scene)
+        defines += ["-DCLOTH_MOTION", f"-DCLOTH_MOTION_ROWS={rows}", f"-DCLOTH_PIN_COUNT={pins}"]
     return tuple(defines)
 
 
 # --- availability ---------------------------------------------------------------------
 
 
-def _short(e: BaseException) -> str:
-    """'cudaErrorInsufficientDriver' from 'cudaErrorInsufficientDriver: CUDA driver ...'."""
-    text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-    return text.split(":", 1)[0].strip() or type(e).__name__
-
-
-def _nvrtc_available() -> bool:
+# cupy_build and probe stay here: they look up compiler and _installed in this module, where the
+# tests replace them
+def cupy_build(cupy) -> str:
+    """'cupy-cuda13x 14.2.0, CUDA 13.2 runtime': the CuPy wheel (or source build) imported and
+    the CUDA runtime it was built with; two wheels at once are both named (CuPy warns)."""
+    found = [f"{p} {v}" for p in CUPY_PACKAGES if (v := _installed(p)) is not None]
+    build = " + ".join(found) or f"cupy {getattr(cupy, '__version__', '?')}"
     try:
-        from cupy_backends.cuda.libs import nvrtc
-
-        nvrtc.getVersion()  # loads libnvrtc (the nvidia-cuda-nvrtc-cu12 wheel or a toolkit)
-        return True
+        return f"{build}, CUDA {_version(int(cupy.cuda.runtime.runtimeGetVersion()))} runtime"
     except Exception:
-        return False
+        return build
 
 
-def _nvcc_available() -> bool:
-    try:
-        from cupy.cuda import get_nvcc_path  # the nvcc compile_using_nvcc will run
-
-        return get_nvcc_path() is not None
-    except Exception:
-        return False
-
-
-def compiler() -> str | None:
-    """'nvrtc' where libnvrtc loads, else 'nvcc' where CuPy finds it, else None."""
-    if _nvrtc_available():
-        return "nvrtc"
-    return "nvcc" if _nvcc_available() else None
 
 
 def probe() -> Availability:
+    """Whether CUDA runs here; the reason names the CuPy build and its CUDA runtime, and the
+    compiler found (for a usable backend too: what it will compile and run with)."""
     try:
         import cupy
     except ImportError:
         return Availability(False, INSTALL_HINT)
     except Exception as e:  # installed but broken, e.g. built against another numpy
         return Availability(False, f"cupy failed to import: {type(e).__name__}: {_short(e)}")
+    build, major = cupy_build(cupy), cuda_major(cupy)
     try:
         count = cupy.cuda.runtime.getDeviceCount()
     except Exception as e:  # no driver: cudaErrorInsufficientDriver / cudaErrorNoDevice
-        return Availability(False, f"no CUDA device (cupy: {_short(e)})")
+        return Availability(False, f"no CUDA device ({build}: {_short(e)}{_driver_note(cupy, major)})")
     if count < 1:
-        return Availability(False, "no CUDA device (cupy: 0 devices)")
-    if compiler() is None:
-        return Availability(False, NO_COMPILER)
+        return Availability(False, f"no CUDA device ({build}: 0 devices)")
+    using = compiler()
+    if using is None:
+        return Availability(False, f"no CUDA compiler for {build} ({install_hint(major)}, or put nvcc on PATH)")
     name = cupy.cuda.runtime.getDeviceProperties(0)["name"]
-    return Availability(True, device=name.decode() if isinstance(name, bytes) else str(name))
+    device = name.decode() if isinstance(name, bytes) else str(name)
+    return Availability(True, reason=f"{build}, {compiler_name(using)}", device=device)
 
 
 # --- compilation ----------------------------------------------------------------------
@@ -164,14 +179,21 @@ def compile_kernel(
     cache holds one binary per specialisation. Needs no device: tests/test_cuda.py runs it
     on machines without a GPU.
     """
-    source = read_kernel(KERNEL_FILE)
+    # collide_mesh.cuh and any other include put in on the host: NVRTC and nvcc's temporary
+    # folder would not find kernels/
+    source = resolve_includes(KERNEL_FILE, read_kernel(KERNEL_FILE), lambda line, _, name: f'#line {line} "{name}"')[0]
     options = (*compile_options(strict), *defines)
     if using == "nvrtc":
         from cupy_backends.cuda.libs import nvrtc
 
-        supported = [a for a in nvrtc.getSupportedArchs() if a <= int(arch)]
-        if not supported:
-            raise ClothbenchError(f"NVRTC cannot compile for sm_{arch}")
+        archs = sorted(nvrtc.getSupportedArchs())
+        supported = [a for a in archs if a <= int(arch)]
+        if not supported:  # CUDA 13 dropped what is older than sm_75; CUDA 12 compiles sm_50 on
+            major, minor = nvrtc.getVersion()
+            raise ClothbenchError(
+                f"NVRTC {major}.{minor} compiles for sm_{archs[0]} and newer, not this sm_{arch} device: "
+                "use a CuPy and NVRTC of an older CUDA (pip install 'clothbench[cuda]' for CUDA 12)"
+            )
         if code == "cubin" and supported[-1] != int(arch):
             code = "ptx"  # a device newer than this NVRTC: PTX, which the driver compiles
         target = f"sm_{supported[-1]}" if code == "cubin" else f"compute_{supported[-1]}"
@@ -229,10 +251,6 @@ class _CupyRuntime:
             self.kernel((grid,), (block,), args, shared_mem=shared_bytes)
 
 
-def _version(number: int) -> str:
-    """13020 -> '13.2', as CUDA encodes its versions (1000 major + 10 minor)."""
-    return f"{number // 1000}.{number % 1000 // 10}"
-
 
 def shared_memory_limit(device: str | None) -> int:
     """The dynamic shared memory one block of CUDA device `device` (an index) may opt into;
@@ -248,6 +266,7 @@ def shared_memory_limit(device: str | None) -> int:
 
 class CudaBackend(Backend):
     name = "cuda"
+    device_timer = "cuda-events"  # device_elapsed_ms: events around advance()'s launches (docs/timing.md)
     capabilities = Capabilities(
         transfers=TRANSFERS,
         local_size=True,
@@ -255,6 +274,8 @@ class CudaBackend(Backend):
         normals=True,
         device=True,  # --device: a CUDA device index
         shapes=True,  # block=N, steps/launch=K (launch.py)
+        # meshes (kernels/collide_mesh.cuh) and per-step poses (launch.py: MotionTable), both kernels
+        meshes=("verlet",), moving_colliders=("verlet",), mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "copy"}),
     )
 
@@ -281,10 +302,11 @@ class CudaBackend(Backend):
         rt = cupy.cuda.runtime
         props = rt.getDeviceProperties(index)
         self._name = props["name"].decode() if isinstance(props["name"], bytes) else str(props["name"])
-        self._driver = f"CUDA driver {_version(rt.driverGetVersion())}, runtime {_version(rt.runtimeGetVersion())}, {self._name}"
         self._binary_dir = None
-        self.defines = kernel_defines(scene, solver, options.normals, options.generic)
+        self.defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision)
         module = self._load_module(options.strict, self._device.compute_capability, self.defines)
+        # which CuPy (CUDA 12 or 13) and which compiler built the module: part of the tuning key
+        self._driver = f"CUDA driver {_version(rt.driverGetVersion())}, {cupy_build(cupy)}, {self._compiler}, {self._name}"
         self._kernels = {name: module.get_function(name) for name in (launch.STEP_KERNEL, launch.STEPS_KERNEL)}
         limit = self._kernels[launch.STEP_KERNEL].max_threads_per_block
         if options.local_size is not None and options.local_size > limit:  # the base refused < 1
@@ -303,6 +325,10 @@ class CudaBackend(Backend):
             "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
             "arithmetic": "strict" if o.strict else "fast", "generic": str(o.generic),
             "normals": str(o.normals), "transfer": self.transfer, "local_size": str(o.local_size or "auto"),
+            # only where the scene has them, so that the keys of other scenes stay as they were
+            **({"meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
+                          f"{self.mesh_collision}"} if s.meshes else {}),
+            **({"motion": "per-step poses"} if s.has_motion else {}),
         }  # fmt: skip
 
     def _pingpong(self, shape: str) -> PingPong:
@@ -347,7 +373,8 @@ class CudaBackend(Backend):
 
         using = compiler()
         if using is None:
-            raise ClothbenchError(NO_COMPILER)
+            raise ClothbenchError(f"no CUDA compiler ({install_hint(cuda_major(cupy))}, or put nvcc on PATH)")
+        self._compiler = compiler_name(using)
         # RawModule loads from a file; keep it until close() in case CuPy reads it lazily
         self._binary_dir = tempfile.TemporaryDirectory(prefix="clothbench-cuda-")
         path = Path(self._binary_dir.name) / "verlet_cloth.bin"  # cuModuleLoad tells cubin from PTX

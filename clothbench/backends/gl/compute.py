@@ -9,6 +9,11 @@ time, images with vector gathers.
 Each step is two dispatches, the interior (every neighbour present, no bounds tests) and
 the border, then a memory barrier before the next step reads what this one wrote.
 
+Meshes, moving colliders and attached pins (docs/semantics.md): kernels/collide_mesh.glsl
+and the MOTION and PIN_ATTACH parts of the step, compiled only for a scene that has them;
+their storage buffers are gl_context.GLBodies, the per-step rows written for a block of steps
+before the dispatches that read them (uniform motion_step: a step's place in the block).
+
 Kernel shapes (gl/shapes.py): the work-group size or 2-D tile of those dispatches, or, on
 small grids, one work group running K steps per dispatch (kernels/verlet_cloth_steps.comp);
 chosen per driver, grid and build by measurement (backends/tuning.py) unless --shape or
@@ -43,6 +48,8 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
     capabilities = Capabilities(
         local_size=True, generic=True, normals=True, gl=True, shapes=True,
         sweep_variants=({"strict": True}, {"strict": False}),
+        meshes=("verlet",), moving_colliders=("verlet",),  # compute_pbd.py declares its own
+        mesh_collisions=("accelerated", "naive"),  # the same bits (kernels/collide_mesh.glsl)
     )  # fmt: skip
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
@@ -54,6 +61,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         self.mode_suffix = gl_context.mode_suffix(self.gl, ssbo_reads=not self.image_reads)
         self.sources: dict[object, str] = {}  # the compiled source of each (pass, shape)
         self._scratch = None  # the one-group shape's scratch buffer, where shared memory is too small
+        self.steps_done = 0  # steps since the last upload: step k's poses are at (k + 1) dt
         size = scene.particles * 16  # one vec4 per particle
         with self.gl:
             ctx = self.gl.ctx
@@ -63,6 +71,8 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
             self.views = []
             if self.image_reads:
                 self.views = [tuple(map(self.gl.buffer_texture, pair)) for pair in self.pairs]
+        # meshes, per-step rows of moving bodies, attached-pin slots (none without them)
+        self.bodies = gl_context.GLBodies(self.gl, scene, solver.dt, self.mesh_collision)
         self.current = 0  # index of the pair holding the latest state
         self.has_normals = False
         if options.local_size is not None:  # the 1-D shape of that size, not tuned
@@ -115,8 +125,11 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         defines.update(extra)
         if self.image_reads and filename == "verlet_cloth.comp":
             defines["IMAGE_READS"] = ""
+        defines.update(gl_context.body_defines(self.scene, self.mesh_collision))
         kinds = gl_context.collider_kinds(self.scene, self.options.generic)
-        source = gl_context.shader_source(filename, 430, defines, kinds)
+        source = gl_context.shader_source(
+            filename, 430, defines, kinds, meshes=bool(self.scene.meshes), moving=self.scene.has_motion
+        )
         # the source is the specialisation key (see fragment.GLSLBackend._program)
         program = self.gl.program(("comp", source), lambda: self.gl.ctx.compute_shader(source))
         self.sources[what] = source
@@ -130,10 +143,12 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
             pos_buf.write(np.ascontiguousarray(pos, dtype=np.float32))
             prev_buf.write(np.ascontiguousarray(prev, dtype=np.float32))
         self.has_normals = False
+        self.steps_done = 0  # the uploaded state is at t = 0: moving bodies start over
 
     def advance(self, steps: int) -> None:
         if steps > 0:
-            self.run_plan(self.plan, steps)
+            with self.timed_steps():  # device_elapsed_ms: GL timestamps around the dispatches
+                self.run_plan(self.plan, steps)
 
     def run_plan(self, plan: "Plan", steps: int) -> None:
         """Enqueue `steps` steps with `plan`'s dispatches (the chosen one, or one being timed)."""
@@ -143,15 +158,26 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                     gl_context.set_constant_uniforms(program, self.scene, self.solver)
             if self.normals is not None:
                 self.normals.bind_to_storage_buffer(4)
-            if plan.shape.steps is not None:
-                self._run_steps(plan, steps)
-            else:
-                for _ in range(steps):
-                    self._bind_pairs(image_reads=self.image_reads)
-                    for program, groups in plan.passes:
-                        program.run(*groups)
-                    self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
-                    self.current = 1 - self.current  # ping-pong: swap the pairs' roles
+            self.bodies.bind()
+            moving = self.bodies.moving
+            done = 0
+            while done < steps:  # a scene that moves: blocks of MOTION_BLOCK steps' rows
+                block = min(gl_context.MOTION_BLOCK, steps - done) if moving else steps - done
+                if moving:
+                    self.bodies.upload_rows(self.steps_done, block)
+                if plan.shape.steps is not None:
+                    self._run_steps(plan, block)
+                else:
+                    for step in range(block):
+                        self._bind_pairs(image_reads=self.image_reads)
+                        for program, groups in plan.passes:
+                            if moving and "motion_step" in program:
+                                program["motion_step"].value = step  # this step's rows in the block
+                            program.run(*groups)
+                        self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
+                        self.current = 1 - self.current  # ping-pong: swap the pairs' roles
+                done += block
+                self.steps_done += block
         self.has_normals = self.options.normals
 
     def _bind_pairs(self, image_reads: bool) -> None:
@@ -176,6 +202,8 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
             chunk = min(plan.shape.steps, steps - done)
             self._bind_pairs(image_reads=False)
             program["steps"].value = chunk
+            if "motion_step" in program:
+                program["motion_step"].value = done  # this dispatch's first step in the block
             program.run(1)
             self.gl.ctx.memory_barrier()
             self.current = 1 - self.current
@@ -212,6 +240,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                     buf.release()
             if self._scratch is not None:
                 self._scratch.release()
+        self.bodies.release()
         self.views, self.pairs, self.normals, self._scratch = [], [], None, None
 
 

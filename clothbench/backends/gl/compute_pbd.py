@@ -7,6 +7,12 @@ dispatch is followed by a memory barrier, since the next one reads what it wrote
 (x, v, two predicted-position buffers, lambda) stays in SSBOs; the coloured batches' (i, j)
 pairs are uploaded once. The context, its program cache, the work-group size and the
 dispatch geometry are gl/context.py's.
+
+Meshes, moving colliders and pins attached to a body (docs/pbd.md, "Colliders, motion and
+attached pins"): gl/context.py's GLBodies and body_defines, as the Verlet kernels take them,
+with one block of rows per substep (the poses and pin targets at its end), written inside
+advance() (so the harness times it) MOTION_BLOCK substeps at a time; the predict and collide
+programs read block `motion_step`, set before each substep's dispatches.
 """
 
 from __future__ import annotations
@@ -24,13 +30,20 @@ from clothbench.backends.gl.context import open_compute_device, work_groups
 from clothbench.backends.pbd_device import PbdDeviceBackend
 
 KERNEL_FILE = "pbd_cloth.comp"
-STAGES = {"predict": 0, "jacobi": 1, "coloured": 2, "collide": 3, "update": 4}  # as the kernel's
+STAGES = {"predict": 0, "jacobi": 1, "coloured": 2, "collide": 3, "update": 4, "coloured sweep": 5}  # as the kernel's
 PARTS = {"all": 0, "interior": 1, "border": 2}  # of a Jacobi pass, as the kernel's
 # The constraint passes read positions through imageBuffer views of their buffers where the
 # driver allows a view that large: llvmpipe gathers image loads and loads SSBOs lane by lane
 # (measured at n = 256: Jacobi 1.5-2x, coloured 1.2x faster). Tests turn it off to check the
 # SSBO path.
 PREFER_IMAGE_READS = True
+# The coloured method can run an iteration's 12 batches in one dispatch of one work-group of
+# SWEEP_LOCAL_SIZE invocations (barriers between batches), up to this many particles, instead
+# of a dispatch per batch (docs/pbd.md, "Launches"). Off (0): on llvmpipe one work-group is
+# one thread, and measured slower than 12 dispatches at 64^2 to 256^2. Tests set it to check
+# that the sweep is exact; the mode says /coloured-sweep when it runs.
+COLOURED_SWEEP_MAX_PARTICLES = 0
+SWEEP_LOCAL_SIZE = 256  # measured faster than 1024 on llvmpipe; GL 4.3 guarantees up to 1024
 
 
 def jacobi_parts(n: int) -> list[tuple[str, int]]:
@@ -44,7 +57,11 @@ def jacobi_parts(n: int) -> list[tuple[str, int]]:
 
 class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
     name = "glsl-compute"
-    capabilities = Capabilities(local_size=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}))
+    capabilities = Capabilities(
+        local_size=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}),
+        meshes=("pbd",), moving_colliders=("pbd",),
+        mesh_collisions=("accelerated", "naive"),  # compute.py's default, the same bits
+    )
 
     def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
         super().__init__(scene, solver, options)
@@ -52,12 +69,16 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
         self.effective_local_size = self.local_size
         size = self.n2 * 16  # one vec4 per particle
         self.sources: dict[str, str] = {}
+        # meshes, per-substep rows of moving bodies, attached-pin slots (none without them)
+        self.bodies = gl_context.GLBodies(self.gl, scene, solver.dt / solver.substeps, self.mesh_collision)
         with self.gl:
             ctx = self.gl.ctx
             self.x = ctx.buffer(reserve=size)
             self.v = ctx.buffer(reserve=size)
             self.xs = [ctx.buffer(reserve=size) for _ in range(2)]  # Jacobi ping-pong
             self.lam = ctx.buffer(reserve=4 * self.lambda_count)
+            # Chebyshev: the lambdas ping-pong as the iterates do
+            self.lams = [self.lam, ctx.buffer(reserve=4 * self.lambda_count)] if self.chebyshev else [self.lam]
             self.ij = None if self.jacobi else ctx.buffer(self.batch_pairs.tobytes())
             # imageBuffer views of the two predicted-position buffers (no copy), for the reads
             # of the constraint passes (PREFER_IMAGE_READS)
@@ -65,12 +86,19 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             self.views = [self.gl.buffer_texture(buf) for buf in self.xs] if self.image_reads else []
             self.mode_suffix = gl_context.mode_suffix(self.gl, ssbo_reads=not self.image_reads)
             self.programs = {}
-            self.launches = self._plan_launches()
+            self.coloured_sweep = not self.jacobi and self.n2 <= COLOURED_SWEEP_MAX_PARTICLES
+            self.mode_suffix += "/coloured-sweep" * self.coloured_sweep
+            self.launches = self._plan_launches(self.coloured_sweep)
+            if self.coloured_sweep:  # profile_stages() times each batch on its own
+                self.stage_launches = self._plan_launches()
+            # the programs that read a moving scene's per-substep rows: predict, collide
+            self.motion_readers = [p for p in self.programs.values() if "motion_step" in p]
 
     def _defines(self) -> dict[str, object]:
         c = self.constants
         defines: dict[str, object] = {"STRICT": ""} if self.strict else {}
         defines.update(gl_context.scene_defines(self.scene))  # n, colliders
+        defines.update(gl_context.body_defines(self.scene, self.mesh_collision))  # meshes, motion, pins
         defines.update(
             LOCAL_SIZE=self.local_size,
             H_VALUE=glsl_float(c.h),
@@ -92,8 +120,15 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             defines["PART"] = PARTS[part]
         if stage in ("jacobi", "coloured") and self.image_reads:
             defines["IMAGE_READS"] = ""
+        if stage == "coloured sweep":
+            starts = [*map(int, self.batch_offsets), len(self.batch_pairs)]
+            defines.update(LOCAL_SIZE=SWEEP_LOCAL_SIZE, BATCH_OFFSETS_VALUE=f"int[13]({', '.join(map(str, starts))})")
+        if stage == "jacobi" and self.chebyshev:
+            defines["CHEBYSHEV"] = ""
         kinds = gl_context.collider_kinds(self.scene, generic=False)
-        source = gl_context.shader_source(KERNEL_FILE, 430, defines, kinds)
+        source = gl_context.shader_source(
+            KERNEL_FILE, 430, defines, kinds, meshes=bool(self.scene.meshes), moving=self.scene.has_motion
+        )
         self.sources[stage if part is None else f"{stage} {part}"] = source
         # the source is the specialisation key: the same scene and switches share a program
         program = self.gl.program(("pbd-comp", source), lambda: self.gl.ctx.compute_shader(source))
@@ -108,10 +143,15 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             _, it, src, dst = step
             images = ((0, self.views[src]),) if self.image_reads else ()
             ssbos = ((1, self.xs[dst]), (2, self.lam)) + (() if self.image_reads else ((0, self.xs[src]),))
+            if self.chebyshev:
+                ssbos = ((1, self.xs[dst]), (2, self.lams[it % 2]), (3, self.lams[1 - it % 2]))
+                ssbos += () if self.image_reads else ((0, self.xs[src]),)
             launches = []
             for part, items in jacobi_parts(self.n):
                 program = self._program(kind, "all" if self.n < 5 else part)
-                uniforms = ((program["first_pass"], int(it == 0)),)
+                uniforms = ((program["iteration"], it),)
+                if self.chebyshev and it > 0:
+                    uniforms += ((program["omega"], float(self.constants.omega[it])),)
                 launches.append((program, work_groups(items, self.local_size), ssbos, images, uniforms))
             return launches
         program, items = self._program(kind), self.n2
@@ -123,6 +163,8 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             _, it, b = step
             batch = self.batches[b]
             items = len(batch.i)
+            if items == 0:  # a batch a small grid has no constraint in (n < 5): nothing to run
+                return []
             bindings = (self.xs[0], self.ij, self.lam)
             images = ((0, self.views[0]),) if self.image_reads else ()
             uniforms = (
@@ -131,6 +173,11 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
                 ("batch_kind", batch.kind),
                 ("first_pass", int(it == 0)),
             )
+        elif kind == "coloured sweep":
+            bindings = (self.xs[0], self.ij, self.lam)
+            uniforms = (("first_pass", int(step[1] == 0)),)
+            uniforms = tuple((program[u], v) for u, v in uniforms)
+            return [(program, (1, 1), tuple(enumerate(bindings)), (), uniforms)]
         elif kind == "collide":
             bindings = (self.xs[step[1]],)
         else:
@@ -169,12 +216,24 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             )
 
     # --- Backend interface -----------------------------------------------------------------
+    def _motion_block(self) -> int:
+        return gl_context.MOTION_BLOCK if self.bodies.moving else 0
+
+    def _upload_motion(self, first: int, count: int) -> None:
+        self.bodies.upload_rows(first, count)
+
+    def _use_substep(self, j: int) -> None:
+        for program in self.motion_readers:  # predict, collide: this substep's rows in the block
+            program["motion_step"].value = j
+
     def advance(self, steps: int) -> None:
         with self.gl:
+            self.bodies.bind()
             super().advance(steps)
 
     def profile_stages(self, steps: int) -> dict[str, float]:
         with self.gl:
+            self.bodies.bind()
             return super().profile_stages(steps)
 
     def close(self) -> None:
@@ -182,7 +241,8 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             return
         with self.gl:  # the context is shared (gl_context), so only our objects go
             self.gl.delete_textures(self.views)
-            for buf in (self.x, self.v, *self.xs, self.lam, self.ij):
+            for buf in (self.x, self.v, *self.xs, *self.lams, self.ij):
                 if buf is not None:
                     buf.release()
+        self.bodies.release()
         self.x = None

@@ -26,12 +26,23 @@ from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
-from clothbench.backends.gl.driver import GLDriverInfo
+from clothbench.backends.gl.timers import (  # noqa: F401  (re-exported, as gl_context.X)
+    _GL_QUERY_COUNTER_BITS, _GL_TIMESTAMP, DEVICE_TIMER, GLClock, GLDeviceMixin, GLTimestamps,
+)  # fmt: skip
+from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_context.X)
+    COLLIDER_KINDS, MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
+    GLBodies, MeshBuffers, body_defines, collider_kinds, collider_source, mesh_layout, motion_offsets,
+    motion_rows, pin_slots, pose_block,
+)  # fmt: skip
 
 INSTALL_HINT = "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for --gl osmesa"  # README
 MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs
 DEFAULT_LOCAL_SIZE = 64  # 64 to 1024 measured the same at n = 256 on llvmpipe; 32 and less slower
 MAX_GROUPS_X = 65535  # GL guarantees this many work groups per dimension, no more
+
+# Renderers that run the shaders on the host CPU: their timer queries are the host's clock, not
+# a device's (docs/timing.md), so no GL backend on them reports a device time.
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe", "swiftshader")
 
 # Two float32 products NumPy computes as subnormals: a normal value times a normal value
 # (flush-to-zero of a result) and a subnormal value times 2 (denormals-are-zero of an input).
@@ -54,7 +65,7 @@ class DrawableState:
     normals: object
 
 
-class GLDevice:
+class GLDevice(GLTimestamps):
     """An OpenGL context (the process's one for its provider) and its compiled programs."""
 
     def __init__(self, ctx, provider: str, get_proc_address, keepalive=None):
@@ -69,6 +80,8 @@ class GLDevice:
         self._keepalive = keepalive  # the OSMesa handle and its buffer must outlive ctx
         self._depth = 0  # how many `with device:` blocks are open
         self._flushes: dict[str, bool] = {}  # shader stage -> flushes subnormals (probed once)
+        self._timestamp_bits: int | None = None  # GL_QUERY_COUNTER_BITS of GL_TIMESTAMP (asked once)
+        self._free_queries: list[tuple[int, int]] = []  # query pairs of clocks gone, for the next
 
     def __enter__(self):
         # Re-entrant: only the outermost `with` makes the context current and releases it, so
@@ -142,6 +155,29 @@ class GLDevice:
         program.release()
         return got
 
+    # --- timer queries: whether this context's GL timestamps are a device's clock ----------
+
+    def timer_queries(self) -> tuple[bool, str]:
+        """(whether this context's GL timestamps are a device's clock, and if not, why in one
+        line). A software rasteriser's are the host's clock when it processed the command
+        (docs/timing.md); a context without a timestamp counter has none."""
+        name = self.renderer.split()[0] if self.renderer.strip() else "this renderer"
+        if any(s in self.renderer.lower() for s in SOFTWARE_RENDERERS):
+            return False, f"{name} runs the shaders on the host CPU: its GL timer queries are no device clock"
+        if self._timestamp_bits is None:
+            try:
+                bits = ctypes.c_int(0)
+                with self:
+                    self._fn("glGetQueryiv", ctypes.c_uint, ctypes.c_uint, ctypes.POINTER(ctypes.c_int))(
+                        _GL_TIMESTAMP, _GL_QUERY_COUNTER_BITS, ctypes.byref(bits)
+                    )
+                self._timestamp_bits = bits.value
+            except ClothbenchError:  # no glGetQueryiv: no timer queries either
+                self._timestamp_bits = 0
+        if self._timestamp_bits <= 0:
+            return False, f"{name} has no GL timestamp counter (GL_QUERY_COUNTER_BITS 0)"
+        return True, ""
+
     # --- buffer textures: moderngl has none, so these few calls go to GL directly ---------
 
     def _fn(self, name: str, *argtypes):
@@ -178,30 +214,6 @@ class GLDevice:
 
 
 _GL_TEXTURE_BUFFER, _GL_RGBA32F, _GL_READ_ONLY = 0x8C2A, 0x8814, 0x88B8
-
-
-class GLDeviceMixin(GLDriverInfo):
-    """What every GL backend (glsl, glsl-compute and its PBD solver) does the same way with its
-    context `self.gl`: the device is the GL renderer, and synchronising is glFinish.
-    Timing is perf_counter around synchronize() (the harness); device_elapsed_ms stays None:
-    llvmpipe's timer queries report 1 ns for 17 ms of work."""
-
-    gl: GLDevice
-    shader_stage = "compute"  # the kind of shader the step runs in; glsl's is "fragment"
-
-    @property
-    def device(self) -> str:
-        return self.gl.renderer
-
-    @property
-    def flushes_subnormals(self) -> bool:
-        """Whether this driver flushes subnormal floats to zero in the step's shaders, where
-        NumPy keeps them: a strict run can then part from NumPy (harness/strict_watch.py)."""
-        return self.gl.flushes_subnormals(self.shader_stage)
-
-    def synchronize(self) -> None:
-        with self.gl:  # re-entrant: also called inside a backend's own `with self.gl`
-            self.gl.ctx.finish()
 
 
 _devices: dict[str, GLDevice] = {}
@@ -373,41 +385,25 @@ def _create_osmesa() -> GLDevice:
 # --- the scene constants ------------------------------------------------------------------
 
 
-# The collider kinds, in the order the step applies them (kernels/collide_KIND.glsl).
-COLLIDER_KINDS = ("sphere", "cylinder", "plane")
-
-
-def collider_kinds(scene: Scene, generic: bool) -> tuple[str, ...]:
-    """The collider kinds a program for `scene` handles: the ones it has, or all (generic)."""
-    if generic:
-        return COLLIDER_KINDS
-    groups = (scene.spheres, scene.cylinders, scene.planes)
-    return tuple(kind for kind, group in zip(COLLIDER_KINDS, groups) if group)
-
-
-def collider_source(kinds: tuple[str, ...]) -> str:
-    """What `#include <colliders>` stands for: kernels/collide_KIND.glsl of each kind the
-    program handles, and collide(), applying them in the fixed order. A kind the program
-    does not handle is not in its source at all."""
-    calls = "".join(f"    x = collide_{kind}s(x);\n" for kind in kinds)
-    parts = [f'#include "collide_{kind}.glsl"\n' for kind in kinds]
-    parts.append(f"vec3 collide(vec3 x)\n{{\n{calls}    return x;\n}}\n")
-    return "".join(parts)
-
-
 def shader_source(
-    filename: str, version: int, defines: dict[str, object], colliders: tuple[str, ...] = ()
+    filename: str,
+    version: int,
+    defines: dict[str, object],
+    colliders: tuple[str, ...] = (),
+    meshes: bool = False,
+    moving: bool = False,
 ) -> str:
     """The kernel file with `#version` and the build switches in front of it, and its includes
     resolved: `#include "file"` is kernels/file, `#include <colliders>` the collider files of
-    `colliders` (collider_source). GLSL has no #include; `#line 1 S` at each file start (and
-    after each include) keeps a compiler message's line number the line of that file, with
-    S its number in the list on the source's second line (Mesa prints every source as 0)."""
+    `colliders`, and the mesh file where `meshes` (collider_source). GLSL has no #include;
+    `#line 1 S` at each file start (and after each include) keeps a compiler message's line
+    number the line of that file, with S its number in the list on the source's second line
+    (Mesa prints every source as 0)."""
     body, files = resolve_includes(
         filename,
         read_kernel(filename),
         lambda line, number, name: f"#line {line} {number}",
-        {"colliders": lambda: collider_source(colliders)},
+        {"colliders": lambda: collider_source(colliders, meshes, moving)},
     )
     lines = [f"#version {version} core", f"// sources: {', '.join(f'{i} {f}' for i, f in enumerate(files))}"]
     lines += [f"#define {k} {v}".rstrip() for k, v in defines.items()]

@@ -2,7 +2,8 @@
 
 Kernel: kernels/verlet_cloth.vert + kernels/verlet_cloth.frag, which includes the step
 (kernels/verlet_cloth_step.glsl, shared with glsl-compute) and the collider files of the
-kinds the scene has (kernels/collide_*.glsl). The state lives in two
+kinds the scene has (kernels/collide_*.glsl, and collide_mesh.glsl where it has meshes:
+storage buffers, so such a scene, or one that moves, needs GL 4.3). The state lives in two
 framebuffers, each with RGBA32F colour attachments (position, previous position, and the
 normal when asked for); a step draws one full-viewport triangle from one into the other,
 then the two swap roles. Nothing leaves the device until read().
@@ -33,14 +34,18 @@ def probe() -> Availability:
 class GLSLBackend(gl_context.GLDeviceMixin, Backend):
     name = "glsl"
     capabilities = Capabilities(
-        generic=True, normals=True, gl=True, sweep_variants=({"strict": True}, {"strict": False})
-    )
+        generic=True, normals=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}),
+        meshes=("verlet",), moving_colliders=("verlet",),  # on GL 4.3: storage buffers in the shader
+        mesh_collisions=("accelerated", "naive"),  # kernels/collide_mesh.glsl, as glsl-compute's
+    )  # fmt: skip
     shader_stage = "fragment"
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
-        # `precise` (GLSL 4.00) is what makes strict exact; fast runs on any GL 3.3 context
-        self.gl = gl_context.open_device(self.name, options, 400 if options.strict else 330)
+        # `precise` (GLSL 4.00) is what makes strict exact; fast runs on any GL 3.3 context; the
+        # meshes and per-step rows of moving bodies are storage buffers (GL 4.3)
+        bodies = bool(scene.meshes) or scene.has_motion
+        self.gl = gl_context.open_device(self.name, options, 430 if bodies else 400 if options.strict else 330)
         self.mode_suffix = gl_context.mode_suffix(self.gl)
         self.image_reads = PREFER_IMAGE_READS and self.gl.version_code >= 420
         n = scene.grid
@@ -57,6 +62,9 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
                     t.filter = (ctx.NEAREST, ctx.NEAREST)
                 self.textures.append(textures)
                 self.fbos.append(ctx.framebuffer(color_attachments=textures))
+        # meshes, per-step rows of moving bodies, attached-pin slots (none without them)
+        self.bodies = gl_context.GLBodies(self.gl, scene, solver.dt, self.mesh_collision)
+        self.steps_done = 0  # steps since the last upload: step k's poses are at (k + 1) dt
         self.current = 0  # index of the framebuffer holding the latest state
         self.has_normals = False
 
@@ -65,10 +73,12 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
         defines = gl_context.kernel_defines(self.scene, self.solver, self.options)
         if self.image_reads:
             defines["IMAGE_READS"] = ""
+        defines.update(gl_context.body_defines(self.scene, self.mesh_collision))
         vertex = gl_context.shader_source("verlet_cloth.vert", version, {})
         fragment = gl_context.shader_source(
-            "verlet_cloth.frag", version, defines, gl_context.collider_kinds(self.scene, self.options.generic)
-        )
+            "verlet_cloth.frag", version, defines, gl_context.collider_kinds(self.scene, self.options.generic),
+            meshes=bool(self.scene.meshes), moving=self.scene.has_motion,
+        )  # fmt: skip
 
         def build():
             program = self.gl.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
@@ -91,16 +101,23 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
             pos_tex.write(np.ascontiguousarray(pos, dtype=np.float32))
             prev_tex.write(np.ascontiguousarray(prev, dtype=np.float32))
         self.has_normals = False
+        self.steps_done = 0  # the uploaded state is at t = 0: moving bodies start over
 
     def advance(self, steps: int) -> None:
         if steps <= 0:
             return
-        with self.gl:
+        with self.gl, self.timed_steps():  # device_elapsed_ms: GL timestamps around the draws
             ctx = self.gl.ctx
             ctx.disable(ctx.BLEND | ctx.DEPTH_TEST | ctx.CULL_FACE)
             if self.options.generic:
                 gl_context.set_constant_uniforms(self.program, self.scene, self.solver)  # shared program
-            for _ in range(steps):
+            self.bodies.bind()
+            for step in range(steps):
+                if self.bodies.moving:  # a block of steps' rows at a time, then this step's place in it
+                    block = step % gl_context.MOTION_BLOCK
+                    if block == 0:
+                        self.bodies.upload_rows(self.steps_done + step, min(gl_context.MOTION_BLOCK, steps - step))
+                    self.program["motion_step"].value = block
                 source, target = self.current, 1 - self.current
                 pos_tex, prev_tex = self.textures[source][:2]
                 if self.image_reads:
@@ -112,6 +129,7 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
                 self.fbos[target].use()
                 self.vao.render(mode=ctx.TRIANGLES, vertices=3)
                 self.current = target  # ping-pong: the output is the next step's input
+        self.steps_done += steps
         self.has_normals = self.options.normals
 
     def _read_attachment(self, i: int) -> np.ndarray:
@@ -142,4 +160,5 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
             for obj in [*self.fbos, *(t for ts in self.textures for t in ts), self.vao]:
                 if obj is not None:
                     obj.release()
+        self.bodies.release()
         self.fbos, self.textures, self.vao = [], [], None

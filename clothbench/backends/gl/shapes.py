@@ -115,8 +115,10 @@ def refuse_shape_with_local_size(options: BackendOptions) -> None:
 
 
 def tuning_key(backend) -> dict[str, str]:
-    """What a measured choice holds for: the driver, the grid, the colliders, the build."""
+    """What a measured choice holds for: the driver, the grid, the colliders (meshes: their
+    triangles and algorithm; motion), the build."""
     scene, options = backend.scene, backend.options
+    triangles = sum(m.geometry.triangles for m in scene.meshes)
     return {
         "driver": backend.driver,
         "grid": str(scene.grid),
@@ -125,6 +127,9 @@ def tuning_key(backend) -> dict[str, str]:
         "generic": str(options.generic),
         "normals": str(options.normals),
         "reads": "image" if backend.image_reads else "ssbo",
+        # only where the scene has them, so that the choices measured before meshes stay valid
+        **({"meshes": f"{triangles}t/{backend.mesh_collision}"} if scene.meshes else {}),
+        **({"motion": "moving"} if scene.has_motion else {}),
     }
 
 

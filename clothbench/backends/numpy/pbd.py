@@ -7,13 +7,16 @@ that follows docs/pbd.md reproduces the float32 Jacobi result bit for bit.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from clothbench.constraints import coloured_batches
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Pbd
 from clothbench.backends.base import Backend, BackendOptions
-from clothbench.backends.kernel_inputs import PbdConstants
+from clothbench.backends.kernel_inputs import PbdConstants, pin_targets
+from clothbench.backends.numpy.collide_mesh import Bodies
 from clothbench.backends.numpy.verlet import (
     COLLIDE,
     GridPlanes,
@@ -26,7 +29,9 @@ from clothbench.backends.numpy.verlet import (
 
 class NumpyPbdBackend(GridPlanes, Backend):
     name = "numpy"
-    capabilities = NumpyBackend.capabilities  # the same two precisions and one mode
+    # the same two precisions and one mode; meshes and motion too (docs/pbd.md, "Colliders,
+    # motion and attached pins")
+    capabilities = replace(NumpyBackend.capabilities, meshes=("verlet", "pbd"), moving_colliders=("verlet", "pbd"))
 
     def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
         super().__init__(scene, solver, options)
@@ -34,6 +39,7 @@ class NumpyPbdBackend(GridPlanes, Backend):
         n = scene.grid
         c = PbdConstants.of(scene, solver, t)  # the f64 reference takes them in float64
         self.dt, self.h, self.at, self.damp, self.relax = c.dt, c.h, c.at, c.damp, c.relax
+        self.omega = c.omega
         self.gh = np.array(c.gh, dtype=t).reshape(3, 1, 1)
         self.stencil = [
             (*neighbour_regions(n, dr, dc), c.rest[kind], c.at[kind])
@@ -46,6 +52,14 @@ class NumpyPbdBackend(GridPlanes, Backend):
         self.batches = coloured_batches(n)
         self.batch_rest = [c.rest[b.kind] for b in self.batches]
         self.colliders = collider_constants(scene, t)
+        # meshes and moving colliders: collide_mesh.Bodies, one "step" of it per substep; the
+        # attached pins are predict's, so its scene is this one without the attachment
+        self.substep_seconds = solver.dt / solver.substeps  # float64: substep j ends at j * this
+        colliding = scene.replace(pin_attach=None)
+        needed = Bodies.needed(colliding)
+        self.bodies = Bodies(colliding, self.substep_seconds, t, collider_constants, COLLIDE) if needed else None
+        self.pinned = scene.pinned() if scene.pin_attach is not None else None
+        self.substeps_done = 0  # since the last upload: the clock of the poses and pin targets
         self.pos = self.vel = np.zeros((3, n, n), dtype=t)
         self.w, self.free = np.zeros((n, n), dtype=t), np.zeros((n, n), dtype=bool)
 
@@ -53,6 +67,9 @@ class NumpyPbdBackend(GridPlanes, Backend):
         self.pos = self.planes(pos)
         self.vel = (self.pos - self.planes(prev)) / self.dt
         self.set_inverse_mass(pos)
+        self.substeps_done = 0  # the uploaded state is at t = 0: moving bodies start over
+        if self.bodies is not None:
+            self.bodies.steps = 0
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         return self.state(self.pos), self.state(self.pos - self.vel * self.dt)
@@ -67,21 +84,31 @@ class NumpyPbdBackend(GridPlanes, Backend):
         # predict: pinned particles stay and have no velocity
         v = np.where(free, self.vel + self.gh, 0).astype(self.dtype)
         xs = np.where(free, x + v * self.h, x).astype(self.dtype)
+        self.substeps_done += 1
+        if self.pinned is not None:  # attached pins: their target at the end of the substep
+            time = self.substeps_done * self.substep_seconds
+            xs.reshape(3, -1)[:, self.pinned] = pin_targets(self.scene, time, self.dtype).T
         if self.solver.method == "jacobi":
             xs = self._jacobi(xs)
         else:
             xs = self._coloured(xs)
-        for kind, constants in self.colliders:
-            COLLIDE[kind](xs, free, **constants)
+        if self.bodies is not None:  # the poses at the end of the substep; meshes after the planes
+            self.bodies.collide(xs, free)
+        else:
+            for kind, constants in self.colliders:
+                COLLIDE[kind](xs, free, **constants)
         v = (xs - x) / self.h
         self.vel = v * self.damp
         self.pos = xs
 
     def _jacobi(self, x: np.ndarray) -> np.ndarray:
-        w = self.w
+        w, scale = self.w, self.jacobi_scale
         lam = [np.zeros(w[i[1:]].shape, dtype=self.dtype) for i, _, _, _ in self.stencil]
-        for _ in range(self.solver.iterations):
+        x_before, lam_before = x, lam  # the iterate before this one, for Chebyshev
+        chebyshev = self.solver.chebyshev_rho > 0
+        for k in range(self.solver.iterations):
             corr = np.zeros_like(x)
+            lam_next = []
             for (i, j, rest, at), lam_o in zip(self.stencil, lam):
                 d = x[i] - x[j]
                 length2 = dot3(d, d)
@@ -90,11 +117,17 @@ class NumpyPbdBackend(GridPlanes, Backend):
                 valid = (length2 > 0) & (denom > 0)
                 dlam = ((-(length - rest)) - at * lam_o) / denom
                 dlam[~valid] = 0
-                lam_o += dlam
+                lam_next.append(lam_o + dlam * scale[i[1:]])  # the share of dlam the position takes
                 s = (w[i[1:]] * dlam) / length
                 s[~valid] = 0
                 corr[i] += d * s
-            x = x + corr * self.jacobi_scale  # a new array: the ping-pong of the GPU form
+            x_next = x + corr * scale  # a new array: the ping-pong of the GPU form
+            if chebyshev and k > 0:  # y = omega (y - before) + before, positions and lambda alike
+                omega = self.omega[k]
+                x_next = omega * (x_next - x_before) + x_before
+                lam_next = [omega * (a - b) + b for a, b in zip(lam_next, lam_before)]
+            x_before, lam_before = x, lam
+            x, lam = x_next, lam_next
         return x
 
     def _coloured(self, x: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.backends.numpy.collide_mesh import Bodies
 
 
 def probe() -> Availability:
@@ -61,7 +62,9 @@ class NumpyBackend(GridPlanes, Backend):
     name = "numpy"
     # one mode, no --strict: it is what --strict is measured against
     capabilities = Capabilities(
-        precisions=("f32", "f64"), strict=False, sweep_variants=({"precision": "f32"}, {"precision": "f64"})
+        precisions=("f32", "f64"), strict=False, sweep_variants=({"precision": "f32"}, {"precision": "f64"}),
+        meshes=("verlet",), moving_colliders=("verlet",),  # pbd.py adds "pbd" to its copy
+        mesh_collisions=("naive",),  # its chunked loop gives the naive loop's bits (collide_mesh.py)
     )
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
@@ -75,12 +78,16 @@ class NumpyBackend(GridPlanes, Backend):
             (*neighbour_regions(n, dr, dc), c.rest[kind]) for (dr, dc), kind in zip(OFFSETS, OFFSET_KIND)
         ]
         self.colliders = collider_constants(scene, t)
+        # meshes, moving colliders, attached pins (collide_mesh.py); None: the scene has none
+        self.bodies = Bodies(scene, solver.dt, t, collider_constants, COLLIDE) if Bodies.needed(scene) else None
         self.pos = self.prev = np.zeros((3, n, n), dtype=t)
         self.w, self.free = np.zeros((n, n), dtype=t), np.zeros((n, n), dtype=bool)
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         self.pos, self.prev = self.planes(pos), self.planes(prev)
         self.set_inverse_mass(pos)
+        if self.bodies is not None:
+            self.bodies.steps = 0  # the uploaded state is at t = 0: moving bodies start over
 
     def advance(self, steps: int) -> None:
         # 0/0 for coincident particles is replaced below; overflow in a blow-up is the
@@ -112,15 +119,18 @@ class NumpyBackend(GridPlanes, Backend):
         new -= prev
         new += force
         np.copyto(new, pos, where=~self.free)  # pinned particles do not move
+        if self.bodies is not None:  # per-step poses, attached pins, then every collider and mesh
+            self.bodies.collide(new, self.free)
+            return new
         for kind, constants in self.colliders:  # spheres, then cylinders, then planes
             COLLIDE[kind](new, self.free, **constants)
         return new
 
 
-def collider_constants(scene: Scene, t) -> list[tuple[str, dict]]:
+def collider_constants(scene: Scene, t, time: float = 0.0) -> list[tuple[str, dict]]:
     """(kind, constants) of every collider in the order the step applies them, from
     kernel_inputs.collider_rows in the working precision, shaped for (3, n, n) planes."""
-    rows = collider_rows(scene, t)
+    rows = collider_rows(scene, t, time)  # time: the poses of moving colliders
 
     def vec(row):
         return row[:3].reshape(3, 1, 1)

@@ -18,7 +18,6 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
-from clothbench.backends.kernel_inputs import collider_rows
 from clothbench.backends.opencl import runtimes
 from clothbench.backends.opencl.runtimes import INTEL_EXTRA
 from clothbench.native import cache_dir
@@ -314,13 +313,18 @@ def device_context(device):
     return _contexts[key]
 
 
-def program_source(filename: str) -> str:
+def program_source(filename: str, generated: dict | None = None) -> str:
     """kernels/`filename` with its includes resolved (collide.cl) and `#line` directives
     naming each file, so that a build log points into the file it is about. Resolved here
     rather than by the compiler (-I): the source is then all of the program, and the
     program caches keyed on it (build_program's, PoCL's own) see an edit to an included
-    file, and no include path has to survive being passed as a build option."""
-    return resolve_includes(filename, read_kernel(filename), lambda line, _, name: f'#line {line} "{name}"')[0]
+    file, and no include path has to survive being passed as a build option.
+    `#include <name>` is an optional part of the program (a scene's meshes): its text is
+    generated[name]() where given, else nothing."""
+    text = read_kernel(filename)
+    parts = {name: (lambda: "") for name in re.findall(r"^[ \t]*#include[ \t]+<([^>]+)>", text, re.M)}
+    mark = lambda line, _, name: f'#line {line} "{name}"'  # noqa: E731
+    return resolve_includes(filename, text, mark, {**parts, **(generated or {})})[0]
 
 
 def build_program(context, source: str, options: tuple[str, ...]):
@@ -366,10 +370,12 @@ def arithmetic_options(strict: bool) -> tuple[str, ...]:
 
 class OpenCLDeviceMixin:
     """What both OpenCL backends do the same way: one in-order profiling queue on the device
-    the options name, read-only buffers, the collider table, padded launch sizes, the kernel
+    the options name, read-only buffers, padded launch sizes, the kernel
     time of the last advance() from its events, and releasing their buffers. A backend lists
     its buffers in _buffers(). The options' local_size is the work-group size (None: the
     runtime chooses, and the mode says ls=auto)."""
+
+    device_timer = "opencl-events"  # what device_elapsed_ms() reads (harness/timing.py DEVICE_TIMERS)
 
     def _open_queue(self, options: BackendOptions) -> None:
         cl = self._cl = import_pyopencl()
@@ -387,21 +393,6 @@ class OpenCLDeviceMixin:
     def _read_only_buffer(self, array: np.ndarray):
         flags = self._cl.mem_flags.READ_ONLY | self._cl.mem_flags.COPY_HOST_PTR
         return self._cl.Buffer(self._context, flags, hostbuf=np.ascontiguousarray(array))
-
-    def _collider_buffer(self):
-        """Every collider as rows of float4 in one constant buffer (kernels/collide.cl has the
-        layout), rounded once from float64 as the other backends round them."""
-        rows = collider_rows(self.scene)
-        table = np.concatenate([rows["spheres"], rows["cylinders"], rows["planes"]])
-        limit = self._device.max_constant_buffer_size
-        if table.nbytes > limit:
-            raise ClothbenchError(
-                f"the scene's {len(self.scene.colliders)} colliders take {table.nbytes} bytes, more "
-                f"than this device's {limit}-byte constant buffer; use fewer colliders"
-            )
-        if not len(table):
-            table = np.zeros((1, 4), np.float32)  # OpenCL has no empty buffers; never read
-        return self._read_only_buffer(table)
 
     def _check_local_size(self, kernel, name: str) -> None:
         if self.local_size is None:

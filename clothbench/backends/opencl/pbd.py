@@ -4,18 +4,28 @@ Host code only: the substep plan, the state conversion and the profiling are
 pbd_device.PbdDeviceBackend's (shared with gl/compute_pbd.py); the device, its queue, its
 probe, the program cache and the build-error report are device.py's (OpenCLDeviceMixin).
 
-One substep is a fixed list of launches on an in-order queue (each sees the previous one's
-writes). Every launch is a kernel object whose arguments are set once at construction, so
-advance() only enqueues.
+Two kernel shapes (docs/pbd.md, "Launches"): `per-stage`, one substep as a fixed list of
+launches on an in-order queue (each sees the previous one's writes), and `one-launch`, up to
+SUBSTEPS_PER_LAUNCH substeps in one launch of one work-group. Every launch is a kernel object
+whose arguments are set once at construction, so advance() only enqueues.
+
+Meshes, moving colliders and pins attached to a body (docs/pbd.md, "Colliders, motion and
+attached pins"): the host side is bodies.py's, shared with verlet.py, with one collider table
+(and one set of pin targets) per substep, at the end of the substep; a launch that reads them
+takes the index of its (first) substep in the upload, set before each enqueue (OpenCL takes a
+kernel's arguments when it is enqueued). The per-substep constants go up inside advance()
+(so the harness times them), bodies.STEPS_PER_UPLOAD substeps at a time.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Pbd
 from clothbench.backends.base import BackendOptions, Capabilities
+from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -23,20 +33,39 @@ from clothbench.backends.opencl.device import (
     program_source,
     shape_options,
 )
+from clothbench.backends.opencl.verlet_shapes import tuning_key
 from clothbench.backends.pbd_device import PbdDeviceBackend
+from clothbench.backends.tuning import median_seconds
 
 KERNEL_FILE = "pbd_cloth.cl"
+# Two kernel shapes, chosen per device and scene by measurement (backends/tuning.py):
+# `per-stage`, one launch per stage (predict, each Jacobi pass or coloured batch, collide,
+# update), and `one-launch`, whole substeps in one launch of one work-group (pbd_substeps):
+# one core instead of all, no launch per pass. One-launch is offered up to this many
+# particles, past which one core cannot win (docs/pbd.md, "Launches").
+ONE_LAUNCH_MAX_PARTICLES = 256 * 256
+SHAPES = ("per-stage", "one-launch")
+# Substeps per launch of pbd_substeps: bounds how long one launch holds the device.
+SUBSTEPS_PER_LAUNCH = 32
+SUBSTEPS_ARG = 19  # pbd_substeps' argument index of its substep count (its first substep's next)
 
 
-class OpenCLPbdBackend(OpenCLDeviceMixin, PbdDeviceBackend):
+class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     name = "opencl"
-    capabilities = Capabilities(local_size=True, device=True, sweep_variants=({"strict": True}, {"strict": False}))
+    capabilities = Capabilities(
+        local_size=True, device=True, shapes=True, sweep_variants=({"strict": True}, {"strict": False}),
+        meshes=("pbd",), moving_colliders=("pbd",),
+        mesh_collisions=("accelerated", "naive"),  # verlet.py's default, for the same reason
+    )
 
     def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
         super().__init__(scene, solver, options)
         self._open_queue(options)
         cl, context = self._cl, self._context
-        self.program = build_program(context, program_source(KERNEL_FILE), self.build_options())
+        # meshes, motion, attached pins (bodies.py): one table per substep, at its end
+        self._open_bodies(solver.dt / solver.substeps, SUBSTEPS_PER_LAUNCH)
+        self._source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
+        self.program = build_program(context, self._source, self.build_options())
 
         mf = cl.mem_flags
         size = self.n2 * 16  # one float4 per particle
@@ -44,25 +73,60 @@ class OpenCLPbdBackend(OpenCLDeviceMixin, PbdDeviceBackend):
         self.v = cl.Buffer(context, mf.READ_WRITE, size)
         self.xs = [cl.Buffer(context, mf.READ_WRITE, size) for _ in range(2)]  # Jacobi ping-pong
         self.lam = cl.Buffer(context, mf.READ_WRITE, 4 * self.lambda_count)
-        self.colliders = self._collider_buffer()
-        self.ij = self.border = None
+        # Chebyshev: the lambdas ping-pong as the iterates do (a pass extrapolates from the one before)
+        second = cl.Buffer(context, mf.READ_WRITE, 4 * self.lambda_count) if self.chebyshev else self.lam
+        self.lams = [self.lam, second]
+        self.colliders = self._colliders  # the table: fixed, or room for the per-substep ones
+        self._step_kernels: list = []  # (kernel, argument index) of each launch's substep index
+        self.ij = self.border = self.offsets = None
         if self.jacobi:
             self._split_jacobi()
         else:
             self.ij = self._read_only_buffer(self.batch_pairs)
+            starts = np.append(self.batch_offsets, len(self.batch_pairs)).astype(np.int32)  # and the end
+            self.offsets = self._read_only_buffer(starts)
 
         self._kernels: dict = {}
-        self.launches = self._plan_launches()
+        self.launches = self._plan_launches()  # per-stage: advance(), and profile_stages() in either shape
+        self.one_launch, self.substeps_kernel = False, None
+        key = tuning_key(self._device, scene, options, self._source, self.mesh_collision)
+        key.update(solver=solver.spec, iterations=str(solver.iterations), substeps=str(solver.substeps))
+        self._use_shape(self.pick_shape(key, self._time_shape))
+
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+        return SHAPES if scene.particles <= ONE_LAUNCH_MAX_PARTICLES else SHAPES[:1]
+
+    def _use_shape(self, name: str) -> None:
+        self.one_launch = name == "one-launch"
+        if self.one_launch and self.substeps_kernel is None:
+            self.substeps_kernel = self._substeps_kernel()
+        self.effective_local_size = self.substeps_local_size if self.one_launch else self.local_size
+
+    def _time_shape(self, name: str) -> float:
+        """Seconds per step of a short synchronised run of shape `name` from the initial state."""
+        try:
+            self._use_shape(name)
+            self.upload(*self.initial_state())
+            steps = max(2, min(64, (1 << 16) // self.n2))
+            seconds = median_seconds(lambda: self.advance(steps), self.synchronize, repeats=3)
+            self.upload(*self.initial_state())
+        except self._cl.Error as e:  # a shape this device cannot launch is not a candidate
+            raise ClothbenchError(f"{name}: {e}") from None
+        self._events = []  # device_elapsed_ms() is about the caller's advance(), not these
+        return seconds / steps
 
     def _split_jacobi(self) -> None:
         """The Jacobi pass's two launches: the interior (rows and columns 2 .. n-3) in vectors
-        of V particles of a row, V the device's preferred float width (4, 8 or 16), and every
-        particle those vectors do not cover, from an index list uploaded once."""
+        of V particles of a row, V the device's preferred float width (4, 8 or 16), the last
+        of a row overlapping the one before it where V does not divide n - 4, and every
+        particle those vectors do not cover (the 2-wide ring, or every particle when the
+        interior is narrower than V), from an index list uploaded once."""
         n, v = self.n, self.vector_width
-        per_row = (n - 4) // v if n > 4 else 0
+        per_row = -(-(n - 4) // v) if n - 4 >= v else 0
         self.interior_vectors = per_row * (n - 4)
         covered = np.zeros((n, n), bool)
-        covered[2 : n - 2, 2 : 2 + v * per_row] = per_row > 0
+        covered[2 : n - 2, 2 : n - 2] = per_row > 0
         self.border_particles = np.flatnonzero(~covered).astype(np.int32)
         self.border = self._read_only_buffer(self.border_particles)
 
@@ -72,17 +136,59 @@ class OpenCLPbdBackend(OpenCLDeviceMixin, PbdDeviceBackend):
         return 16 if preferred >= 16 else 8 if preferred >= 8 else 4
 
     def build_options(self) -> tuple[str, ...]:
-        return (*shape_options(self.scene, self.vector_width), *arithmetic_options(self.strict))
+        method = ("-DCLOTH_CHEBYSHEV",) if self.chebyshev else () if self.jacobi else ("-DCLOTH_COLOURED",)
+        shape = (*shape_options(self.scene, self.vector_width), *self._body_options())
+        return (*shape, *arithmetic_options(self.strict), *method)
 
-    def _kernel(self, key, name: str, dtypes, args):
+    def _default_substeps_local_size(self) -> int:
+        """The one work-group of pbd_substeps: --local-size, else one work item on a CPU
+        (it runs the vectors itself; PoCL does not vectorise across work items here) and the
+        device's largest group (at most 1024) elsewhere."""
+        if self.local_size:
+            return self.local_size
+        if self._device.type & self._cl.device_type.CPU:
+            return 1
+        return min(self._device.max_work_group_size, 1024)
+
+    def _substeps_kernel(self):
+        """pbd_substeps with its arguments set (the substep count is set per launch), and its
+        work-group size (substeps_local_size) within the kernel's limit on this device."""
+        self.substeps_local_size = self._default_substeps_local_size()
+        c, f32, i32 = self.constants, np.float32, np.int32
+        make4 = self._cl.cltypes.make_float4
+        float4 = self._cl.cltypes.float4
+        unused = self._unused = self._read_only_buffer(np.zeros(1, np.int32))  # the other method's tables: never read
+        self.omega_buffer = self._read_only_buffer(np.array(c.omega, np.float32))  # one weight per iteration
+        border = self.border if self.jacobi else unused
+        count = len(self.border_particles) if self.jacobi else 0
+        ij = unused if self.ij is None else self.ij
+        offsets = unused if self.offsets is None else self.offsets
+        args = (self.x, self.v, *self.xs, *self.lams, self.omega_buffer, border, i32(count), ij, offsets,
+                c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax, c.damp, self.colliders,
+                i32(self.solver.iterations), i32(1))  # the last: substeps, set per launch
+        dtypes = [None] * 8 + [i32, None, None, f32, float4, float4, float4, f32, f32, None, i32, i32]
+        k = self._cl.Kernel(self.program, "pbd_substeps")
+        k.set_scalar_arg_dtypes(dtypes + self._body_dtypes())
+        k.set_args(*args, *self._body_args(0))  # the first substep's index: set per launch
+        limit = k.get_work_group_info(self._cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
+        if self.local_size and self.local_size > limit:
+            raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit} for pbd_substeps")
+        self.substeps_local_size = min(self.substeps_local_size, limit)
+        return k
+
+    def _kernel(self, key, name: str, dtypes, args, bodies: tuple = ()):
         """A kernel object with its typed arguments set once (a wrongly typed one raises);
-        launches with the same arguments share it."""
+        launches with the same arguments share it. `bodies`: the _body_args() it takes after
+        `args` (the substep index first, where the scene moves, set per substep by advance())."""
         if key not in self._kernels:
             k = self._cl.Kernel(self.program, name)
-            k.set_scalar_arg_dtypes(list(dtypes))
-            k.set_args(*args)
+            body_dtypes = [np.int32 if isinstance(a, np.int32) else None for a in bodies]  # index, buffers
+            k.set_scalar_arg_dtypes(list(dtypes) + body_dtypes)
+            k.set_args(*args, *bodies)
             self._check_local_size(k, name)
             self._kernels[key] = k
+            if bodies and self._per_step:
+                self._step_kernels.append((k, len(args)))
         return self._kernels[key]
 
     def _launches_of(self, step) -> list:
@@ -92,19 +198,22 @@ class OpenCLPbdBackend(OpenCLDeviceMixin, PbdDeviceBackend):
         make4 = self._cl.cltypes.make_float4
         kind = step[0]
         if kind == "predict":
+            # the substep index where the scene moves, and the attached pins' buffers (no meshes)
+            pins = self._body_args(0)[: self._per_step] + ((self._pin_slot, self._pin_target) if self._attached else ())
             k = self._kernel(kind, "pbd_predict", [None] * 3 + [f32, float4],
-                             (self.x, self.v, self.xs[0], c.h, make4(*c.gh, 0.0)))
+                             (self.x, self.v, self.xs[0], c.h, make4(*c.gh, 0.0)), pins)
             kernels = [(k, self.n2)]
         elif kind == "jacobi":
             _, it, src, dst = step
-            first = i32(it == 0)
-            args = (self.xs[src], self.xs[dst], self.lam, first, make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax)
-            dtypes = [None] * 3 + [i32, float4, float4, f32]
+            lam_in, lam_out = self.lams[it % 2], self.lams[1 - it % 2]
+            args = (self.xs[src], self.xs[dst], lam_in, lam_out, i32(it), make4(*c.rest, 0.0), make4(*c.at, 0.0),
+                    c.relax, c.omega[it])
+            dtypes = [None] * 4 + [i32, float4, float4, f32, f32]
             border = len(self.border_particles)
-            kernels = [(self._kernel((kind, "border", src, first), "pbd_jacobi_border", dtypes + [None, i32],
+            kernels = [(self._kernel((kind, "border", it), "pbd_jacobi_border", dtypes + [None, i32],
                                      args + (self.border, i32(border))), border)]
             if self.interior_vectors:
-                interior = self._kernel((kind, "interior", src, first), "pbd_jacobi_interior", dtypes, args)
+                interior = self._kernel((kind, "interior", it), "pbd_jacobi_interior", dtypes, args)
                 kernels.insert(0, (interior, self.interior_vectors))
         elif kind == "coloured":
             _, it, b = step
@@ -114,7 +223,8 @@ class OpenCLPbdBackend(OpenCLDeviceMixin, PbdDeviceBackend):
                               c.rest[batch.kind], c.at[batch.kind]))
             kernels = [(k, len(batch.i))]
         elif kind == "collide":
-            k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders))
+            meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
+            k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)
             kernels = [(k, self.n2)]
         else:
             k = self._kernel((kind, step[1]), "pbd_update", [None] * 3 + [f32, f32],
@@ -147,12 +257,38 @@ class OpenCLPbdBackend(OpenCLDeviceMixin, PbdDeviceBackend):
         return x, v
 
     def _buffers(self) -> tuple:
-        return (self.x, self.v, *self.xs, self.lam, self.colliders, self.ij, self.border)
+        once = dict.fromkeys(self.lams)  # without Chebyshev both entries are one buffer
+        return (self.x, self.v, *self.xs, *once, self.ij, self.border, self.offsets,
+                getattr(self, "omega_buffer", None), getattr(self, "_unused", None), *self._body_buffers())
 
     # --- Backend interface -----------------------------------------------------------------
+    def _motion_block(self) -> int:
+        return self._upload_steps if self._per_step else 0
+
+    def _upload_motion(self, first: int, count: int) -> None:
+        self._clock = first  # bodies.py's count: the tables and pin targets from substep `first`
+        self._upload_step_constants(count)
+
+    def _use_substep(self, j: int) -> None:
+        for k, index in self._step_kernels:  # predict's and collide's substep index
+            k.set_arg(index, np.int32(j))
+
     def advance(self, steps: int) -> None:
         self._events = []
-        super().advance(steps)
+        if not self.one_launch:
+            super().advance(steps)
+            return
+        for count in self._blocks(steps):
+            self._advance_in_launches(count)
+
+    def _advance_in_launches(self, substeps: int) -> None:
+        """pbd_substeps, up to SUBSTEPS_PER_LAUNCH substeps a launch."""
+        k, ls = self.substeps_kernel, self.effective_local_size
+        for done in range(0, substeps, SUBSTEPS_PER_LAUNCH):
+            k.set_arg(SUBSTEPS_ARG, np.int32(min(SUBSTEPS_PER_LAUNCH, substeps - done)))
+            if self._per_step:
+                k.set_arg(SUBSTEPS_ARG + 1, np.int32(done))
+            self._events.append(self._cl.enqueue_nd_range_kernel(self.queue, k, (ls,), (ls,)))
 
 
 __all__ = ["OpenCLPbdBackend"]

@@ -33,6 +33,21 @@ in the documented order (bit-exact with clothbench.harness.normals in strict mod
 state the step read: read_normals() belongs to read()[1]. Without the option the kernels
 neither compute them nor take their buffer.
 
+Meshes, moving colliders and pins attached to a body (docs/semantics.md; the kernel side
+is kernels/collide_mesh.cl and the CLOTH_MESHES / CLOTH_PER_STEP / CLOTH_ATTACHED_PINS parts
+of verlet_cloth.cl), both builds, each compiled only where the scene has it:
+  meshes     the triangles, their pseudo-normals and (accelerated) the BVH go up once, in two
+             buffers (collide_mesh.cl's header has the layout); the pose is six rows of the
+             collider table. options.mesh_collision picks the search, a build option: naive
+             (every triangle in index order) or accelerated (the host's BVH), the default.
+  motion     a moving collider or attached pins: the table (and the pin targets) of every
+             step, evaluated on the host in float64 at t = (k+1) dt (k counted from the last
+             upload()) and rounded once, goes up before the launches that read it, up to
+             bodies.STEPS_PER_UPLOAD steps at a time, inside advance() (so the harness times it);
+             each launch takes the index of its first step. No rebuild, every shape (the
+             multi-step kernel reads one table per step of its launch).
+The generic build takes these parts as -D options too (one program per set of them).
+
 Timings of these variants, and where the specialisation gain comes from: docs/opencl.md.
 """
 
@@ -48,6 +63,7 @@ from clothbench.solver import Verlet
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
+from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -62,7 +78,7 @@ from clothbench.backends.opencl.device import probe  # noqa: F401  (the registry
 KERNEL_FILE = "verlet_cloth.cl"
 
 
-class OpenCLBackend(OpenCLDeviceMixin, Backend):
+class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
     name = "opencl"
     capabilities = Capabilities(
         transfers=("resident", "per-step"),
@@ -71,6 +87,10 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         normals=True,
         device=True,
         shapes=True,  # verlet_shapes.py; the specialised build only
+        meshes=("verlet",),  # not opencl/pbd.py, whose Capabilities are its own
+        moving_colliders=("verlet",),
+        # the first is the default: faster from a few hundred triangles up (docs/opencl.md)
+        mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "per-step"}),
     )
 
@@ -88,7 +108,9 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         c, float4 = VerletConstants.of(scene, solver), cl.cltypes.make_float4
         self._constants = (c.k, c.b, c.dt, c.dt2, float4(*c.g, 0.0), float4(*c.rest, 0.0))
         self._constant_dtypes = [np.float32] * 4 + [cl.cltypes.float4] * 2
-        self._colliders = self._collider_buffer()
+        # meshes, motion, attached pins (bodies.py): step k's poses are at (k + 1) dt
+        self._open_bodies(solver.dt, shapes.STEPS_PER_LAUNCH)
+        self._source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
 
         # State buffers, twice over: float4 per particle (generic) or x, y, z planes with
         # PAD floats before and after them (the rows kernels' masked loads reach past).
@@ -115,7 +137,7 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
             self._use(self._generic_launches())
         else:
             self.pick_shape(
-                shapes.tuning_key(self._device, scene, options, program_source(KERNEL_FILE)), self._time_shape
+                shapes.tuning_key(self._device, scene, options, self._source, self.mesh_collision), self._time_shape
             )
             self._use_shape(self.shape)
 
@@ -163,22 +185,24 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
 
     def build_options(self, vector_width: int = 1) -> tuple[str, ...]:
         """The specialisation key: what this scene's program is built with (the module's
-        program cache is keyed by it). Generic: one key for every scene."""
+        program cache is keyed by it). Generic: one key for every scene with the same
+        meshes-and-motion options."""
         arithmetic = arithmetic_options(self.strict) + ("-DCLOTH_NORMALS",) * self.normals
         if self.generic:
-            return ("-DCLOTH_GENERIC", *arithmetic)
-        return (*shape_options(self.scene, vector_width), f"-DCLOTH_PAD={self._pad}", *arithmetic)
+            return ("-DCLOTH_GENERIC", *self._body_options(), *arithmetic)
+        shape = (*shape_options(self.scene, vector_width), *self._body_options())
+        return (*shape, f"-DCLOTH_PAD={self._pad}", *arithmetic)
 
     def _kernel(self, name: str, dtypes, vector_width: int = 1):
         """Kernel `name` of this scene's program (built once per key, see build_program),
         created once, with every argument's type declared: a wrongly typed argument raises
         instead of being reinterpreted."""
         options = self.build_options(vector_width)
-        program = build_program(self._context, program_source(KERNEL_FILE), options)
+        program = build_program(self._context, self._source, options)
         self.programs.append(program)
         self.key += (options,)
         k = self._cl.Kernel(program, name)
-        k.set_scalar_arg_dtypes([*dtypes, *([None] if self.normals else [])])
+        k.set_scalar_arg_dtypes([*dtypes, *([None] if self.normals else []), *self._body_dtypes()])
         return k
 
     def _generic_launches(self):
@@ -216,7 +240,7 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         return launches
 
     def _buffers(self) -> tuple:
-        return (*self._state, self._colliders, self._inv_mass, self._border, self._normals)
+        return (*self._state, self._inv_mass, self._border, self._normals, *self._body_buffers())
 
     # --- Backend interface -------------------------------------------------------------
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
@@ -224,6 +248,7 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         if pos.shape != expected or prev.shape != expected:
             raise ClothbenchError(f"state must be two {expected} arrays, got {pos.shape} and {prev.shape}")
         self.queue.finish()  # pending per-step copies may still read the host copies
+        self._clock = 0  # the uploaded state is at t = 0: moving bodies start over (as NumPy)
         self._w = np.ascontiguousarray(pos[:, 3], np.float32)
         self._w_prev = np.ascontiguousarray(prev[:, 3], np.float32)
         self._normals_of_prev = False
@@ -236,27 +261,35 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
         self.queue.finish()
 
     def advance(self, steps: int) -> None:
+        self._events = []
+        multi = not self.generic and self._shape.layout == "steps"
+        chunk = self._upload_steps if self._per_step else max(steps, 1)
+        for done in range(0, steps, chunk):  # one chunk unless the scene moves
+            count = min(chunk, steps - done)
+            self._upload_step_constants(count)
+            (self._advance_in_launches if multi else self._advance_per_step)(count)
+            self._clock += count
+        if steps > 0:
+            self._w_prev = self._w  # prev_out carries pos's inverse mass
+            self._normals_of_prev = self.normals
+
+    def _advance_per_step(self, steps: int) -> None:
+        """One launch (or the split shape's two) per step; step j reads table j."""
         cl, queue = self._cl, self.queue
         per_step = self.transfer == "per-step"
-        self._events = []
-        if not self.generic and self._shape.layout == "steps":
-            self._advance_in_launches(steps)
-            return
-        for _ in range(steps):
+        for j in range(steps):
             pos, prev, pos_out, prev_out = self._state
             if per_step:  # the chapter's variant: the host's state goes up at every step
                 cl.enqueue_copy(queue, pos, self._host[0], is_blocking=False)
                 cl.enqueue_copy(queue, prev, self._host[1], is_blocking=False)
             state = (pos, prev, pos_out, prev_out) if self.generic else (pos, prev, self._inv_mass, pos_out, prev_out)
+            bodies = self._body_args(j)
             for kernel, global_size, local_size, args in self._launches:
-                self._events.append(kernel(queue, global_size, local_size, *state, *args))
+                self._events.append(kernel(queue, global_size, local_size, *state, *args, *bodies))
             self._state = [pos_out, prev_out, pos, prev]  # ping-pong: swap references, no copy
             if per_step:  # ... and comes back down, so the host owns the next step's input
                 cl.enqueue_copy(queue, self._host[0], pos_out, is_blocking=False)
                 cl.enqueue_copy(queue, self._host[1], prev_out, is_blocking=False)
-        if steps > 0:
-            self._w_prev = self._w  # prev_out carries pos's inverse mass
-            self._normals_of_prev = self.normals
 
     def _advance_in_launches(self, steps: int) -> None:
         """ceil(steps / K) launches of the multi-step kernel, the last with the remainder.
@@ -268,12 +301,10 @@ class OpenCLBackend(OpenCLDeviceMixin, Backend):
             count = min(k, steps - done)
             pos, prev, pos_out, prev_out = self._state
             state = (pos, prev, self._inv_mass, pos_out, prev_out)
-            self._events.append(kernel(self.queue, global_size, local_size, *state, *constants, np.int32(count), *normals))
+            call = (*state, *constants, np.int32(count), *normals, *self._body_args(done))
+            self._events.append(kernel(self.queue, global_size, local_size, *call))
             if count % 2:
                 self._state = [pos_out, prev_out, pos, prev]
-        if steps > 0:
-            self._w_prev = self._w
-            self._normals_of_prev = self.normals
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         out = []

@@ -103,9 +103,15 @@ def candidates(device, scene, options) -> tuple[KernelShape, ...]:
     return tuple(dict.fromkeys(shapes))
 
 
-def tuning_key(device, scene, options, source: str) -> dict[str, str]:
-    """What a shape's speed depends on: the device and its driver, the scene's shape, the
-    arithmetic, what else the step does, and the kernel source (an edit measures again)."""
+def tuning_key(device, scene, options, source: str, mesh_collision: str | None = None) -> dict[str, str]:
+    """What a shape's speed depends on: the device and its driver, the scene's shape (its
+    meshes, their search and whether anything moves included), the arithmetic, what else the
+    step does, and the kernel source (an edit measures again)."""
+    bodies = {}
+    if scene.meshes:
+        bodies["meshes"] = f"{'/'.join(str(m.geometry.triangles) for m in scene.meshes)} {mesh_collision}"
+    if scene.has_motion:
+        bodies["motion"] = "pins attached" if scene.pin_attach is not None else "moving colliders"
     return {
         "device": device.name,
         "platform": device.platform.version,
@@ -117,6 +123,7 @@ def tuning_key(device, scene, options, source: str) -> dict[str, str]:
         "transfer": options.transfer or "resident",
         "local_size": str(options.local_size or "auto"),
         "source": hashlib.sha256(source.encode()).hexdigest()[:16],
+        **bodies,  # absent without meshes or motion: the keys measured before stay valid
     }
 
 

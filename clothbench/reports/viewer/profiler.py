@@ -19,7 +19,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
-SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe", "swiftshader")
+from clothbench.backends.gl.context import SOFTWARE_RENDERERS
 
 
 @dataclass
@@ -150,7 +150,9 @@ class GLTimer:
             stage.device_ms = (stage.device_ms or 0.0) + self._query.elapsed / 1e6
 
     def release(self) -> None:
-        if self._query is not None:
+        # moderngl 5.13's Query has no release(): the query goes with its last reference
+        release = getattr(self._query, "release", None)
+        if release is not None:
             with self.device:
-                self._query.release()
-            self._query = None
+                release()
+        self._query = None

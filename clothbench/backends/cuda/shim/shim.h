@@ -63,6 +63,14 @@ struct alignas(16) float4 {  // CUDA's float4 is 16-byte aligned too
 inline float3 make_float3(float x, float y, float z) { return float3{x, y, z}; }
 inline float4 make_float4(float x, float y, float z, float w) { return float4{x, y, z, w}; }
 
+// CUDA's bit reinterpretation (e.g. +inf as __int_as_float(0x7f800000): NVRTC has no INFINITY).
+inline float __int_as_float(int i)
+{
+    float f;
+    std::memcpy(&f, &i, sizeof f);
+    return f;
+}
+
 // sqrtf (from <cmath>) is correctly rounded, as on the GPU without fast math. The GPU's
 // rsqrtf is approximate; 1/sqrt is the nearest portable stand-in (fast mode only).
 inline float rsqrtf(float x) { return 1.0f / std::sqrt(x); }
@@ -217,10 +225,12 @@ int launch(dim3 grid, dim3 block, std::size_t shared_bytes, bool barriers, void 
 
 // One letter per parameter type, so the caller can check its argument list against the
 // kernel's signature (a real GPU launch would reinterpret mismatched bytes silently).
+// 'q' is a pointer to int (an int buffer), 'p' any other pointer (float4 buffers).
 template <typename T>
 constexpr char type_code()
 {
-    if constexpr (std::is_pointer_v<T>) return 'p';
+    if constexpr (std::is_pointer_v<T> && std::is_same_v<std::remove_cv_t<std::remove_pointer_t<T>>, int>) return 'q';
+    else if constexpr (std::is_pointer_v<T>) return 'p';
     else if constexpr (std::is_same_v<T, float>) return 'f';
     else if constexpr (std::is_same_v<T, int>) return 'i';
     else if constexpr (std::is_same_v<T, unsigned>) return 'u';
@@ -265,7 +275,7 @@ inline void __syncthreads() { cuda_shim::syncthreads(); }
 // C entry points for ctypes, one set per kernel:
 //   int  <kernel>_launch(unsigned grid, unsigned block, unsigned shared_bytes, void** params, int count)
 //        (0, or a cuda_shim::Status)
-//   const char* <kernel>_signature()                                               (e.g. "ppppif")
+//   const char* <kernel>_signature()             (e.g. "ppppif"; 'q': an int buffer, 'p': a float4 one)
 //   void <kernel>_schedule(unsigned long long seed)   (WITH_BARRIERS: thread order, 0 = in order)
 #define CUDA_SHIM_EXPORT_AS(kernel, barriers)                                                     \
     extern "C" int kernel##_launch(unsigned grid, unsigned block, unsigned shared_bytes,          \

@@ -1,0 +1,143 @@
+"""Substeps against iterations at equal cost (Macklin et al. 2019, "Small steps in physics
+simulation"): the PBD error of each (substeps, iterations) pair whose product is a given
+cost, against one converged float64 reference, and what each pair costs per frame.
+
+The reference is the converged float64 mass-spring (Verlet) answer of the same scene
+(analysis/convergence.converged_reference), not PBD at many iterations: it is what the
+coloured form converges to as dt shrinks (docs/pbd.md), it is the same for both methods and
+every pair, and it does not depend on the setting being measured. docs/pbd-study.md says why,
+and why the study runs undamped by default.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+from clothbench.analysis.convergence import F64, Reference, converged_reference, steps_for, structural_strain
+from clothbench.backends import BackendOptions, create_backend
+from clothbench.environment import cpu_model
+from clothbench.harness.simulate import position_error, simulate
+from clothbench.harness.timing import run_timed
+from clothbench.scene import Scene
+from clothbench.solver import Pbd, Verlet
+
+FRAME_DT = 1 / 60  # the frame PBD is stepped at: what it is used for
+REFERENCE_DT = FRAME_DT / 32  # Verlet's finest measured dt (under its 2 ms limit at k = 1000), halved below
+COST_BACKENDS = ("numpy", "opencl")  # float32, where ms/step is measured
+PEER_METHODS = ("newton",)  # a --methods entry that runs a peer's own PBD instead of clothbench's
+
+
+def pairs_at(cost: int) -> list[tuple[int, int]]:
+    """(substeps, iterations) with substeps * iterations == cost, fewest substeps first."""
+    return [(s, cost // s) for s in range(1, cost + 1) if cost % s == 0]
+
+
+@dataclass
+class PbdStudyRow:
+    scene: str
+    grid: int
+    damping: float
+    time_s: float
+    frame_dt: float
+    method: str
+    substeps: int
+    iterations: int
+    cost: int  # substeps * iterations: constraint passes per frame
+    status: str = "ok"
+    rms: float = float("nan")  # m, against the converged reference
+    max: float = float("nan")
+    strain: float = float("nan")  # mean structural strain at time_s (the reference's is ref_strain)
+    ref_strain: float = float("nan")
+    ref_model: str = "verlet f64 converged"
+    ref_dt: float = float("nan")
+    ref_converged: bool = False
+    ref_uncertainty: float = float("nan")  # m, max norm
+    ms_numpy: float = float("nan")  # ms per frame step, float32, median of chunks
+    ms_opencl: float = float("nan")
+    ms_newton: float = float("nan")  # method "newton" only: the peer's own run, which the error is of
+    device_opencl: str = ""
+    cpu: str = ""
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def study_reference(scene: Scene, time_s: float, on_level: Callable[[int, float], None] | None = None) -> Reference:
+    """The converged float64 mass-spring state of `scene` at `time_s` (rest start)."""
+    return converged_reference(scene, Verlet(dt=REFERENCE_DT), time_s, REFERENCE_DT, on_level=on_level)
+
+
+def _time(backend: str, scene: Scene, solver: Pbd, steps: int) -> tuple[float, str]:
+    """(median ms per step, device) of `backend` in float32, or (nan, why) where it cannot run."""
+    try:
+        with create_backend(backend, scene, solver, BackendOptions()) as b:
+            result = run_timed(b, steps, raise_on_blowup=False)
+            return result.ms_per_step, result.device
+    except Exception as e:  # a backend that cannot run this pair is a row saying so, not a dead study
+        return float("nan"), f"not run: {type(e).__name__}: {e}"
+
+
+def measure_pair(
+    scene: Scene, method: str, substeps: int, iterations: int, time_s: float, ref: Reference,
+    cost_backends=COST_BACKENDS, frame_dt: float = FRAME_DT,
+) -> PbdStudyRow:  # fmt: skip
+    """One pair: its float64 error against `ref` and its float32 cost per frame. Method
+    "newton" is the Newton XPBD peer (peers/newton.py): its one float32 run gives both."""
+    peer = method in PEER_METHODS
+    solver = Pbd(dt=frame_dt, method="coloured" if peer else method, substeps=substeps, iterations=iterations)
+    steps = steps_for(time_s, frame_dt)
+    row = PbdStudyRow(
+        scene.name, scene.grid, scene.damping, time_s, frame_dt, method, substeps, iterations,
+        substeps * iterations, ref_dt=ref.dt, ref_converged=ref.converged, ref_uncertainty=ref.uncertainty,
+        ref_strain=structural_strain(ref.pos, scene), cpu=cpu_model(),
+    )  # fmt: skip
+    if peer:
+        return _measure_peer(row, method, scene, solver, steps, ref)
+    pos, _ = simulate("numpy", scene, solver, steps, F64)
+    if not math.isfinite(float(abs(pos[:, :3]).max())):
+        row.status = "unstable"
+    else:
+        row.rms, row.max = position_error(pos, ref.pos)
+        row.strain = structural_strain(pos, scene)
+    for backend in cost_backends:
+        ms, device = _time(backend, scene, solver, steps)
+        setattr(row, f"ms_{backend}", ms)
+        if backend == "opencl":
+            row.device_opencl = device
+    return row
+
+
+def _measure_peer(row: PbdStudyRow, backend: str, scene: Scene, solver: Pbd, steps: int, ref: Reference):
+    try:
+        with create_backend(backend, scene, solver, BackendOptions()) as b:
+            result = run_timed(b, steps, raise_on_blowup=False)
+    except Exception as e:  # a peer that cannot run is a row saying so
+        row.status = " ".join(f"error: {type(e).__name__}: {e}".split())
+        return row
+    setattr(row, f"ms_{backend}", result.ms_per_step)
+    if result.blowup is not None:
+        row.status = f"unstable at step {result.blowup.step}"
+    else:
+        row.rms, row.max = position_error(result.pos, ref.pos)
+        row.strain = structural_strain(result.pos, scene)
+    return row
+
+
+def best_per_cost(rows: list[PbdStudyRow]) -> dict[tuple[str, str, int], PbdStudyRow]:
+    """(scene, method, cost) -> the pair with the smallest RMS error at that cost."""
+    best: dict[tuple[str, str, int], PbdStudyRow] = {}
+    for r in rows:
+        if r.status != "ok":
+            continue
+        key = (r.scene, r.method, r.cost)
+        if key not in best or r.rms < best[key].rms:
+            best[key] = r
+    return best
+
+
+__all__ = [
+    "FRAME_DT", "REFERENCE_DT", "COST_BACKENDS", "PEER_METHODS", "pairs_at", "PbdStudyRow", "study_reference",
+    "measure_pair", "best_per_cost",
+]  # fmt: skip

@@ -1,0 +1,194 @@
+"""`clothbench pbd-study`: substeps against iterations at equal cost (analysis/pbd_study.py),
+each row written as measured (harness/study_csv.py), and its figure: error against cost, one
+line per substep count. docs/pbd-study.md has the reasoning and the measured answer."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from clothbench.cli.args import int_list, sigterm_interrupts
+from clothbench.cli.study_files import add_resume_args, say_interrupted
+from clothbench.errors import ClothbenchError
+
+STUDY_KEY = ("scene", "method", "substeps", "iterations")
+STUDY_GRID = 32  # the accuracy study's grid: the reference runs in seconds, the ranking is the same at 64
+STUDY_TIME_S = 0.5  # 30 frames: the curtain is on the sphere, the drape in its first swing
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "pbd-study", help="PBD substeps against iterations at equal cost: error against a converged reference"
+    )
+    p.add_argument("--scenes", default="drape,curtain", help="comma-separated scenes (default drape,curtain)")
+    p.add_argument(
+        "--costs", type=int_list("--costs", 1), default=[5, 10, 20, 40],
+        help="comma-separated substeps x iterations products; every divisor pair of each is run (default 5,10,20,40)",
+    )  # fmt: skip
+    p.add_argument(
+        "--methods", default="jacobi,coloured",
+        help="PBD methods (default jacobi,coloured); newton: the Newton XPBD peer, timed on its own run",
+    )  # fmt: skip
+    p.add_argument("--grid", type=int, default=STUDY_GRID, help=f"particles per side (default {STUDY_GRID})")
+    p.add_argument("--time", type=float, default=STUDY_TIME_S, help=f"simulated time, s (default {STUDY_TIME_S})")
+    p.add_argument(
+        "--damping", type=float, default=0.0,
+        help="b (N s/m), default 0: PBD's drag and the springs' differ at the edges (docs/pbd-study.md)",
+    )  # fmt: skip
+    p.add_argument(
+        "--cost-backends", default="numpy,opencl",
+        help="backends whose float32 ms/step is measured (default numpy,opencl; 'none' for error only)",
+    )  # fmt: skip
+    p.add_argument("--out", default="results/pbd-study/pbd-study.csv", help="CSV path (rows written as measured); PNG beside")
+    add_resume_args(p, "the same as --resume: an unstable pair is a row, so nothing is retried")
+    p.set_defaults(func=cmd_pbd_study)
+
+
+def _names(text: str, what: str, known) -> list[str]:
+    names = list(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    bad = [n for n in names if n not in known]
+    if not names or bad:
+        raise ClothbenchError(f"{what} takes {', '.join(known)} (comma-separated), got {text!r}")
+    return names
+
+
+def cmd_pbd_study(args) -> int:
+    from clothbench.analysis.convergence import steps_for
+    from clothbench.analysis.pbd_study import (
+        FRAME_DT, PEER_METHODS, PbdStudyRow, measure_pair, pairs_at, study_reference,
+    )  # fmt: skip
+    from clothbench.backends import BACKENDS
+    from clothbench.harness.preflight import check_writable
+    from clothbench.harness.study_csv import StudyFile, cell, cells, from_cells
+    from clothbench.reports.progress import LazyProgress
+    from clothbench.scene import builtin_scenes, load_scene
+    from clothbench.solver import PBD_METHODS
+
+    sigterm_interrupts()
+    methods = _names(args.methods, "--methods", PBD_METHODS + PEER_METHODS)
+    if args.grid < 4:
+        raise ClothbenchError(f"--grid must be >= 4, got {args.grid}")
+    if not (math.isfinite(args.time) and args.time > 0):
+        raise ClothbenchError(f"--time must be > 0, got {args.time}")
+    steps_for(args.time, FRAME_DT)  # a time that is not whole frames, refused before any work
+    if not (math.isfinite(args.damping) and args.damping >= 0):
+        raise ClothbenchError(f"--damping must be >= 0, got {args.damping}")
+    cost_backends = [] if args.cost_backends.strip() == "none" else _names(
+        args.cost_backends, "--cost-backends", [n for n, e in BACKENDS.items() if e.pbd is not None])  # fmt: skip
+    names = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    if not names:
+        raise ClothbenchError(f"--scenes names no scene (give e.g. {','.join(builtin_scenes())})")
+    scenes = [load_scene(n).replace(grid=args.grid, damping=args.damping) for n in names]
+    out = Path(args.out)
+    png = out.with_suffix(".png")
+    for path in (out, png):
+        check_writable(path)
+    plan = [(s, m, sub, it) for s in scenes for m in methods for c in args.costs for sub, it in pairs_at(c)]
+    plan = list({(s.name, m, sub, it): (s, m, sub, it) for s, m, sub, it in plan}.values())  # 20 = 2 x 10 = ...
+    key = lambda name, m, sub, it: (name, m, cell(sub), cell(it))  # noqa: E731
+    settings = {"grid": cell(args.grid), "damping": cell(args.damping), "time_s": cell(args.time),
+                "frame_dt": cell(FRAME_DT)}  # fmt: skip
+    columns = [f.name for f in PbdStudyRow.__dataclass_fields__.values()]
+    resume = args.resume or args.retry_failed
+    planned = {key(s.name, m, sub, it) for s, m, sub, it in plan}
+    with StudyFile(out, columns, STUDY_KEY, settings, "pbd-study", resume=resume, planned=planned) as f:
+        have = f.keys()
+        todo = [p for p in plan if key(p[0].name, *p[1:]) not in have]
+        refs = {}
+        measured = {}
+        try:
+            with LazyProgress(len(todo) + len(scenes), "pbd-study") as progress:
+                done = 0
+                for scene, method, sub, it in todo:
+                    if scene.name not in refs:
+                        progress.update(done, f"{scene.name}: converged float64 mass-spring reference")
+                        refs[scene.name] = study_reference(scene, args.time)
+                    progress.update(done, f"{scene.name} {method} {sub} substeps x {it} iterations")
+                    row = measure_pair(scene, method, sub, it, args.time, refs[scene.name], cost_backends)
+                    f.append(cells(row.as_dict()))
+                    measured[key(scene.name, method, sub, it)] = row
+                    done += 1
+        except KeyboardInterrupt:
+            say_interrupted(f)
+            raise
+        by_key = {f.key(r): r for r in f.rows}
+        rows = [measured.get(k) or from_cells(PbdStudyRow, by_key[k]) for k in (key(s.name, *p) for s, *p in plan)]
+        f.rewrite([cells(r.as_dict()) for r in rows])
+    plot_study(rows, png)
+    _print_study(rows)
+    print(f"wrote {out}, {png}")
+    return 0
+
+
+def _print_study(rows) -> None:
+    from clothbench.analysis.pbd_study import best_per_cost
+
+    r0 = rows[0]
+    print(
+        f"clothbench pbd-study: {r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, b = {r0.damping:g}; "
+        f"error: RMS distance to the converged float64 mass-spring answer"
+    )
+    print(f"{'scene':<9}{'method':<10}{'cost':>5}{'substeps':>9}{'iters':>6}{'rms (mm)':>10}{'max (mm)':>10}"
+          f"{'numpy ms':>10}{'opencl ms':>10}{'newton ms':>10}")  # fmt: skip
+    for r in rows:
+        err = f"{r.rms * 1e3:>10.2f}{r.max * 1e3:>10.2f}" if r.status == "ok" else f"{r.status:>20}"
+        print(f"{r.scene:<9}{r.method:<10}{r.cost:>5}{r.substeps:>9}{r.iterations:>6}{err}"
+              f"{r.ms_numpy:>10.3f}{r.ms_opencl:>10.3f}{r.ms_newton:>10.3f}")  # fmt: skip
+    print("best pair per cost (smallest RMS):")
+    for (scene, method, cost), r in best_per_cost(rows).items():
+        print(f"  {scene} {method} cost {cost}: {r.substeps} x {r.iterations} ({r.rms * 1e3:.2f} mm)")
+
+
+def plot_study(rows, path: Path) -> None:
+    """Error against cost, one line per substep count: a panel per scene and method, against
+    constraint passes per frame (top) and measured OpenCL ms per frame (bottom, numpy's where
+    OpenCL was not measured)."""
+    from matplotlib import rc_context
+
+    from clothbench.reports.figures_common import MARKERS, PALETTE, REPRODUCIBLE, new_figure, plain_log_labels
+
+    cases = list(dict.fromkeys((r.scene, r.method) for r in rows))
+    subs = sorted({r.substeps for r in rows})
+    fig = new_figure(3.3 * len(cases), 6.4)
+    axes = fig.subplots(2, len(cases), squeeze=False)
+    opencl = any(math.isfinite(r.ms_opencl) for r in rows)
+    own = "opencl" if opencl else "numpy"
+
+    def ms(r) -> float:  # a peer's rows are timed on the peer's own run
+        return r.ms_newton if r.method == "newton" else r.ms_opencl if opencl else r.ms_numpy
+
+    for col, (scene, method) in enumerate(cases):
+        mine = [r for r in rows if (r.scene, r.method) == (scene, method) and r.status == "ok"]
+        timed_on = "newton" if method == "newton" else own
+        for top, x, xlabel in ((0, lambda r: r.cost, "substeps x iterations per frame"),
+                               (1, ms, f"f32 ms per frame ({timed_on}, measured)")):  # fmt: skip
+            ax = axes[top][col]
+            for i, s in enumerate(subs):
+                line = sorted((r for r in mine if r.substeps == s and math.isfinite(x(r))), key=lambda r: r.cost)
+                if line:
+                    ax.plot([x(r) for r in line], [r.rms * 1e3 for r in line], marker=MARKERS[i % len(MARKERS)],
+                            color=PALETTE[i % len(PALETTE)], label=f"{s} substep{'s' * (s > 1)}")  # fmt: skip
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            plain_log_labels(ax, ax.yaxis)
+            plain_log_labels(ax, ax.xaxis)
+            ax.set_xlabel(xlabel, fontsize=8)
+            ax.set_title(f"{scene}, {method}", fontsize=9)
+            ax.grid(True, which="both", alpha=0.3)
+            if col == 0:
+                ax.set_ylabel("RMS error (mm)", fontsize=8)
+    handles = {}
+    for ax in axes.flat:  # one key for every panel: each substep count once, fewest first
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, h)
+    order = sorted(handles, key=lambda label: int(label.split()[0]))
+    fig.legend([handles[k] for k in order], order, loc="outside right upper", fontsize=7)
+    r0 = rows[0]
+    fig.suptitle(
+        f"PBD substeps against iterations at equal cost ({r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, "
+        f"b = {r0.damping:g}): error against the converged float64 mass-spring answer; "
+        "ms measured on a loaded machine", fontsize=9,
+    )  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with rc_context(REPRODUCIBLE):
+        fig.savefig(path, dpi=130)
