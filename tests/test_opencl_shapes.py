@@ -200,6 +200,11 @@ def test_a_user_work_group_size_replaces_the_fixed_ones():
 def test_the_choice_is_measured_once_cached_and_remeasured_on_retune(monkeypatch, tmp_path):
     monkeypatch.setenv("CLOTHBENCH_TUNING", "on")
     monkeypatch.setenv("CLOTHBENCH_CACHE", str(tmp_path))
+    # one device throughout: --retune also measures the default device again, and on a busy
+    # machine another runtime (with other vector widths) can win that race
+    from clothbench.backends.opencl.device import default_device
+
+    monkeypatch.setenv("PYOPENCL_CTX", default_device().spec)
     timed: list[str] = []
     real = opencl.OpenCLBackend._time_shape
     monkeypatch.setattr(opencl.OpenCLBackend, "_time_shape", lambda self, name: timed.append(name) or real(self, name))
