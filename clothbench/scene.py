@@ -18,7 +18,7 @@ import numpy as np
 
 from clothbench.colliders.analytic import _COLLIDER_KEYS, _COLLIDER_OPTIONAL_KEYS, ANCHOR, COLLIDER_KINDS, Cylinder, Plane, Sphere, body_pose  # noqa: F401 (body_pose, ANCHOR: re-exported)
 from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Frame, Motion, frames_from_toml, motion_from_toml
+from clothbench.colliders.motion import Frame, Motion, array_of_tables, frames_from_toml, motion_from_toml
 from clothbench.errors import SceneError
 from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, solver_for_spec
 
@@ -298,14 +298,9 @@ def _table(data: dict, key: str, allowed: set, where: str) -> dict:
 
 def _colliders(data: dict, kind: str, where: str) -> tuple:
     """The [[kind]] array of tables as collider objects, every key checked."""
-    raw = data.get(kind, [])
-    if not isinstance(raw, list):
-        raise SceneError(f"{where}: colliders are written [[{kind}]] (an array of tables)")
     keys = _COLLIDER_KEYS[kind]
     out = []
-    for table in raw:
-        if not isinstance(table, dict):
-            raise SceneError(f"{where}: each [[{kind}]] must be a table")
+    for table in array_of_tables(data.get(kind, []), kind, "colliders", where):
         optional = _optional_keys(table, kind, where)
         unknown = set(table) - set(keys) - set(_COLLIDER_OPTIONAL_KEYS)
         missing = set(keys) - set(table)
@@ -336,13 +331,8 @@ def _optional_keys(table: dict, kind: str, where: str) -> dict:
 
 def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
     """The [[mesh]] tables; a relative file is read from the scene file's folder."""
-    raw = data.get("mesh", [])
-    if not isinstance(raw, list):
-        raise SceneError(f"{where}: meshes are written [[mesh]] (an array of tables)")
     out = []
-    for table in raw:
-        if not isinstance(table, dict):
-            raise SceneError(f"{where}: each [[mesh]] must be a table")
+    for table in array_of_tables(data.get("mesh", []), "mesh", "meshes", where):
         unknown = set(table) - _MESH_KEYS
         if unknown:
             raise SceneError(f"{where}: unknown key {sorted(unknown)[0]!r} in [[mesh]] (allowed: {', '.join(sorted(_MESH_KEYS))})")

@@ -131,13 +131,20 @@ def motion_from_toml(value, what: str) -> Motion:
     )
 
 
-def frames_from_toml(raw, where: str) -> tuple[Frame, ...]:
+def array_of_tables(raw, name: str, plural: str, where: str) -> list[dict]:
+    """A scene file's [[name]] entries, refused in one line unless an array of tables: the
+    shape every collider, mesh and frame list of a scene file shares."""
     if not isinstance(raw, list):
-        raise SceneError(f"{where}: kinematic frames are written [[frame]] (an array of tables)")
-    out = []
+        raise SceneError(f"{where}: {plural} are written [[{name}]] (an array of tables)")
     for table in raw:
         if not isinstance(table, dict):
-            raise SceneError(f"{where}: each [[frame]] must be a table")
+            raise SceneError(f"{where}: each [[{name}]] must be a table")
+    return raw
+
+
+def frames_from_toml(raw, where: str) -> tuple[Frame, ...]:
+    out = []
+    for table in array_of_tables(raw, "frame", "kinematic frames", where):
         unknown = set(table) - _FRAME_KEYS
         if unknown:
             raise SceneError(f"{where}: unknown key {sorted(unknown)[0]!r} in [[frame]] (allowed: {', '.join(sorted(_FRAME_KEYS))})")
