@@ -300,23 +300,8 @@ typedef intv intv_u __attribute__((aligned(4)));
 #define STOREV(v, p, j) (*(__global floatv_u *)((p) + (j)) = (v))
 #endif
 
-#ifndef CLOTH_STRICT
-#if V == 16 && defined(__AVX512F__)
-/* 1/sqrt(x), fast build, AVX-512: the 14-bit estimate and one Newton step (about 23 bits).
- * PoCL 3.1 builds rsqrt() as a correctly rounded sqrt and division, which cost more than
- * the rest of a spring; its native_rsqrt() is no quicker. */
-typedef float v16sf __attribute__((vector_size(64)));
-INLINE floatv fast_rsqrt(floatv x)
-{
-    union { floatv f; v16sf v; } in, zero, y;
-    in.f = x, zero.f = 0.0f;
-    y.v = __builtin_ia32_rsqrt14ps512_mask(in.v, zero.v, (unsigned short)0xffff);
-    return y.f * (1.5f - (0.5f * x) * (y.f * y.f));
-}
-#else
-#define fast_rsqrt rsqrt
-#endif
-#endif
+/* fast builds: fast_rsqrt() (fast_math.cl) */
+#include "fast_math.cl"
 
 /* Step 5 for one neighbour j. select(), not if, keeps the lanes together. */
 INLINE void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, float k,

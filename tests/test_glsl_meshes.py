@@ -24,6 +24,13 @@ N = 32
 STEPS = {"torus": 500, "sweep": 1000, "carried": 500}
 
 
+def grid_of(backend: str, scene_name: str) -> int:
+    """N, but 16 for the fragment backend on the sweep: on llvmpipe its moving-mesh step was
+    the slowest test in CI (3 minutes a test at 32^2, 2026-12-02). The sheet is the same size,
+    so the paddle still reaches it within the 1000 steps (the strict test checks that it did)."""
+    return 16 if (backend, scene_name) == ("glsl", "sweep") else N
+
+
 
 
 def two_meshes(n: int = 16):
@@ -67,12 +74,12 @@ CASES = [
 @pytest.mark.parametrize("backend, scene_name, algorithm, shape", CASES)
 def test_strict_matches_numpy_f32_bit_for_bit_after_contact(backend, scene_name, algorithm, shape):
     require(backend)
-    scene = load_scene(scene_name).replace(grid=N)
+    scene = load_scene(scene_name).replace(grid=grid_of(backend, scene_name))
     options = BackendOptions(strict=True, mesh_collision=algorithm, shape=shape)
     steps = STEPS[scene_name]
     pos, prev = simulate(backend, scene, VERLET, steps, options)
     ref_pos, ref_prev = reference(scene, VERLET, steps, "f32")
-    what = f"{backend} {scene_name} mesh={algorithm} shape={shape} n={N} steps={steps}"
+    what = f"{backend} {scene_name} mesh={algorithm} shape={shape} n={scene.grid} steps={steps}"
     assert_bit_exact(pos, ref_pos, f"pos, {what}")
     assert_bit_exact(prev, ref_prev, f"prev, {what}")
     # the bodies did something: without them the sheet ends elsewhere (by more than 1 mm)
@@ -120,7 +127,7 @@ def test_fast_error_is_of_the_order_of_numpy_f32s_own(backend, scene_name):
     # 1 um floor is the contract's bound (tests/contract/test_verlet_contract.py). Measured
     # here on llvmpipe (glsl-compute): 1.0x (torus), 0.6x (sweep), 1.2x (carried).
     require(backend)
-    scene, steps = load_scene(scene_name).replace(grid=N), STEPS[scene_name]
+    scene, steps = load_scene(scene_name).replace(grid=grid_of(backend, scene_name)), STEPS[scene_name]
     ref64, _ = reference(scene, VERLET, steps, "f64")
     _, f32_max = position_error(reference(scene, VERLET, steps, "f32")[0], ref64)
     pos, _ = simulate(backend, scene, VERLET, steps, BackendOptions())

@@ -296,8 +296,31 @@ def test_opencl_one_launch_mode_names_its_work_group_and_large_grids_do_not_offe
         assert b.mode.endswith("/one-launch") and "/ls=" in b.mode, b.mode
         assert b.one_launch
     side = int(opencl_pbd.ONE_LAUNCH_MAX_PARTICLES**0.5) + 1
-    scene, _ = curtain("jacobi", grid=side)
-    assert opencl_pbd.OpenCLPbdBackend.kernel_shapes(scene, FAST) == ("per-stage",)
+    scene, coloured = curtain("coloured", grid=side)
+    assert opencl_pbd.OpenCLPbdBackend.kernel_shapes(scene, FAST, coloured) == ("per-stage",)  # nor vectors
+
+
+def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized_by_scratch():
+    require("opencl")
+    from clothbench.backends.opencl import pbd as opencl_pbd
+
+    shapes_of = opencl_pbd.OpenCLPbdBackend.kernel_shapes
+    scene, jacobi = curtain("jacobi", grid=20)
+    _, coloured = curtain("coloured", grid=20)
+    # two bands at least (20 rows: 8 + 8 + 4, 16 + 4; not 32); the coloured method has none
+    assert [s for s in shapes_of(scene, FAST, jacobi) if s.startswith("bands-")] == ["bands-8", "bands-16"]
+    assert not [s for s in shapes_of(scene, FAST, coloured) if s.startswith("bands-")]
+    assert "one-launch-vectors" in shapes_of(scene, FAST, coloured)
+    assert "one-launch-vectors" not in shapes_of(scene, FAST, jacobi)
+    with pytest.raises(ClothbenchError, match="no kernel shape 'bands-8'"):
+        create_backend("opencl", scene, coloured, BackendOptions(shape="bands-8"))
+    # every band holds a whole grid of scratch: at 2048^2 no band count fits the limit
+    assert not [s for s in shapes_of(scene.replace(grid=2048), FAST, jacobi) if s.startswith("bands-")]
+    with create_backend("opencl", scene, jacobi, BackendOptions(shape="bands-8")) as b:
+        assert b.mode.endswith("/bands-8"), b.mode
+        b.upload(*b.initial_state())
+        stages = b.profile_stages(2)  # a stage cannot be timed inside the band kernel: per-stage
+        assert "project (jacobi)" in stages and "predict" in stages, stages
 
 
 @pytest.mark.parametrize("grid", [4, STRICT_GRID])

@@ -222,10 +222,11 @@ class Backend(ABC):
         return f"/mesh={self.mesh_collision}" if self.mesh_collision else ""
 
     @classmethod
-    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
         """Where capabilities.shapes: the kernel shapes this backend can run `scene` with
         (names, as the mode spells them; the first is the default), chosen among by
-        measurement (backends/tuning.py) unless options.shape names one."""
+        measurement (backends/tuning.py) unless options.shape names one; with `solver`, only
+        those its settings allow (None: every shape of any settings)."""
         return ()
 
     def pick_shape(self, key: dict[str, str], time_candidate) -> str:
@@ -233,7 +234,7 @@ class Backend(ABC):
         choice for `key` (backends/tuning.py). Sets and returns self.shape."""
         from clothbench.backends.tuning import choose_shape
 
-        candidates = self.kernel_shapes(self.scene, self.options)
+        candidates = self.kernel_shapes(self.scene, self.options, self.solver)
         if self.options.shape is not None:
             if self.options.shape not in candidates:
                 raise ClothbenchError(

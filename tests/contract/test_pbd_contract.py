@@ -51,7 +51,7 @@ def test_strict_pbd_matches_numpy_f32_bit_for_bit_after_200_steps(param, scene_n
     name, _ = usable(param)
     scene, solver = SCENES[scene_name](STRICT_GRID), Pbd(dt=AT_60HZ, method=method)
     ref_pos, ref_prev = reference(scene, solver, 200, "f32")
-    for shape in shapes_of(name, scene):
+    for shape in shapes_of(name, scene, solver):
         pos, prev = simulate(name, scene, solver, 200, options(name, "pbd", strict=True, shape=shape))
         assert_bit_exact(pos, ref_pos, f"{name} {shape} {method} {scene_name} pos")
         assert_bit_exact(prev, ref_prev, f"{name} {shape} {method} {scene_name} prev")
@@ -65,14 +65,14 @@ def test_work_group_size_changes_no_strict_bit(param):
     for method in PBD_METHODS:
         solver = Pbd(dt=AT_60HZ, method=method)
         ref = reference(scene, solver, 30, "f32")[0]
-        for shape in shapes_of(name, scene):
+        for shape in shapes_of(name, scene, solver):
             for ls in (7, 128):
                 opts = options(name, "pbd", strict=True, local_size=ls, shape=shape)
                 pos = simulate(name, scene, solver, 30, opts)[0]
                 assert_bit_exact(pos, ref, f"{name} {method} {shape} local size {ls}")
 
 
-def shapes_of(name: str, scene) -> tuple:
-    """The kernel shapes `name` offers for `scene` (None: it has one)."""
+def shapes_of(name: str, scene, solver) -> tuple:
+    """The kernel shapes `name` offers for `scene` and `solver` (None: it has one)."""
     cls = backend_class(name, "pbd")
-    return cls.kernel_shapes(scene, options(name, "pbd")) if cls.capabilities.shapes else (None,)
+    return cls.kernel_shapes(scene, options(name, "pbd"), solver) if cls.capabilities.shapes else (None,)

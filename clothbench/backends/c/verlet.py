@@ -173,7 +173,7 @@ class CBackend(Backend):
         self.threads = thread_count(self.pick_shape(self._tuning_key(), self._time_shape))
 
     @classmethod
-    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
         """threads=T: OMP_NUM_THREADS alone where set (one thread in a child forked after
         OpenMP ran, see _OpenMP), else every core, then halving down to one."""
         if _OpenMP.broken:

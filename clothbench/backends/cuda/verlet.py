@@ -280,7 +280,7 @@ class CudaBackend(Backend):
     )
 
     @classmethod
-    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
         return launch.kernel_shapes(scene.particles, options.local_size, shared_memory_limit(options.device))
 
     def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):

@@ -83,7 +83,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         self.effective_local_size = self.plan.shape.local
 
     @classmethod
-    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
         return shapes.candidates(scene, options)
 
     def build_plan(self, name: str) -> "Plan":

@@ -4,10 +4,14 @@ Host code only: the substep plan, the state conversion and the profiling are
 pbd_device.PbdDeviceBackend's (shared with gl/compute_pbd.py); the device, its queue, its
 probe, the program cache and the build-error report are device.py's (OpenCLDeviceMixin).
 
-Two kernel shapes (docs/pbd.md, "Launches"): `per-stage`, one substep as a fixed list of
-launches on an in-order queue (each sees the previous one's writes), and `one-launch`, up to
-SUBSTEPS_PER_LAUNCH substeps in one launch of one work-group. Every launch is a kernel object
-whose arguments are set once at construction, so advance() only enqueues.
+Three kinds of kernel shape (docs/pbd.md, "Launches"): `per-stage`, one substep as a fixed
+list of launches on an in-order queue (each sees the previous one's writes), `one-launch`, up
+to SUBSTEPS_PER_LAUNCH substeps in one launch of one work-group, and (Jacobi) `bands-R`, a
+substep's predict and passes in one launch of a work-group per band of R rows, each in its own
+scratch grid (temporal blocking), then the per-stage collide and update, and (coloured)
+`one-launch-vectors`, one-launch's plan with each batch swept V constraints at a time on a
+planar scratch grid. Every launch is a
+kernel object whose arguments are set once at construction, so advance() only enqueues.
 
 Meshes, moving colliders and pins attached to a body (docs/pbd.md, "Colliders, motion and
 attached pins"): the host side is bodies.py's, shared with verlet.py, with one collider table
@@ -38,16 +42,29 @@ from clothbench.backends.pbd_device import PbdDeviceBackend
 from clothbench.backends.tuning import median_seconds
 
 KERNEL_FILE = "pbd_cloth.cl"
-# Two kernel shapes, chosen per device and scene by measurement (backends/tuning.py):
+# The kernel shapes, chosen per device and scene by measurement (backends/tuning.py):
 # `per-stage`, one launch per stage (predict, each Jacobi pass or coloured batch, collide,
 # update), and `one-launch`, whole substeps in one launch of one work-group (pbd_substeps):
 # one core instead of all, no launch per pass. One-launch is offered up to this many
 # particles, past which one core cannot win (docs/pbd.md, "Launches").
 ONE_LAUNCH_MAX_PARTICLES = 256 * 256
 SHAPES = ("per-stage", "one-launch")
+# Jacobi only: `bands-R`, a substep's predict and every pass in one launch, a work-group per
+# band of R rows computing 2 * iterations rows either side again (pbd_jacobi_bands). Offered
+# where there are at least two bands (the last may be short) and every band's scratch grid
+# (two planar grids and 12 multipliers per particle, 24 with Chebyshev) fits
+# BANDS_SCRATCH_LIMIT bytes together.
+BAND_ROWS = (8, 16, 32, 64, 128)
+BANDS_SCRATCH_LIMIT = 512 << 20
 # Substeps per launch of pbd_substeps: bounds how long one launch holds the device.
 SUBSTEPS_PER_LAUNCH = 32
-SUBSTEPS_ARG = 19  # pbd_substeps' argument index of its substep count (its first substep's next)
+# the argument index of the substep count (the first substep's index next) of pbd_substeps and
+# pbd_coloured_vectors
+SUBSTEPS_ARG = {"one-launch": 19, "one-launch-vectors": 11}
+# Coloured only: `one-launch-vectors`, whole substeps in one launch of one work-group like
+# one-launch, on a planar scratch copy of the positions, each batch V constraints at a time
+# (pbd_coloured_vectors).
+VECTOR_SHAPES = ("one-launch-vectors",)
 
 
 class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
@@ -87,21 +104,71 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             self.offsets = self._read_only_buffer(starts)
 
         self._kernels: dict = {}
-        self.launches = self._plan_launches()  # per-stage: advance(), and profile_stages() in either shape
-        self.one_launch, self.substeps_kernel = False, None
+        # per-stage: advance() in that shape, and profile_stages() in every shape
+        self.launches = self._per_stage = self._plan_launches()
+        self.one_launch, self.substeps_kernel, self.substeps_kernels = False, None, {}
+        # the planar program (bands, vectors) and the scratch grids, built when first used
+        self.planar_program = self.band_scratch = self.vector_scratch = self.omega_buffer = None
         key = tuning_key(self._device, scene, options, self._source, self.mesh_collision)
         key.update(solver=solver.spec, iterations=str(solver.iterations), substeps=str(solver.substeps))
         self._use_shape(self.pick_shape(key, self._time_shape))
 
     @classmethod
-    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
-        return SHAPES if scene.particles <= ONE_LAUNCH_MAX_PARTICLES else SHAPES[:1]
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver: Pbd | None = None) -> tuple[str, ...]:
+        """The shapes for `scene`; with `solver`, only those its method has (bands: Jacobi;
+        one-launch-vectors: coloured)."""
+        small = scene.particles <= ONE_LAUNCH_MAX_PARTICLES
+        shapes = SHAPES if small else SHAPES[:1]
+        if solver is None or solver.method != "jacobi":
+            shapes += VECTOR_SHAPES if small else ()
+            if solver is not None:
+                return shapes
+        per_particle = 2 * 16 + 4 * 12 * (2 if solver is not None and solver.chebyshev_rho > 0 else 1)
+        return shapes + tuple(
+            f"bands-{rows}" for rows in BAND_ROWS
+            if scene.grid > rows and -(-scene.grid // rows) * scene.particles * per_particle <= BANDS_SCRATCH_LIMIT
+        )
 
     def _use_shape(self, name: str) -> None:
-        self.one_launch = name == "one-launch"
-        if self.one_launch and self.substeps_kernel is None:
-            self.substeps_kernel = self._substeps_kernel()
+        self.one_launch = name in SUBSTEPS_ARG
+        if self.one_launch:
+            if name not in self.substeps_kernels:
+                self.substeps_kernels[name] = (self._vectors_kernel() if name in VECTOR_SHAPES
+                                               else self._substeps_kernel())
+            self.substeps_kernel, self.substeps_arg = self.substeps_kernels[name], SUBSTEPS_ARG[name]
         self.effective_local_size = self.substeps_local_size if self.one_launch else self.local_size
+        self.launches, self.stage_launches = self._per_stage, None
+        if name.startswith("bands-"):
+            self.launches, self.stage_launches = self._band_launches(int(name[len("bands-"):])), self._per_stage
+            self.effective_local_size = self.substeps_local_size
+
+    def _band_launches(self, rows: int) -> list:
+        """One substep in the bands-`rows` shape: pbd_jacobi_bands (predict and every pass),
+        then the per-stage collide and update on the predicted-position buffer 0."""
+        bands = -(-self.n // rows)
+        lam_grids = 2 if self.chebyshev else 1
+        if self.band_scratch is None or self.band_scratch[0] < bands:  # the largest band count asked for
+            cl, mf = self._cl, self._cl.mem_flags
+            self.band_scratch = (bands, cl.Buffer(self._context, mf.READ_WRITE, bands * 2 * 16 * self.n2),
+                                 cl.Buffer(self._context, mf.READ_WRITE, bands * lam_grids * 48 * self.n2))
+        self.substeps_local_size = self._default_substeps_local_size()
+        c, f32, i32 = self.constants, np.float32, np.int32
+        make4, float4 = self._cl.cltypes.make_float4, self._cl.cltypes.float4
+        if self.omega_buffer is None:
+            self.omega_buffer = self._read_only_buffer(np.array(c.omega, np.float32))
+        args = (self.x, self.v, self.xs[0], *self.band_scratch[1:], self.omega_buffer, c.h, make4(*c.gh, 0.0),
+                make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax, i32(self.solver.iterations), i32(rows))
+        dtypes = [None] * 6 + [f32, float4, float4, float4, f32, i32, i32]
+        pins = self._body_args(0)[: self._per_step] + ((self._pin_slot, self._pin_target) if self._attached else ())
+        k = self._kernel(("bands", rows), "pbd_jacobi_bands", dtypes, args, pins, self._planar_program())
+        ls = self.substeps_local_size
+        plan = self._substep_plan()
+        ends = [step for step in plan if step[0] in ("collide", "update")]
+        # the band kernel leaves the final iterate in buffer 0, where the plan's ends may read 1
+        ends = [(kind, 0) for kind, _ in ends]
+        return [("project (jacobi, bands)", (k, (bands * ls,), (ls,)))] + [
+            (self.stage_of(step), launch) for step in ends for launch in self._launches_of(step)
+        ]
 
     def _time_shape(self, name: str) -> float:
         """Seconds per step of a short synchronised run of shape `name` from the initial state."""
@@ -158,7 +225,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         make4 = self._cl.cltypes.make_float4
         float4 = self._cl.cltypes.float4
         unused = self._unused = self._read_only_buffer(np.zeros(1, np.int32))  # the other method's tables: never read
-        self.omega_buffer = self._read_only_buffer(np.array(c.omega, np.float32))  # one weight per iteration
+        if self.omega_buffer is None:  # one weight per iteration
+            self.omega_buffer = self._read_only_buffer(np.array(c.omega, np.float32))
         border = self.border if self.jacobi else unused
         count = len(self.border_particles) if self.jacobi else 0
         ij = unused if self.ij is None else self.ij
@@ -176,12 +244,40 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.substeps_local_size = min(self.substeps_local_size, limit)
         return k
 
-    def _kernel(self, key, name: str, dtypes, args, bodies: tuple = ()):
+    def _planar_program(self):
+        """The same source built with planar scratch iterates (CLOTH_PLANAR, pbd_cloth.cl): the
+        bands' and the vector sweep's program, built when first asked for."""
+        if self.planar_program is None:
+            self.planar_program = build_program(self._context, self._source, (*self.build_options(), "-DCLOTH_PLANAR"))
+        return self.planar_program
+
+    def _vectors_kernel(self):
+        """pbd_coloured_vectors with its arguments set (the substep count per launch), on its
+        scratch: one planar grid and one multiplier per particle per batch."""
+        self.substeps_local_size = self._default_substeps_local_size()
+        cl, c, f32, i32 = self._cl, self.constants, np.float32, np.int32
+        make4, float4 = cl.cltypes.make_float4, cl.cltypes.float4
+        self.vector_scratch = (cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 16 * self.n2),
+                               cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 48 * self.n2))
+        args = (self.x, self.v, *self.vector_scratch, c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0),
+                make4(*c.at, 0.0), c.damp, self.colliders, i32(self.solver.iterations), i32(1))
+        dtypes = [None] * 4 + [f32, float4, float4, float4, f32, None, i32, i32]
+        k = cl.Kernel(self._planar_program(), "pbd_coloured_vectors")
+        k.set_scalar_arg_dtypes(dtypes + self._body_dtypes())
+        k.set_args(*args, *self._body_args(0))
+        limit = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
+        if self.local_size and self.local_size > limit:
+            raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit} for pbd_coloured_vectors")
+        self.substeps_local_size = min(self.substeps_local_size, limit)
+        return k
+
+    def _kernel(self, key, name: str, dtypes, args, bodies: tuple = (), program=None):
         """A kernel object with its typed arguments set once (a wrongly typed one raises);
         launches with the same arguments share it. `bodies`: the _body_args() it takes after
-        `args` (the substep index first, where the scene moves, set per substep by advance())."""
+        `args` (the substep index first, where the scene moves, set per substep by advance());
+        `program`: where the kernel is (default: self.program)."""
         if key not in self._kernels:
-            k = self._cl.Kernel(self.program, name)
+            k = self._cl.Kernel(program or self.program, name)
             body_dtypes = [np.int32 if isinstance(a, np.int32) else None for a in bodies]  # index, buffers
             k.set_scalar_arg_dtypes(list(dtypes) + body_dtypes)
             k.set_args(*args, *bodies)
@@ -259,7 +355,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     def _buffers(self) -> tuple:
         once = dict.fromkeys(self.lams)  # without Chebyshev both entries are one buffer
         return (self.x, self.v, *self.xs, *once, self.ij, self.border, self.offsets,
-                getattr(self, "omega_buffer", None), getattr(self, "_unused", None), *self._body_buffers())
+                self.omega_buffer, getattr(self, "_unused", None), *(self.band_scratch or (None,))[1:], *(self.vector_scratch or ()),
+                *self._body_buffers())
 
     # --- Backend interface -----------------------------------------------------------------
     def _motion_block(self) -> int:
@@ -285,9 +382,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         """pbd_substeps, up to SUBSTEPS_PER_LAUNCH substeps a launch."""
         k, ls = self.substeps_kernel, self.effective_local_size
         for done in range(0, substeps, SUBSTEPS_PER_LAUNCH):
-            k.set_arg(SUBSTEPS_ARG, np.int32(min(SUBSTEPS_PER_LAUNCH, substeps - done)))
+            k.set_arg(self.substeps_arg, np.int32(min(SUBSTEPS_PER_LAUNCH, substeps - done)))
             if self._per_step:
-                k.set_arg(SUBSTEPS_ARG + 1, np.int32(done))
+                k.set_arg(self.substeps_arg + 1, np.int32(done))
             self._events.append(self._cl.enqueue_nd_range_kernel(self.queue, k, (ls,), (ls,)))
 
 

@@ -142,7 +142,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             self._use_shape(self.shape)
 
     @classmethod
-    def kernel_shapes(cls, scene: Scene, options: BackendOptions) -> tuple[str, ...]:
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
         if options.generic:
             return ()
         device = choose_device(options.device or os.environ.get("PYOPENCL_CTX"))
