@@ -12,7 +12,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.cli import main
 from clothbench.constraints import coloured_batches
 from clothbench.errors import ClothbenchError
-from clothbench.harness import max_penetration, position_error, run_timed, simulate
+from clothbench.harness import max_penetration, position_error, reference, run_timed, simulate
 from clothbench.scene import Cylinder, Plane, Scene, Sphere
 from clothbench.solver import Pbd
 from conftest import assert_bit_exact, require, setup
@@ -300,9 +300,10 @@ def test_opencl_one_launch_mode_names_its_work_group_and_large_grids_do_not_offe
     assert opencl_pbd.OpenCLPbdBackend.kernel_shapes(scene, FAST, coloured) == ("per-stage",)  # nor vectors
 
 
-def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized_by_scratch():
+def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized_by_scratch(monkeypatch, tmp_path):
     require("opencl")
     from clothbench.backends.opencl import pbd as opencl_pbd
+    from clothbench.backends.opencl.device import default_device
 
     shapes_of = opencl_pbd.OpenCLPbdBackend.kernel_shapes
     scene, jacobi = curtain("jacobi", grid=20)
@@ -316,6 +317,19 @@ def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized
         create_backend("opencl", scene, coloured, BackendOptions(shape="bands-8"))
     # every band holds a whole grid of scratch: at 2048^2 no band count fits the limit
     assert not [s for s in shapes_of(scene.replace(grid=2048), FAST, jacobi) if s.startswith("bands-")]
+    # tuning times every shape on one backend (bands-8 and bands-16 on one scratch), then runs
+    # the one it picked: still the reference's bits
+    monkeypatch.setenv("CLOTHBENCH_TUNING", "on")
+    monkeypatch.setenv("CLOTHBENCH_CACHE", str(tmp_path))
+    monkeypatch.setenv("PYOPENCL_CTX", default_device().spec)  # one device: --retune re-measures the pick
+    timed: list[str] = []
+    real = opencl_pbd.OpenCLPbdBackend._time_shape
+    monkeypatch.setattr(opencl_pbd.OpenCLPbdBackend, "_time_shape", lambda self, name: timed.append(name) or real(self, name))
+    ref_pos, _ = reference(scene, jacobi, 20, "f32")
+    tuned = simulate("opencl", scene, jacobi, 20, BackendOptions(strict=True, retune=True))[0]
+    assert sorted(timed) == sorted(shapes_of(scene, BackendOptions(strict=True), jacobi)), timed
+    assert_bit_exact(tuned, ref_pos, "strict after tuning every shape")
+    monkeypatch.setenv("CLOTHBENCH_TUNING", "off")
     with create_backend("opencl", scene, jacobi, BackendOptions(shape="bands-8")) as b:
         assert b.mode.endswith("/bands-8"), b.mode
         b.upload(*b.initial_state())

@@ -146,17 +146,19 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         """One substep in the bands-`rows` shape: pbd_jacobi_bands (predict and every pass),
         then the per-stage collide and update on the predicted-position buffer 0."""
         bands = -(-self.n // rows)
-        lam_grids = 2 if self.chebyshev else 1
-        if self.band_scratch is None or self.band_scratch[0] < bands:  # the largest band count asked for
+        if self.band_scratch is None:  # once, for the most bands any offered shape has (within the limit)
+            offered = [s for s in self.kernel_shapes(self.scene, self.options, self.solver) if s.startswith("bands-")]
+            most = max([-(-self.n // int(s[len("bands-"):])) for s in offered] + [bands])
             cl, mf = self._cl, self._cl.mem_flags
-            self.band_scratch = (bands, cl.Buffer(self._context, mf.READ_WRITE, bands * 2 * 16 * self.n2),
-                                 cl.Buffer(self._context, mf.READ_WRITE, bands * lam_grids * 48 * self.n2))
+            lam_grids = 2 if self.chebyshev else 1
+            self.band_scratch = (cl.Buffer(self._context, mf.READ_WRITE, most * 2 * 16 * self.n2),
+                                 cl.Buffer(self._context, mf.READ_WRITE, most * lam_grids * 48 * self.n2))
         self.substeps_local_size = self._default_substeps_local_size()
         c, f32, i32 = self.constants, np.float32, np.int32
         make4, float4 = self._cl.cltypes.make_float4, self._cl.cltypes.float4
         if self.omega_buffer is None:
             self.omega_buffer = self._read_only_buffer(np.array(c.omega, np.float32))
-        args = (self.x, self.v, self.xs[0], *self.band_scratch[1:], self.omega_buffer, c.h, make4(*c.gh, 0.0),
+        args = (self.x, self.v, self.xs[0], *self.band_scratch, self.omega_buffer, c.h, make4(*c.gh, 0.0),
                 make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax, i32(self.solver.iterations), i32(rows))
         dtypes = [None] * 6 + [f32, float4, float4, float4, f32, i32, i32]
         pins = self._body_args(0)[: self._per_step] + ((self._pin_slot, self._pin_target) if self._attached else ())
@@ -355,8 +357,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     def _buffers(self) -> tuple:
         once = dict.fromkeys(self.lams)  # without Chebyshev both entries are one buffer
         return (self.x, self.v, *self.xs, *once, self.ij, self.border, self.offsets,
-                self.omega_buffer, getattr(self, "_unused", None), *(self.band_scratch or (None,))[1:], *(self.vector_scratch or ()),
-                *self._body_buffers())
+                self.omega_buffer, getattr(self, "_unused", None), *(self.band_scratch or ()),
+                *(self.vector_scratch or ()), *self._body_buffers())
 
     # --- Backend interface -----------------------------------------------------------------
     def _motion_block(self) -> int:
