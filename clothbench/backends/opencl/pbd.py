@@ -237,12 +237,17 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
                 c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax, c.damp, self.colliders,
                 i32(self.solver.iterations), i32(1))  # the last: substeps, set per launch
         dtypes = [None] * 8 + [i32, None, None, f32, float4, float4, float4, f32, f32, None, i32, i32]
-        k = self._cl.Kernel(self.program, "pbd_substeps")
-        k.set_scalar_arg_dtypes(dtypes + self._body_dtypes())
-        k.set_args(*args, *self._body_args(0))  # the first substep's index: set per launch
+        return self._whole_substeps_kernel(self.program, "pbd_substeps", dtypes, args)
+
+    def _whole_substeps_kernel(self, program, name: str, dtypes, args):
+        """Kernel `name` of the one-work-group shapes with `args` and the bodies' arguments set
+        (the first substep's index is set per launch), substeps_local_size within its limit."""
+        k = self._cl.Kernel(program, name)
+        k.set_scalar_arg_dtypes(list(dtypes) + self._body_dtypes())
+        k.set_args(*args, *self._body_args(0))
         limit = k.get_work_group_info(self._cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
         if self.local_size and self.local_size > limit:
-            raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit} for pbd_substeps")
+            raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit} for {name}")
         self.substeps_local_size = min(self.substeps_local_size, limit)
         return k
 
@@ -264,14 +269,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         args = (self.x, self.v, *self.vector_scratch, c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0),
                 make4(*c.at, 0.0), c.damp, self.colliders, i32(self.solver.iterations), i32(1))
         dtypes = [None] * 4 + [f32, float4, float4, float4, f32, None, i32, i32]
-        k = cl.Kernel(self._planar_program(), "pbd_coloured_vectors")
-        k.set_scalar_arg_dtypes(dtypes + self._body_dtypes())
-        k.set_args(*args, *self._body_args(0))
-        limit = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
-        if self.local_size and self.local_size > limit:
-            raise ClothbenchError(f"local size {self.local_size} exceeds this device's limit {limit} for pbd_coloured_vectors")
-        self.substeps_local_size = min(self.substeps_local_size, limit)
-        return k
+        return self._whole_substeps_kernel(self._planar_program(), "pbd_coloured_vectors", dtypes, args)
 
     def _kernel(self, key, name: str, dtypes, args, bodies: tuple = (), program=None):
         """A kernel object with its typed arguments set once (a wrongly typed one raises);
