@@ -177,9 +177,9 @@ __kernel void pbd_predict(__global const float4 *x, __global float4 *v, __global
  * so strict stays exact, and the lanes stay together. ---------------------------------- */
 
 /* The Jacobi iterates X and Y are `grid_t`s: float4 per particle, or with CLOTH_PLANAR (the
- * program of the bands shapes, whose iterates live in scratch grids only its kernel reads) x,
- * y, z and w planes of n * n floats each, so that a vector of V particles is four plain vector
- * loads instead of 4V float4s dealt out into lanes. Read and written through these macros
+ * program of the bands and vector-sweep shapes, whose iterates live in scratch grids only
+ * their kernels read) x, y, z and w planes of n * n floats each, so that a vector of V
+ * particles is four plain vector loads instead of 4V float4s dealt out into lanes. Read and written through these macros
  * (the vector forms after floatv, below); the operations on the values are the same. */
 #ifdef CLOTH_PLANAR
 typedef __global float *grid_t;
@@ -278,9 +278,9 @@ __kernel void pbd_jacobi_border(__global const float4 *X, __global float4 *Y,
 #endif
 
 /* The interior in vectors: V consecutive particles of a row per work item, their float4s
- * deinterleaved into x, y, z, w vectors (or, planar, loaded as they are). Explicit vectors because PoCL does not vectorise
- * this kernel across work items by itself: at n = 256 a pass took 2.5-3 ms in scalar form,
- * 0.8 ms with V = 16, strict or fast. IEEE arithmetic is per lane, so strict stays exact.
+ * deinterleaved into x, y, z, w vectors (or, planar, loaded as they are). Explicit vectors
+ * because PoCL does not vectorise this kernel across work items by itself: at n = 256 a pass
+ * took 2.5-3 ms in scalar form, 0.8 ms with V = 16, strict or fast. IEEE arithmetic is per lane, so strict stays exact.
  * When V does not divide the n - 4 interior columns, the last vector of a row overlaps the
  * one before it and stores only the lanes that one does not (its other lanes may read
  * multipliers the neighbouring item is rewriting: they are never stored), so the scalar

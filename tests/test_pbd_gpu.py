@@ -329,7 +329,6 @@ def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized
     tuned = simulate("opencl", scene, jacobi, 20, BackendOptions(strict=True, retune=True))[0]
     assert sorted(timed) == sorted(shapes_of(scene, BackendOptions(strict=True), jacobi)), timed
     assert_bit_exact(tuned, ref_pos, "strict after tuning every shape")
-    monkeypatch.setenv("CLOTHBENCH_TUNING", "off")
     with create_backend("opencl", scene, jacobi, BackendOptions(shape="bands-8")) as b:
         assert b.mode.endswith("/bands-8"), b.mode
         b.upload(*b.initial_state())

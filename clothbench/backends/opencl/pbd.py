@@ -56,6 +56,12 @@ SHAPES = ("per-stage", "one-launch")
 # BANDS_SCRATCH_LIMIT bytes together.
 BAND_ROWS = (8, 16, 32, 64, 128)
 BANDS_SCRATCH_LIMIT = 512 << 20
+
+
+def band_scratch_bytes(particles: int, chebyshev: bool) -> tuple[int, int]:
+    """One band's scratch: (its two planar grids, its multipliers: 12 per particle, twice with
+    Chebyshev), in bytes."""
+    return 2 * 16 * particles, (2 if chebyshev else 1) * 12 * 4 * particles
 # Substeps per launch of pbd_substeps: bounds how long one launch holds the device.
 SUBSTEPS_PER_LAUNCH = 32
 # the argument index of the substep count (the first substep's index next) of pbd_substeps and
@@ -108,7 +114,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.launches = self._per_stage = self._plan_launches()
         self.one_launch, self.substeps_kernel, self.substeps_kernels = False, None, {}
         # the planar program (bands, vectors) and the scratch grids, built when first used
-        self.planar_program = self.band_scratch = self.vector_scratch = self.omega_buffer = None
+        self.planar_program = self.band_scratch = self.vector_scratch = None
+        # the Jacobi passes' Chebyshev weights, one per iteration (all 1 without): bands, one-launch
+        self.omega_buffer = self._read_only_buffer(np.array(self.constants.omega, np.float32))
         key = tuning_key(self._device, scene, options, self._source, self.mesh_collision)
         key.update(solver=solver.spec, iterations=str(solver.iterations), substeps=str(solver.substeps))
         self._use_shape(self.pick_shape(key, self._time_shape))
@@ -119,14 +127,14 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         one-launch-vectors: coloured)."""
         small = scene.particles <= ONE_LAUNCH_MAX_PARTICLES
         shapes = SHAPES if small else SHAPES[:1]
-        if solver is None or solver.method != "jacobi":
-            shapes += VECTOR_SHAPES if small else ()
-            if solver is not None:
-                return shapes
-        per_particle = 2 * 16 + 4 * 12 * (2 if solver is not None and solver.chebyshev_rho > 0 else 1)
+        if (solver is None or solver.method != "jacobi") and small:
+            shapes += VECTOR_SHAPES
+        if solver is not None and solver.method != "jacobi":
+            return shapes
+        per_band = sum(band_scratch_bytes(scene.particles, solver is not None and solver.chebyshev_rho > 0))
         return shapes + tuple(
             f"bands-{rows}" for rows in BAND_ROWS
-            if scene.grid > rows and -(-scene.grid // rows) * scene.particles * per_particle <= BANDS_SCRATCH_LIMIT
+            if scene.grid > rows and -(-scene.grid // rows) * per_band <= BANDS_SCRATCH_LIMIT
         )
 
     def _use_shape(self, name: str) -> None:
@@ -149,25 +157,22 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         if self.band_scratch is None:  # once, for the most bands any offered shape has (within the limit)
             offered = [s for s in self.kernel_shapes(self.scene, self.options, self.solver) if s.startswith("bands-")]
             most = max([-(-self.n // int(s[len("bands-"):])) for s in offered] + [bands])
-            cl, mf = self._cl, self._cl.mem_flags
-            lam_grids = 2 if self.chebyshev else 1
-            self.band_scratch = (cl.Buffer(self._context, mf.READ_WRITE, most * 2 * 16 * self.n2),
-                                 cl.Buffer(self._context, mf.READ_WRITE, most * lam_grids * 48 * self.n2))
+            mf = self._cl.mem_flags
+            self.band_scratch = tuple(self._cl.Buffer(self._context, mf.READ_WRITE, most * size)
+                                      for size in band_scratch_bytes(self.n2, self.chebyshev))
         self.substeps_local_size = self._default_substeps_local_size()
         c, f32, i32 = self.constants, np.float32, np.int32
         make4, float4 = self._cl.cltypes.make_float4, self._cl.cltypes.float4
-        if self.omega_buffer is None:
-            self.omega_buffer = self._read_only_buffer(np.array(c.omega, np.float32))
         args = (self.x, self.v, self.xs[0], *self.band_scratch, self.omega_buffer, c.h, make4(*c.gh, 0.0),
                 make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax, i32(self.solver.iterations), i32(rows))
         dtypes = [None] * 6 + [f32, float4, float4, float4, f32, i32, i32]
         pins = self._body_args(0)[: self._per_step] + ((self._pin_slot, self._pin_target) if self._attached else ())
         k = self._kernel(("bands", rows), "pbd_jacobi_bands", dtypes, args, pins, self._planar_program())
-        ls = self.substeps_local_size
-        plan = self._substep_plan()
-        ends = [step for step in plan if step[0] in ("collide", "update")]
+        # the default group (the device's largest) within this kernel's limit, as for one-launch
+        limit = k.get_work_group_info(self._cl.kernel_work_group_info.WORK_GROUP_SIZE, self._device)
+        ls = self.substeps_local_size = min(self.substeps_local_size, limit)
         # the band kernel leaves the final iterate in buffer 0, where the plan's ends may read 1
-        ends = [(kind, 0) for kind, _ in ends]
+        ends = [(step[0], 0) for step in self._substep_plan() if step[0] in ("collide", "update")]
         return [("project (jacobi, bands)", (k, (bands * ls,), (ls,)))] + [
             (self.stage_of(step), launch) for step in ends for launch in self._launches_of(step)
         ]
@@ -227,8 +232,6 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         make4 = self._cl.cltypes.make_float4
         float4 = self._cl.cltypes.float4
         unused = self._unused = self._read_only_buffer(np.zeros(1, np.int32))  # the other method's tables: never read
-        if self.omega_buffer is None:  # one weight per iteration
-            self.omega_buffer = self._read_only_buffer(np.array(c.omega, np.float32))
         border = self.border if self.jacobi else unused
         count = len(self.border_particles) if self.jacobi else 0
         ij = unused if self.ij is None else self.ij
