@@ -71,6 +71,14 @@
 #endif
 #define N CLOTH_N
 #define N2 (CLOTH_N * CLOTH_N)
+/* the stride of a grid's planes and of the multipliers' planes: N2 in the float4 program; in
+ * the planar one padded by CLOTH_PLANE_PAD floats, so that the 12 multipliers and 4 coordinates of
+ * one particle do not all fall in one cache set when n * n * 4 bytes is a multiple of 4 KiB */
+#ifdef CLOTH_PLANAR
+#define PLANE (N2 + CLOTH_PLANE_PAD)
+#else
+#define PLANE N2
+#endif
 /* Every helper is inlined, and vector loads, stores and select() are plain C, for the reasons
  * verlet_cloth.cl gives: PoCL leaves bigger helpers as calls that pass the vectors through
  * memory, and the PoCL wheel calls vloadn, vstoren and select() out of line. */
@@ -184,14 +192,14 @@ __kernel void pbd_predict(__global const float4 *x, __global float4 *v, __global
 #ifdef CLOTH_PLANAR
 typedef __global float *grid_t;
 typedef __global const float *cgrid_t;
-#define GRID_GET(g, i) ((float4)((g)[i], (g)[(i) + N2], (g)[(i) + 2 * N2], (g)[(i) + 3 * N2]))
+#define GRID_GET(g, i) ((float4)((g)[i], (g)[(i) + PLANE], (g)[(i) + 2 * PLANE], (g)[(i) + 3 * PLANE]))
 #define GRID_SET(g, i, p) \
-    ((g)[i] = (p).x, (g)[(i) + N2] = (p).y, (g)[(i) + 2 * N2] = (p).z, (g)[(i) + 3 * N2] = (p).w)
+    ((g)[i] = (p).x, (g)[(i) + PLANE] = (p).y, (g)[(i) + 2 * PLANE] = (p).z, (g)[(i) + 3 * PLANE] = (p).w)
 #define GRID_LOADV(g, i, x, y, z, w) \
-    (*(x) = VLOAD(i, g), *(y) = VLOAD((i) + N2, g), *(z) = VLOAD((i) + 2 * N2, g), \
-     *(w) = VLOAD((i) + 3 * N2, g))
+    (*(x) = VLOAD(i, g), *(y) = VLOAD((i) + PLANE, g), *(z) = VLOAD((i) + 2 * PLANE, g), \
+     *(w) = VLOAD((i) + 3 * PLANE, g))
 #define GRID_STOREV(g, i, x, y, z, w) \
-    (VSTORE(x, i, g), VSTORE(y, (i) + N2, g), VSTORE(z, (i) + 2 * N2, g), VSTORE(w, (i) + 3 * N2, g))
+    (VSTORE(x, i, g), VSTORE(y, (i) + PLANE, g), VSTORE(z, (i) + 2 * PLANE, g), VSTORE(w, (i) + 3 * PLANE, g))
 #else
 typedef __global float4 *grid_t;
 typedef __global const float4 *cgrid_t;
@@ -227,7 +235,7 @@ INLINE void jacobi_particle(int i, cgrid_t X, grid_t Y, __global const float *la
         float dx = xi.x - xj.x, dy = xi.y - xj.y, dz = xi.z - xj.z;
         float L2 = (dx * dx + dy * dy) + dz * dz; /* not dot(): its order is the driver's */
         float denom = (w + xj.w) + at_o;
-        float lam_o = first ? 0.0f : lam[o * N2 + i];
+        float lam_o = first ? 0.0f : lam[o * PLANE + i];
 #ifdef CLOTH_STRICT
         float L = sqrt(L2);
         float dl = ((-(L - rest_o)) - at_o * lam_o) / denom;
@@ -245,11 +253,11 @@ INLINE void jacobi_particle(int i, cgrid_t X, grid_t Y, __global const float *la
         float lam_new = lam_o + (valid ? dl : 0.0f) * scale;
 #ifdef CLOTH_CHEBYSHEV
         if (it > 0) { /* lam_out holds the lambda before this pass's input (0 before the first) */
-            float before = it == 1 ? 0.0f : lam_out[o * N2 + i];
+            float before = it == 1 ? 0.0f : lam_out[o * PLANE + i];
             lam_new = omega * (lam_new - before) + before;
         }
 #endif
-        lam_out[o * N2 + i] = lam_new;
+        lam_out[o * PLANE + i] = lam_new;
     }
     float4 y = (float4)(xi.x + cx * scale, xi.y + cy * scale, xi.z + cz * scale, w);
 #ifdef CLOTH_CHEBYSHEV
@@ -313,6 +321,7 @@ INLINE void store4(__global float4 *p, float4 x, float4 y, float4 z, float4 w)
 #if V == 4
 typedef float4 floatv;
 typedef int4 intv;
+#define convert_floatv convert_float4
 INLINE void loadv(__global const float4 *p, floatv *x, floatv *y, floatv *z, floatv *w)
 {
     load4(p, x, y, z, w);
@@ -324,6 +333,7 @@ INLINE void storev(__global float4 *p, floatv x, floatv y, floatv z, floatv w)
 #elif V == 8
 typedef float8 floatv;
 typedef int8 intv;
+#define convert_floatv convert_float8
 INLINE void loadv(__global const float4 *p, floatv *x, floatv *y, floatv *z, floatv *w)
 {
     float4 x0, y0, z0, w0, x1, y1, z1, w1;
@@ -342,6 +352,7 @@ INLINE void storev(__global float4 *p, floatv x, floatv y, floatv z, floatv w)
 #elif V == 16
 typedef float16 floatv;
 typedef int16 intv;
+#define convert_floatv convert_float16
 INLINE void loadv(__global const float4 *p, floatv *x, floatv *y, floatv *z, floatv *w)
 {
     float4 x0, y0, z0, w0, x1, y1, z1, w1, x2, y2, z2, w2, x3, y3, z3, w3;
@@ -386,24 +397,47 @@ INLINE void store_lanes(floatv a, int first_lane, __global float *p)
         p[l] = lanes[l];
 }
 
-#if VECTORS_PER_ROW > 0
-#define INTERIOR_VECTORS (VECTORS_PER_ROW * (N - 4))
-/* One Jacobi pass for the V interior particles of vector t. */
-INLINE void jacobi_vector(int t, cgrid_t X, grid_t Y, __global const float *lam,
-                   __global float *lam_out, int it, float4 rest, float4 at, float relax,
-                   float omega)
+#if V == 4
+#define LANE_IDS ((intv)(0, 1, 2, 3))
+#elif V == 8
+#define LANE_IDS ((intv)(0, 1, 2, 3, 4, 5, 6, 7))
+#else
+#define LANE_IDS ((intv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#endif
+
+/* One Jacobi pass for the V particles of a row from i, storing lanes first_lane .. V-1. With
+ * `edge` (a constant where it is inlined), any of their neighbours may lie outside the grid: a
+ * lane skips such a constraint as jacobi_particle's `continue` does (its sum keeps its bits;
+ * the multiplier it stores there is never read) and divides relax by its own count; a row
+ * outside the grid is read from the particles' own (and dropped), and a column past either
+ * side reads at most two floats past the grid, which the planar scratch's margin holds.
+ * Without `edge` every neighbour is inside (the interior vectors). */
+INLINE void jacobi_lanes(int i, int first_lane, int edge, cgrid_t X, grid_t Y,
+                         __global const float *lam, __global float *lam_out, int it, float4 rest,
+                         float4 at, float relax, float omega)
 {
     int first = it == 0;
-    int vector = t % VECTORS_PER_ROW, last = vector == VECTORS_PER_ROW - 1;
-    int i = (2 + t / VECTORS_PER_ROW) * N + (last ? N - 2 - V : 2 + V * vector);
-    int first_lane = last ? LAST_FIRST_LANE : 0;
+    int row = i / N;
+    intv col = (i % N) + LANE_IDS;
     floatv x, y, z, w;
     GRID_LOADV(X, i, &x, &y, &z, &w);
     floatv cx = 0.0f, cy = 0.0f, cz = 0.0f; /* corr */
-    float scale = relax / 12.0f; /* relax / cnt: all 12 constraints exist */
+    floatv scale = relax / 12.0f; /* relax / cnt: all 12 constraints exist */
+    if (edge) {
+        intv cnt = 0;
+        for (int o = 0; o < 12; ++o) {
+            int r = row + OFFSETS[o].x;
+            intv c = col + OFFSETS[o].y;
+            cnt = cnt - (((intv)(-(r >= 0 && r < N))) & (c >= 0) & (c < N)); /* a true lane is -1 */
+        }
+        scale = relax / convert_floatv(cnt);
+    }
 #pragma unroll
     for (int o = 0; o < 12; ++o) {
-        int j = i + OFFSETS[o].x * N + OFFSETS[o].y;
+        int r = row + OFFSETS[o].x;
+        intv c = col + OFFSETS[o].y;
+        intv inside = edge ? ((intv)(-(r >= 0 && r < N))) & (c >= 0) & (c < N) : (intv)(-1);
+        int j = (!edge || (r >= 0 && r < N)) ? i + OFFSETS[o].x * N + OFFSETS[o].y : i;
         float rest_o = o < 4 ? rest.x : (o < 8 ? rest.y : rest.z);
         float at_o = o < 4 ? at.x : (o < 8 ? at.y : at.z);
         floatv xj, yj, zj, wj;
@@ -415,7 +449,7 @@ INLINE void jacobi_vector(int t, cgrid_t X, grid_t Y, __global const float *lam,
         floatv L2 = dx * dx + dy * dy + dz * dz;
 #endif
         floatv denom = (w + wj) + at_o;
-        floatv lam_o = VLOAD(0, lam + o * N2 + i);
+        floatv lam_o = VLOAD(0, lam + o * PLANE + i);
         lam_o = first ? (floatv)(0.0f) : lam_o;
 #ifdef CLOTH_STRICT
         floatv L = sqrt(L2);
@@ -428,17 +462,23 @@ INLINE void jacobi_vector(int t, cgrid_t X, grid_t Y, __global const float *lam,
 #endif
         intv valid = (L2 > 0.0f) & (denom > 0.0f);
         s = SELECT((floatv)(0.0f), s, valid);
-        cx = cx + dx * s;
-        cy = cy + dy * s;
-        cz = cz + dz * s;
+        if (edge) { /* a neighbour outside: nothing added (garbage read there is dropped) */
+            cx = SELECT(cx, cx + dx * s, inside);
+            cy = SELECT(cy, cy + dy * s, inside);
+            cz = SELECT(cz, cz + dz * s, inside);
+        } else {
+            cx = cx + dx * s;
+            cy = cy + dy * s;
+            cz = cz + dz * s;
+        }
         floatv lam_new = lam_o + SELECT((floatv)(0.0f), dl, valid) * scale;
 #ifdef CLOTH_CHEBYSHEV
         if (it > 0) {
-            floatv before = it == 1 ? (floatv)(0.0f) : VLOAD(0, lam_out + o * N2 + i);
+            floatv before = it == 1 ? (floatv)(0.0f) : VLOAD(0, lam_out + o * PLANE + i);
             lam_new = omega * (lam_new - before) + before;
         }
 #endif
-        store_lanes(lam_new, first_lane, lam_out + o * N2 + i);
+        store_lanes(lam_new, first_lane, lam_out + o * PLANE + i);
     }
     floatv yx = x + cx * scale, yy = y + cy * scale, yz = z + cz * scale;
 #ifdef CLOTH_CHEBYSHEV
@@ -461,6 +501,18 @@ INLINE void jacobi_vector(int t, cgrid_t X, grid_t Y, __global const float *lam,
         for (int l = first_lane; l < V; ++l)
             GRID_SET(Y, i + l, (float4)(lx[l], ly[l], lz[l], lw[l]));
     }
+}
+
+#if VECTORS_PER_ROW > 0
+#define INTERIOR_VECTORS (VECTORS_PER_ROW * (N - 4))
+/* One Jacobi pass for the V interior particles of vector t (columns 2 .. n-3 of rows 2 .. n-3). */
+INLINE void jacobi_vector(int t, cgrid_t X, grid_t Y, __global const float *lam,
+                          __global float *lam_out, int it, float4 rest, float4 at, float relax,
+                          float omega)
+{
+    int vector = t % VECTORS_PER_ROW, last = vector == VECTORS_PER_ROW - 1;
+    int i = (2 + t / VECTORS_PER_ROW) * N + (last ? N - 2 - V : 2 + V * vector);
+    jacobi_lanes(i, last ? LAST_FIRST_LANE : 0, 0, X, Y, lam, lam_out, it, rest, at, relax, omega);
 }
 
 #ifndef CLOTH_PLANAR /* the per-stage shape: float4 iterates */
@@ -685,6 +737,31 @@ __kernel void pbd_substeps(__global float4 *x, __global float4 *v, __global floa
  * pass): the items of a work-group stride over one flat range of the interior rows' units (the
  * vectors of rows 2 .. n-3, then their four border columns), then over every particle of the
  * other rows, so that a wide work-group keeps every item busy. */
+#if defined(CLOTH_PLANAR) && N >= 2 * V
+/* Where a row holds two vectors, the bands take every particle in vectors: a row's units are
+ * an edge vector at either side (columns 0 .. V-1 and n-V .. n-1, jacobi_lanes with `edge`)
+ * and the interior vectors between them (the last overlapping the one before), every unit of
+ * rows 0, 1, n-2 and n-1 an edge one. A particle alone cost about as much as a vector of V (its
+ * bounds tests, scalar division and square root): at 256^2 the four border columns and rows
+ * took a quarter of a pass. */
+#define MIDDLE_VECTORS ((N - 2 * V + V - 1) / V)
+#define ROW_UNITS (MIDDLE_VECTORS + 2)
+#define MIDDLE_FIRST_LANE (V * MIDDLE_VECTORS - (N - 2 * V)) /* lanes the last interior vector leaves */
+INLINE void jacobi_rows(int a, int b, int first_item, int stride, cgrid_t X, grid_t Y,
+                        __global const float *lam, __global float *lam_out, int it, float4 rest,
+                        float4 at, float relax, float omega)
+{
+    for (int t = first_item; t < (b - a) * ROW_UNITS; t += stride) {
+        int r = a + t / ROW_UNITS, u = t % ROW_UNITS, m = u - 1; /* m: the interior vector */
+        int col = u == 0 ? 0 : (u == ROW_UNITS - 1 ? N - V : (m == MIDDLE_VECTORS - 1 ? N - 2 * V : V + V * m));
+        int first_lane = (u > 0 && m == MIDDLE_VECTORS - 1) ? MIDDLE_FIRST_LANE : 0;
+        if (u == 0 || u == ROW_UNITS - 1 || r < 2 || r >= N - 2)
+            jacobi_lanes(r * N + col, first_lane, 1, X, Y, lam, lam_out, it, rest, at, relax, omega);
+        else
+            jacobi_lanes(r * N + col, first_lane, 0, X, Y, lam, lam_out, it, rest, at, relax, omega);
+    }
+}
+#else
 INLINE void jacobi_rows(int a, int b, int first_item, int stride, cgrid_t X, grid_t Y,
                         __global const float *lam, __global float *lam_out, int it, float4 rest,
                         float4 at, float relax, float omega)
@@ -713,9 +790,11 @@ INLINE void jacobi_rows(int a, int b, int first_item, int stride, cgrid_t X, gri
         jacobi_particle(i, X, Y, lam, lam_out, it, rest, at, relax, omega);
     }
 }
+#endif
 
-/* scratch: two planar grids per band (the ping-pong, 4 * n * n floats each); lam_scratch:
- * 12 * n * n floats per band, twice with Chebyshev (its two multiplier buffers) */
+/* scratch: CLOTH_PLANAR_MARGIN floats, then two planar grids per band (the ping-pong, 4 * n * n
+ * floats each), then the margin again (an edge vector reads up to two floats past a grid);
+ * lam_scratch: 12 * n * n floats per band, twice with Chebyshev (its two multiplier buffers) */
 #ifdef CLOTH_PLANAR /* its own program: planar scratch iterates */
 __kernel void pbd_jacobi_bands(__global const float4 *x, __global const float4 *v,
                                __global float4 *xs, __global float *scratch,
@@ -726,11 +805,11 @@ __kernel void pbd_jacobi_bands(__global const float4 *x, __global const float4 *
 {
     int band = get_group_id(0), first_item = get_local_id(0), stride = get_local_size(0);
     int r0 = band * band_rows, r1 = min(N, r0 + band_rows);
-    grid_t X = scratch + 2 * band * 4 * N2, Y = X + 4 * N2;
+    grid_t X = scratch + CLOTH_PLANAR_MARGIN + 2 * band * 4 * PLANE, Y = X + 4 * PLANE;
 #ifdef CLOTH_CHEBYSHEV
-    __global float *lam = lam_scratch + 2 * band * 12 * N2, *lam_out = lam + 12 * N2;
+    __global float *lam = lam_scratch + 2 * band * 12 * PLANE, *lam_out = lam + 12 * PLANE;
 #else
-    __global float *lam = lam_scratch + band * 12 * N2, *lam_out = lam;
+    __global float *lam = lam_scratch + band * 12 * PLANE, *lam_out = lam;
 #endif
 #ifdef CLOTH_ATTACHED_PINS
     pin_target += 3 * CLOTH_PINS * step; /* this substep's targets */
@@ -827,8 +906,8 @@ INLINE void coloured_vector(int i, int j, int paired, int first_lane, grid_t X, 
     for (int l = first_lane; l < V; ++l) {
         int p = i + step * l, q = j + step * l;
         lam[step * l] = li[l];
-        X[p] = lx[l], X[p + N2] = ly[l], X[p + 2 * N2] = lz[l];
-        X[q] = mx[l], X[q + N2] = my[l], X[q + 2 * N2] = mz[l];
+        X[p] = lx[l], X[p + PLANE] = ly[l], X[p + 2 * PLANE] = lz[l];
+        X[q] = mx[l], X[q + PLANE] = my[l], X[q + 2 * PLANE] = mz[l];
     }
 }
 
@@ -847,7 +926,7 @@ INLINE void coloured_batch(int b, int first_item, int stride, grid_t X, __global
 {
     const int2 dirs[6] = {(int2)(0, 1), (int2)(1, 0), (int2)(1, 1), (int2)(1, -1), (int2)(2, 2), (int2)(2, -2)};
     int dr = dirs[b / 2].x, dc = dirs[b / 2].y, parity = b % 2;
-    lam += b * N2; /* the batch's multipliers, at each constraint's first end */
+    lam += b * PLANE; /* the batch's multipliers, at each constraint's first end */
     /* a row's constraints: (0, 1) the links from columns parity, parity + 2, ... (c + 1 < n);
      * dr > 0, in rows r with (r / dr) % 2 == parity and r + dr < n, those from c0 .. c0 + len - 1.
      * In vectors of V (the last overlapping), or one by one where a row has fewer than V. */

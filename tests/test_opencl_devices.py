@@ -101,7 +101,7 @@ def test_default_with_tuning_on_is_the_fastest_measured_once_and_kept(machine, m
         asked.append(specs)
         return {s: timings[s] for s in specs}
 
-    monkeypatch.setattr(device, "_seconds_per_step", seconds_per_step)
+    monkeypatch.setattr(device, "isolated_seconds_per_step", seconds_per_step)
     chosen = device.default_device()
     assert chosen.spec == "1:0" and asked == [["0:0", "1:0", "2:0"]], "all devices timed together, once"
     assert "fastest of 3" in chosen.reason and "1:0 0.40" in chosen.reason, chosen.reason
@@ -117,7 +117,7 @@ def test_a_near_tie_goes_to_the_earlier_runtime_in_the_stated_order(machine, mon
     monkeypatch.setenv("CLOTHBENCH_TUNING", "on")
     machine([WHEEL, DEBIAN])  # the wheel listed first and 5% faster: noise, not a reason
     timed = {"0:0": 0.95e-3, "1:0": 1.0e-3}
-    monkeypatch.setattr(device, "_seconds_per_step", lambda specs: timed)
+    monkeypatch.setattr(device, "isolated_seconds_per_step", lambda specs: timed)
     assert device.default_device().spec == "1:0"
     timed["0:0"] = 0.5e-3
     assert device.default_device(retune=True).spec == "0:0", "a clear win is a win"
@@ -127,7 +127,7 @@ def test_a_device_that_fails_to_build_the_step_is_not_the_default(machine, monke
     monkeypatch.setenv("CLOTHBENCH_TUNING", "on")
     machine([DEBIAN, INTEL])
     timed = {"0:0": ClothbenchError("build failed"), "1:0": 1e-3}
-    monkeypatch.setattr(device, "_seconds_per_step", lambda specs: timed)
+    monkeypatch.setattr(device, "isolated_seconds_per_step", lambda specs: timed)
     assert device.default_device().spec == "1:0"
 
 
@@ -198,6 +198,36 @@ def test_measured_default_on_the_real_devices_is_kept_and_never_recurses(monkeyp
         kept = json.loads((tmp_path / "tuning" / f"{device.DEFAULT_TUNING}.json").read_text())
         (entry,) = kept.values()
         assert len(entry["ms"]) + len(entry["failed"]) == len(compiling) and entry["choice"] in entry["ms"]
+
+
+def _compiler_aborts_on_1_0(specs: list[str]) -> dict:
+    """A stand-in for the default device's measurement (module level: the spawned child imports
+    it) on which device 1:0's compiler aborts the process, as the PoCL wheel's LLVM 14 did on a
+    Zen 5 building the fast Verlet kernel."""
+    if "1:0" in specs:
+        sys.stderr.write("LLVM ERROR: Cannot select: 0x1: i64 = fsqrt 0x2\n")
+        sys.stderr.flush()
+        os.abort()
+    return {spec: 0.001 for spec in specs}
+
+
+def test_a_device_whose_compiler_aborts_the_process_costs_that_device_not_the_command():
+    # measured in a child, then, when the child dies, each device alone in a child of its own:
+    # the others keep their times and the culprit is failed with its compiler's fatal line
+    got = device.isolated_seconds_per_step(["0:0", "1:0", "2:0"], measure=_compiler_aborts_on_1_0)
+    assert got["0:0"] == got["2:0"] == 0.001
+    assert isinstance(got["1:0"], ClothbenchError), got
+    assert "1:0" in str(got["1:0"]) and "LLVM ERROR: Cannot select" in str(got["1:0"]), got["1:0"]
+
+
+def test_a_device_named_by_hand_that_fails_the_probe_is_refused_before_any_build(monkeypatch):
+    # --device 2:0 on the Zen 5 named the wheel whose compiler aborted the process: the probe's
+    # answer refuses it in one line instead
+    require("opencl")
+    monkeypatch.setattr(device, "compile_error", lambda dev: "its build reported success and left no kernel")
+    refused = r"^OpenCL device 0:0 \(.+\) cannot compile clothbench's kernels: its build"
+    with pytest.raises(ClothbenchError, match=refused):
+        create_backend("opencl", sphere(8), VERLET, BackendOptions(device="0:0"))
 
 
 def test_empty_vendors_folder_sees_only_pip_runtimes_and_works_or_says_the_fix(tmp_path):

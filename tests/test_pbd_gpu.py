@@ -336,6 +336,27 @@ def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized
         assert "project (jacobi)" in stages and "predict" in stages, stages
 
 
+# n = 2V + extra: no interior vector; one, overlapping the edge vector's lanes; several, the last overlapping
+@pytest.mark.parametrize("extra", [0, 1, 21])
+def test_opencl_bands_edge_vectors_are_exact_in_every_lane(extra):
+    # from n = 2V the bands do every particle in vectors: an edge vector at each side of a row
+    # (and every vector of the two border rows at top and bottom) skips, lane by lane, the
+    # constraints whose neighbour is outside and divides by its own count, reading garbage
+    # from outside the grid and dropping it; one wrong lane or count would change bits. With
+    # every collider kind, Chebyshev's extrapolation, and work items striding over the units
+    require("opencl")
+    v = create_backend("opencl", *curtain("jacobi", grid=8), STRICT).vector_width
+    scene, solver = three_colliders("jacobi", grid=2 * v + extra)
+    for rho in (0.0, 0.95):
+        solver = solver.replace(chebyshev_rho=rho)
+        ref = simulate("numpy", scene, solver, 30, F32)
+        for local_size in (None, 7):
+            options = BackendOptions(strict=True, shape="bands-8", local_size=local_size)
+            got = simulate("opencl", scene, solver, 30, options)
+            for a, r, what in zip(got, ref, ("pos", "prev")):
+                assert_bit_exact(a, r, f"n={scene.grid} rho={rho} local size {local_size} {what}")
+
+
 @pytest.mark.parametrize("grid", [4, STRICT_GRID])
 @pytest.mark.parametrize("backend", GPU)
 def test_strict_chebyshev_jacobi_matches_numpy_bit_for_bit(backend, grid):

@@ -29,8 +29,13 @@ INSTALL_HINT = "pip install pyopencl pocl-binary-distribution"  # both are cloth
 FIX_HINT = f"{INTEL_EXTRA}, or as root apt-get install pocl-opencl-icd"
 NO_PLATFORM_HINT = f"{FIX_HINT}, or a vendor's driver"
 
-# A kernel every working OpenCL C compiler builds: the probe's test that a device can compile.
-_PROBE_SOURCE = "__kernel void clothbench_probe(__global float *a) { a[get_global_id(0)] = 1.0f; }"
+# The probe's test that a device can compile: a kernel every working OpenCL C compiler builds,
+# with the float16 square root the step kernels take (the PoCL wheel's LLVM 14 built a scalar
+# kernel on a Zen 5, then aborted the whole process on this one: docs/opencl-devices.md).
+_PROBE_SOURCE = (
+    "__kernel void clothbench_probe(__global float16 *a) { size_t i = get_global_id(0); a[i] = sqrt(a[i]); }"
+)
+PROBE_CACHE = "opencl-probe"  # <cache>/tuning/opencl-probe.json: each device's probe, per CPU
 
 # The default device's measurement (docs/opencl-devices.md): the project's own step, short,
 # at the smallest grid the benchmarks report (at 128² launch overhead decides, not the step).
@@ -89,16 +94,70 @@ def _devices_listing() -> str:
 
 
 def compile_error(device) -> str | None:
-    """None if `device` builds the probe kernel, else the compiler's first error. Listed is
-    not enough: PoCL 3.0's LLVM 14 lists CPUs it cannot compile for ("unknown target CPU")."""
+    """None if `device` builds and runs the probe kernel, else why not, in one line. Listed is
+    not enough: PoCL 3.0's LLVM 14 lists CPUs it cannot compile for ("unknown target CPU"), and
+    a compiler may abort the process instead of failing the build. So every listed device is
+    probed at once in a child process (each alone in one of its own where that child dies),
+    once per device, driver, CPU and probe, and the answers kept on disk."""
     key = (device.int_ptr, _PROBE_SOURCE)
     if key not in _compiles:
+        _compiles.update(_probe_listed(_PROBE_SOURCE))
+    return _compiles.get(key)
+
+
+def _probe_listed(source: str) -> dict:
+    """{(device int_ptr, source): None or the error} for every listed device."""
+    from clothbench.native import cpu_identity
+
+    listed = {
+        f"{p}:{d}": (dev, _timing_name(dev, runtimes.runtime_of(platform)))
+        for p, platform in enumerate(_platforms())
+        for d, dev in enumerate(platform.get_devices())
+    }
+    path = cache_dir("tuning") / f"{PROBE_CACHE}.json"
+    try:
+        kept = json.loads(path.read_text())
+    except (OSError, ValueError):
+        kept = {}
+    kept = kept if isinstance(kept, dict) else {}
+    known = kept.setdefault(json.dumps({"cpu": cpu_identity(), "probe": source}), {})
+    todo = [spec for spec, (_, name) in listed.items() if name not in known]
+    if todo:
+        for spec, answer in in_child_per_device(_probe_devices, todo, source).items():
+            known[listed[spec][1]] = answer if isinstance(answer, (str, type(None))) else str(answer)
         try:
-            build_program(device_context(device), _PROBE_SOURCE, ())
-            _compiles[key] = None
+            path.write_text(json.dumps(kept, indent=1, sort_keys=True))
+        except OSError:  # an unwritable cache costs a probe next time, nothing else
+            pass
+    return {(dev.int_ptr, source): known.get(name) for dev, name in listed.values()}
+
+
+def _probe_devices(specs: list[str], source: str) -> dict:
+    """In the child: None for each device of `specs` that builds and runs `source`'s
+    clothbench_probe, else the compiler's first error."""
+    cl = import_pyopencl()
+    result = {}
+    for spec in specs:
+        p, d = map(int, spec.split(":"))
+        dev = cl.get_platforms()[p].get_devices()[d]
+        try:
+            context = device_context(dev)
+            program = build_program(context, source, ())
+            try:
+                kernel = cl.Kernel(program, "clothbench_probe")
+            except cl.Error as e:
+                result[spec] = f"its build reported success and left no kernel ({e})"
+                continue
+            queue = cl.CommandQueue(context, dev)
+            data = cl.Buffer(context, cl.mem_flags.READ_WRITE, 16 * 4 * 4)
+            kernel(queue, (4,), None, data)
+            queue.finish()
+            result[spec] = None
         except ClothbenchError as e:
-            _compiles[key] = _first_error_line(str(e))
-    return _compiles[key]
+            result[spec] = _first_error_line(str(e))
+        except cl.Error as e:
+            result[spec] = f"{type(e).__name__}: {e}"
+    return result
 
 
 @dataclass(frozen=True)
@@ -115,11 +174,15 @@ def choose_device(spec: str | None, retune: bool = False):
     _platforms()
     if spec:
         try:
-            return cl.choose_devices(interactive=False, answers=spec.split(":"))[0]
+            chosen = cl.choose_devices(interactive=False, answers=spec.split(":"))[0]
         except (cl.Error, RuntimeError, ValueError, IndexError):
             raise ClothbenchError(
                 f"no OpenCL device {spec!r} (give 'platform:device', e.g. 0:0; here: {_devices_listing()})"
             ) from None
+        error = compile_error(chosen)
+        if error is not None:  # building the step there could take the process down with it
+            raise ClothbenchError(f"OpenCL device {spec} ({chosen.name}) cannot compile clothbench's kernels: {error}")
+        return chosen
     return default_device(retune).device
 
 
@@ -167,7 +230,7 @@ def _pick_default(compiling: list, retune: bool) -> DefaultDevice:
 
     def time_candidate(name: str) -> float:
         if not timed:  # all at once, interleaved, the first time choose_shape asks
-            timed.update(_seconds_per_step(list(specs.values())))
+            timed.update(isolated_seconds_per_step(list(specs.values())))
         if isinstance(timed[specs[name]], ClothbenchError):
             raise timed[specs[name]]
         return timed[specs[name]]
@@ -224,6 +287,9 @@ def _seconds_per_step(specs: list[str]) -> dict:
             except ClothbenchError as e:
                 result[spec] = e
                 continue
+            except import_pyopencl().Error as e:  # a build that "succeeded" without the kernel
+                result[spec] = ClothbenchError(f"OpenCL device {spec}: {type(e).__name__}: {e}")
+                continue
             running[spec], result[spec] = backend, float("inf")
         for _ in range(7):
             for spec, backend in running.items():
@@ -232,6 +298,63 @@ def _seconds_per_step(specs: list[str]) -> dict:
                 backend.synchronize()
                 result[spec] = min(result[spec], (time.perf_counter() - start) / TIMING_STEPS)
     return result
+
+
+# Seconds a child may take to build and time every device (each takes a few).
+ISOLATED_TIMEOUT = 600.0
+
+
+def isolated_seconds_per_step(specs: list[str], measure=None) -> dict:
+    """_seconds_per_step (or `measure`) in a clean child process, since a driver's compiler may
+    abort the whole process instead of failing the build, and the probe tries one construct,
+    not every kernel: the PoCL wheel's LLVM 14 on an AMD EPYC (Zen 5) aborted on the fast
+    Verlet kernel ("LLVM ERROR: Cannot select ... fsqrt", a float16 square root) and took
+    opencl down for the whole command (docs/opencl-devices.md). Where the child dies, each
+    device is measured alone in a child of its own, and one whose child dies is failed with
+    what its compiler said: the command goes on with the others."""
+    return in_child_per_device(measure or _seconds_per_step, specs)
+
+
+def in_child_per_device(fn, specs: list[str], *args) -> dict:
+    """fn(specs, *args), a dict by device spec, in a clean child process; where that child
+    dies, fn([spec], *args) for each device alone in a child of its own, and a ClothbenchError
+    saying what killed it for a device whose child dies too."""
+    outcome, _ = _quiet_child(fn, specs, args)
+    if outcome.ok:
+        return outcome.value
+    result: dict = {}
+    for spec in specs:
+        alone, said = _quiet_child(fn, [spec], args)
+        result.update(alone.value if alone.ok else {spec: ClothbenchError(
+            f"OpenCL device {spec}: building clothbench's kernel killed the process ({said or alone.note})"
+        )})  # fmt: skip
+    return result
+
+
+def _quiet_child(fn, specs: list[str], args: tuple):
+    """fn(specs, *args) through run_isolated in a fresh process, its stderr kept in a file: (the
+    outcome, the first fatal line a compiler wrote, or "")."""
+    import tempfile
+
+    from clothbench.harness.executor import Outcome, run_isolated
+
+    fd, path = tempfile.mkstemp(prefix="clothbench-opencl-", suffix=".stderr")
+    os.close(fd)
+    try:
+        try:
+            outcome = run_isolated(_with_stderr, (fn, specs, args, path), timeout=ISOLATED_TIMEOUT, method="spawn")
+        except Exception as e:  # what the child raised: as a crash (each device alone, next)
+            outcome = Outcome("crashed", note=f"{type(e).__name__}: {e}")
+        with open(path, errors="replace") as f:
+            fatal = [line.strip() for line in f if "LLVM ERROR" in line or "error:" in line]
+    finally:
+        os.unlink(path)
+    return outcome, fatal[0] if fatal else ""
+
+
+def _with_stderr(fn, specs: list[str], args: tuple, path: str):
+    os.dup2(os.open(path, os.O_WRONLY), 2)  # the drivers' messages to the parent's file, not the terminal
+    return fn(specs, *args)
 
 
 def _measured_ms(key: dict) -> dict[str, float]:

@@ -56,12 +56,25 @@ SHAPES = ("per-stage", "one-launch")
 # BANDS_SCRATCH_LIMIT bytes together.
 BAND_ROWS = (8, 16, 32, 64, 128)
 BANDS_SCRATCH_LIMIT = 512 << 20
+# The planar program's layout (pbd_cloth.cl): floats of room before and after the bands' grids
+# (CLOTH_PLANAR_MARGIN: an edge vector of jacobi_lanes reads up to two floats past a grid, and
+# drops what it read), and the padding of each plane of a grid or of the multipliers
+# (CLOTH_PLANE_PAD: with planes n * n floats apart, a particle's 12 multipliers and 4
+# coordinates fell in one cache set whenever n * n * 4 bytes is a multiple of 4 KiB).
+PLANAR_MARGIN_FLOATS = 16
+PLANE_PAD_FLOATS = 16
+
+
+def planar_plane(particles: int) -> int:
+    """Floats from one plane of a planar grid (or of the multipliers) to the next."""
+    return particles + PLANE_PAD_FLOATS
 
 
 def band_scratch_bytes(particles: int, chebyshev: bool) -> tuple[int, int]:
-    """One band's scratch: (its two planar grids, its multipliers: 12 per particle, twice with
+    """One band's scratch: (its two planar grids, its multipliers: 12 planes, twice with
     Chebyshev), in bytes."""
-    return 2 * 16 * particles, (2 if chebyshev else 1) * 12 * 4 * particles
+    plane = planar_plane(particles)
+    return 2 * 16 * plane, (2 if chebyshev else 1) * 12 * 4 * plane
 # Substeps per launch of pbd_substeps: bounds how long one launch holds the device.
 SUBSTEPS_PER_LAUNCH = 32
 # the argument index of the substep count (the first substep's index next) of pbd_substeps and
@@ -158,8 +171,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             offered = [s for s in self.kernel_shapes(self.scene, self.options, self.solver) if s.startswith("bands-")]
             most = max([-(-self.n // int(s[len("bands-"):])) for s in offered] + [bands])
             mf = self._cl.mem_flags
-            self.band_scratch = tuple(self._cl.Buffer(self._context, mf.READ_WRITE, most * size)
-                                      for size in band_scratch_bytes(self.n2, self.chebyshev))
+            grids, multipliers = band_scratch_bytes(self.n2, self.chebyshev)
+            self.band_scratch = (self._cl.Buffer(self._context, mf.READ_WRITE, most * grids + 8 * PLANAR_MARGIN_FLOATS),
+                                 self._cl.Buffer(self._context, mf.READ_WRITE, most * multipliers))
         self.substeps_local_size = self._default_substeps_local_size()
         c, f32, i32 = self.constants, np.float32, np.int32
         make4, float4 = self._cl.cltypes.make_float4, self._cl.cltypes.float4
@@ -258,7 +272,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         """The same source built with planar scratch iterates (CLOTH_PLANAR, pbd_cloth.cl): the
         bands' and the vector sweep's program, built when first asked for."""
         if self.planar_program is None:
-            self.planar_program = build_program(self._context, self._source, (*self.build_options(), "-DCLOTH_PLANAR"))
+            layout = (f"-DCLOTH_PLANAR_MARGIN={PLANAR_MARGIN_FLOATS}", f"-DCLOTH_PLANE_PAD={PLANE_PAD_FLOATS}")
+            self.planar_program = build_program(self._context, self._source,
+                                                (*self.build_options(), "-DCLOTH_PLANAR", *layout))
         return self.planar_program
 
     def _vectors_kernel(self):
@@ -267,8 +283,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.substeps_local_size = self._default_substeps_local_size()
         cl, c, f32, i32 = self._cl, self.constants, np.float32, np.int32
         make4, float4 = cl.cltypes.make_float4, cl.cltypes.float4
-        self.vector_scratch = (cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 16 * self.n2),
-                               cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 48 * self.n2))
+        plane = planar_plane(self.n2)
+        self.vector_scratch = (cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 16 * plane),
+                               cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 48 * plane))
         args = (self.x, self.v, *self.vector_scratch, c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0),
                 make4(*c.at, 0.0), c.damp, self.colliders, i32(self.solver.iterations), i32(1))
         dtypes = [None] * 4 + [f32, float4, float4, float4, f32, None, i32, i32]
