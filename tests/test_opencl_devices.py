@@ -201,7 +201,7 @@ def test_measured_default_on_the_real_devices_is_kept_and_never_recurses(monkeyp
 
 
 def _compiler_aborts_on_1_0(specs: list[str]) -> dict:
-    """A stand-in for the default device's measurement (module level: the spawned child imports
+    """A stand-in for the default device's measurement (module level: the child process imports
     it) on which device 1:0's compiler aborts the process, as the PoCL wheel's LLVM 14 did on a
     Zen 5 building the fast Verlet kernel."""
     if "1:0" in specs:
@@ -214,7 +214,7 @@ def _compiler_aborts_on_1_0(specs: list[str]) -> dict:
 def test_a_device_whose_compiler_aborts_the_process_costs_that_device_not_the_command():
     # measured in a child, then, when the child dies, each device alone in a child of its own:
     # the others keep their times and the culprit is failed with its compiler's fatal line
-    got = device.isolated_seconds_per_step(["0:0", "1:0", "2:0"], measure=_compiler_aborts_on_1_0)
+    got = device.isolated_seconds_per_step(["0:0", "1:0", "2:0"], measure=f"{__name__}:_compiler_aborts_on_1_0")
     assert got["0:0"] == got["2:0"] == 0.001
     assert isinstance(got["1:0"], ClothbenchError), got
     assert "1:0" in str(got["1:0"]) and "LLVM ERROR: Cannot select" in str(got["1:0"]), got["1:0"]

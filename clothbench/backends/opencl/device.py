@@ -19,6 +19,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.opencl import runtimes
+from clothbench.backends.opencl.isolated import in_child_per_device
 from clothbench.backends.opencl.runtimes import INTEL_EXTRA
 from clothbench.native import cache_dir
 
@@ -123,41 +124,13 @@ def _probe_listed(source: str) -> dict:
     known = kept.setdefault(json.dumps({"cpu": cpu_identity(), "probe": source}), {})
     todo = [spec for spec, (_, name) in listed.items() if name not in known]
     if todo:
-        for spec, answer in in_child_per_device(_probe_devices, todo, source).items():
+        for spec, answer in in_child_per_device("clothbench.backends.opencl.isolated:probe_devices", todo, source).items():
             known[listed[spec][1]] = answer if isinstance(answer, (str, type(None))) else str(answer)
         try:
             path.write_text(json.dumps(kept, indent=1, sort_keys=True))
         except OSError:  # an unwritable cache costs a probe next time, nothing else
             pass
     return {(dev.int_ptr, source): known.get(name) for dev, name in listed.values()}
-
-
-def _probe_devices(specs: list[str], source: str) -> dict:
-    """In the child: None for each device of `specs` that builds and runs `source`'s
-    clothbench_probe, else the compiler's first error."""
-    cl = import_pyopencl()
-    result = {}
-    for spec in specs:
-        p, d = map(int, spec.split(":"))
-        dev = cl.get_platforms()[p].get_devices()[d]
-        try:
-            context = device_context(dev)
-            program = build_program(context, source, ())
-            try:
-                kernel = cl.Kernel(program, "clothbench_probe")
-            except cl.Error as e:
-                result[spec] = f"its build reported success and left no kernel ({e})"
-                continue
-            queue = cl.CommandQueue(context, dev)
-            data = cl.Buffer(context, cl.mem_flags.READ_WRITE, 16 * 4 * 4)
-            kernel(queue, (4,), None, data)
-            queue.finish()
-            result[spec] = None
-        except ClothbenchError as e:
-            result[spec] = _first_error_line(str(e))
-        except cl.Error as e:
-            result[spec] = f"{type(e).__name__}: {e}"
-    return result
 
 
 @dataclass(frozen=True)
@@ -300,61 +273,16 @@ def _seconds_per_step(specs: list[str]) -> dict:
     return result
 
 
-# Seconds a child may take to build and time every device (each takes a few).
-ISOLATED_TIMEOUT = 600.0
+# _seconds_per_step, as isolated.py's child imports it
+SECONDS_PER_STEP = f"{__name__}:_seconds_per_step"
 
 
-def isolated_seconds_per_step(specs: list[str], measure=None) -> dict:
-    """_seconds_per_step (or `measure`) in a clean child process, since a driver's compiler may
-    abort the whole process instead of failing the build, and the probe tries one construct,
-    not every kernel: the PoCL wheel's LLVM 14 on an AMD EPYC (Zen 5) aborted on the fast
-    Verlet kernel ("LLVM ERROR: Cannot select ... fsqrt", a float16 square root) and took
-    opencl down for the whole command (docs/opencl-devices.md). Where the child dies, each
-    device is measured alone in a child of its own, and one whose child dies is failed with
-    what its compiler said: the command goes on with the others."""
-    return in_child_per_device(measure or _seconds_per_step, specs)
-
-
-def in_child_per_device(fn, specs: list[str], *args) -> dict:
-    """fn(specs, *args), a dict by device spec, in a clean child process; where that child
-    dies, fn([spec], *args) for each device alone in a child of its own, and a ClothbenchError
-    saying what killed it for a device whose child dies too."""
-    outcome, _ = _quiet_child(fn, specs, args)
-    if outcome.ok:
-        return outcome.value
-    result: dict = {}
-    for spec in specs:
-        alone, said = _quiet_child(fn, [spec], args)
-        result.update(alone.value if alone.ok else {spec: ClothbenchError(
-            f"OpenCL device {spec}: building clothbench's kernel killed the process ({said or alone.note})"
-        )})  # fmt: skip
-    return result
-
-
-def _quiet_child(fn, specs: list[str], args: tuple):
-    """fn(specs, *args) through run_isolated in a fresh process, its stderr kept in a file: (the
-    outcome, the first fatal line a compiler wrote, or "")."""
-    import tempfile
-
-    from clothbench.harness.executor import Outcome, run_isolated
-
-    fd, path = tempfile.mkstemp(prefix="clothbench-opencl-", suffix=".stderr")
-    os.close(fd)
-    try:
-        try:
-            outcome = run_isolated(_with_stderr, (fn, specs, args, path), timeout=ISOLATED_TIMEOUT, method="spawn")
-        except Exception as e:  # what the child raised: as a crash (each device alone, next)
-            outcome = Outcome("crashed", note=f"{type(e).__name__}: {e}")
-        with open(path, errors="replace") as f:
-            fatal = [line.strip() for line in f if "LLVM ERROR" in line or "error:" in line]
-    finally:
-        os.unlink(path)
-    return outcome, fatal[0] if fatal else ""
-
-
-def _with_stderr(fn, specs: list[str], args: tuple, path: str):
-    os.dup2(os.open(path, os.O_WRONLY), 2)  # the drivers' messages to the parent's file, not the terminal
-    return fn(specs, *args)
+def isolated_seconds_per_step(specs: list[str], measure: str = SECONDS_PER_STEP) -> dict:
+    """_seconds_per_step (or `measure`, 'module:function') in a child process (isolated.py):
+    the probe tries one construct, not every kernel, and a compiler that aborts on one of the
+    step's would take the command down with it. A device whose child dies is failed with what
+    its compiler said; the command goes on with the others."""
+    return in_child_per_device(measure, specs)
 
 
 def _measured_ms(key: dict) -> dict[str, float]:
