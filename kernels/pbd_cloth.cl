@@ -405,6 +405,14 @@ INLINE void store_lanes(floatv a, int first_lane, __global float *p)
 #define LANE_IDS ((intv)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
 #endif
 
+/* -1 in the lanes whose neighbour o (from row `row`, columns `col`) is inside the grid, else 0 */
+INLINE intv inside_grid(int row, intv col, int o)
+{
+    int r = row + OFFSETS[o].x;
+    intv c = col + OFFSETS[o].y;
+    return ((intv)(-(r >= 0 && r < N))) & (c >= 0) & (c < N);
+}
+
 /* One Jacobi pass for the V particles of a row from i, storing lanes first_lane .. V-1. With
  * `edge` (a constant where it is inlined), any of their neighbours may lie outside the grid: a
  * lane skips such a constraint as jacobi_particle's `continue` does (its sum keeps its bits;
@@ -425,18 +433,14 @@ INLINE void jacobi_lanes(int i, int first_lane, int edge, cgrid_t X, grid_t Y,
     floatv scale = relax / 12.0f; /* relax / cnt: all 12 constraints exist */
     if (edge) {
         intv cnt = 0;
-        for (int o = 0; o < 12; ++o) {
-            int r = row + OFFSETS[o].x;
-            intv c = col + OFFSETS[o].y;
-            cnt = cnt - (((intv)(-(r >= 0 && r < N))) & (c >= 0) & (c < N)); /* a true lane is -1 */
-        }
+        for (int o = 0; o < 12; ++o)
+            cnt = cnt - inside_grid(row, col, o);
         scale = relax / convert_floatv(cnt);
     }
 #pragma unroll
     for (int o = 0; o < 12; ++o) {
         int r = row + OFFSETS[o].x;
-        intv c = col + OFFSETS[o].y;
-        intv inside = edge ? ((intv)(-(r >= 0 && r < N))) & (c >= 0) & (c < N) : (intv)(-1);
+        intv inside = edge ? inside_grid(row, col, o) : (intv)(-1);
         int j = (!edge || (r >= 0 && r < N)) ? i + OFFSETS[o].x * N + OFFSETS[o].y : i;
         float rest_o = o < 4 ? rest.x : (o < 8 ? rest.y : rest.z);
         float at_o = o < 4 ? at.x : (o < 8 ? at.y : at.z);
@@ -733,10 +737,8 @@ __kernel void pbd_substeps(__global float4 *x, __global float4 *v, __global floa
  * pass. The price: the halo rows are computed by both bands that overlap there. A band writes
  * its own rows of xs; collide and update are then the per-stage launches. ---------------- */
 
-/* One Jacobi pass over rows a .. b-1 (as pbd_jacobi_interior and pbd_jacobi_border divide a
- * pass): the items of a work-group stride over one flat range of the interior rows' units (the
- * vectors of rows 2 .. n-3, then their four border columns), then over every particle of the
- * other rows, so that a wide work-group keeps every item busy. */
+/* One Jacobi pass over rows a .. b-1, the items of a work-group striding over one flat range of
+ * units so that a wide work-group keeps every item busy. */
 #if defined(CLOTH_PLANAR) && N >= 2 * V
 /* Where a row holds two vectors, the bands take every particle in vectors: a row's units are
  * an edge vector at either side (columns 0 .. V-1 and n-V .. n-1, jacobi_lanes with `edge`)
@@ -762,6 +764,9 @@ INLINE void jacobi_rows(int a, int b, int first_item, int stride, cgrid_t X, gri
     }
 }
 #else
+/* Otherwise as pbd_jacobi_interior and pbd_jacobi_border divide a pass: the interior rows'
+ * units (the vectors of rows 2 .. n-3, then their four border columns), then every particle of
+ * the other rows. */
 INLINE void jacobi_rows(int a, int b, int first_item, int stride, cgrid_t X, grid_t Y,
                         __global const float *lam, __global float *lam_out, int it, float4 rest,
                         float4 at, float relax, float omega)
@@ -792,9 +797,9 @@ INLINE void jacobi_rows(int a, int b, int first_item, int stride, cgrid_t X, gri
 }
 #endif
 
-/* scratch: CLOTH_PLANAR_MARGIN floats, then two planar grids per band (the ping-pong, 4 * n * n
- * floats each), then the margin again (an edge vector reads up to two floats past a grid);
- * lam_scratch: 12 * n * n floats per band, twice with Chebyshev (its two multiplier buffers) */
+/* scratch: CLOTH_PLANAR_MARGIN floats, then two planar grids per band (the ping-pong, 4 planes
+ * of PLANE floats each), then the margin again (an edge vector reads up to two floats past a
+ * grid); lam_scratch: 12 planes per band, twice with Chebyshev (its two multiplier buffers) */
 #ifdef CLOTH_PLANAR /* its own program: planar scratch iterates */
 __kernel void pbd_jacobi_bands(__global const float4 *x, __global const float4 *v,
                                __global float4 *xs, __global float *scratch,

@@ -172,7 +172,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             most = max([-(-self.n // int(s[len("bands-"):])) for s in offered] + [bands])
             mf = self._cl.mem_flags
             grids, multipliers = band_scratch_bytes(self.n2, self.chebyshev)
-            self.band_scratch = (self._cl.Buffer(self._context, mf.READ_WRITE, most * grids + 8 * PLANAR_MARGIN_FLOATS),
+            margins = 2 * 4 * PLANAR_MARGIN_FLOATS  # before and after the grids, 4 bytes a float
+            self.band_scratch = (self._cl.Buffer(self._context, mf.READ_WRITE, most * grids + margins),
                                  self._cl.Buffer(self._context, mf.READ_WRITE, most * multipliers))
         self.substeps_local_size = self._default_substeps_local_size()
         c, f32, i32 = self.constants, np.float32, np.int32
