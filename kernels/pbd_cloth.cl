@@ -85,33 +85,11 @@
 #define INLINE __attribute__((always_inline))
 #define SELECT(a, b, c) ((c) ? (b) : (a))
 
-/* The extra arguments of a scene with meshes, motion or attached pins (verlet_cloth.cl's
- * names): STEP_ARG, MESH_ARG, PIN_ARG in a kernel's parameters, *_PASS through the helpers. */
-#ifndef CLOTH_MESHES
-#define CLOTH_MESHES 0
-#endif
-#define MESH_ROWS 6 /* collider-table rows per mesh: pose, margins, box (collide_mesh.cl) */
+/* The extra arguments of a scene with meshes, motion or attached pins: STEP_ARG, MESH_ARG,
+ * PIN_ARG in a kernel's parameters, *_PASS through the helpers. */
+#include "body_args.cl"
 #define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 2 * CLOTH_PLANES)
 #define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a substep's collider table */
-#if CLOTH_MESHES > 0
-#define MESH_ARG , __global const float4 *mesh_geometry, __global const int *mesh_ints
-#define MESH_PASS , mesh_geometry, mesh_ints
-#else
-#define MESH_ARG
-#define MESH_PASS
-#endif
-#ifdef CLOTH_ATTACHED_PINS
-#define PIN_ARG , __global const int *pin_slot, __global const float *pin_target
-#define PIN_PASS , pin_slot, pin_target
-#else
-#define PIN_ARG
-#define PIN_PASS
-#endif
-#ifdef CLOTH_PER_STEP
-#define STEP_ARG , const int step
-#else
-#define STEP_ARG
-#endif
 
 /* The 12-spring stencil (d_row, d_col) in the order docs/semantics.md fixes; offsets 0-3 are
  * structural, 4-7 shear, 8-11 bend (the .x, .y, .z of `rest` and `at`). */

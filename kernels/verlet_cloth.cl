@@ -84,31 +84,7 @@ __constant int2 OFFSETS[12] = {
 
 /* The extra arguments of a scene with meshes, motion or attached pins: BODY_ARG in a kernel's
  * parameters (after the normals), BODY_PARAMS and BODY_PASS through the helpers. */
-#ifndef CLOTH_MESHES
-#define CLOTH_MESHES 0
-#endif
-#define MESH_ROWS 6 /* collider-table rows per mesh: pose, margins, box (collide_mesh.cl) */
-#if CLOTH_MESHES > 0
-#define MESH_ARG , __global const float4 *mesh_geometry, __global const int *mesh_ints
-#define MESH_PASS , mesh_geometry, mesh_ints
-#else
-#define MESH_ARG
-#define MESH_PASS
-#endif
-#ifdef CLOTH_ATTACHED_PINS
-#define PIN_ARG , __global const int *pin_slot, __global const float *pin_target
-#define PIN_PASS , pin_slot, pin_target
-#define PIN_STEP_TARGETS(first) (pin_target += 3 * CLOTH_PINS * (first)) /* this step's */
-#else
-#define PIN_ARG
-#define PIN_PASS
-#define PIN_STEP_TARGETS(first)
-#endif
-#ifdef CLOTH_PER_STEP
-#define STEP_ARG , const int step
-#else
-#define STEP_ARG
-#endif
+#include "body_args.cl"
 #define BODY_ARG STEP_ARG MESH_ARG PIN_ARG
 #define BODY_PARAMS MESH_ARG PIN_ARG
 #define BODY_PASS MESH_PASS PIN_PASS
