@@ -1,5 +1,7 @@
 """Errors meant for people: the CLI prints them as one line and exits with their code."""
 
+import signal
+
 
 class ClothbenchError(Exception):
     """Bad input or an unusable backend: one line on stderr, exit code 2."""
@@ -29,3 +31,11 @@ class BlowUp(ClothbenchError):
         super().__init__(f"simulation blew up at step {step}: {what}")
         self.step = step
         self.what = what
+
+
+def signal_name(number: int) -> str:
+    """A signal's name (SIGABRT) for a message about a process that died of it."""
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"

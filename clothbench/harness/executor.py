@@ -26,6 +26,7 @@ from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from clothbench.errors import signal_name
 from clothbench.harness import faults
 
 DEFAULT_ROW_TIMEOUT = 3600.0  # seconds; --row-timeout
@@ -48,13 +49,6 @@ class Outcome:
 
 class RowError(Exception):
     """What the child raised, re-raised in the parent (the original when it pickles)."""
-
-
-def signal_name(number: int) -> str:
-    try:
-        return signal.Signals(number).name
-    except ValueError:
-        return f"signal {number}"
 
 
 def crash_note(exitcode: int | None) -> str:

@@ -19,7 +19,7 @@ import os
 import subprocess
 import sys
 
-from clothbench.errors import ClothbenchError
+from clothbench.errors import ClothbenchError, signal_name
 
 # Seconds a child may take (building and timing every device takes a few).
 TIMEOUT_S = 600.0
@@ -56,7 +56,7 @@ def _child(target: str, specs: list[str], args: tuple) -> tuple[dict | None, str
         encoded = json.loads(lines[-1])
         return {spec: ClothbenchError(a["error"]) if "error" in a else a["value"] for spec, a in encoded.items()}, ""
     fatal = [line.strip() for line in done.stderr.splitlines() if "LLVM ERROR" in line or "error:" in line]
-    how = f"exit status {done.returncode}" if done.returncode >= 0 else f"signal {-done.returncode}"
+    how = f"exit status {done.returncode}" if done.returncode >= 0 else signal_name(-done.returncode)
     return None, fatal[0] if fatal else f"the child process ended with {how}"
 
 
