@@ -20,6 +20,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.gl import context as gl_context
 from clothbench.backends.gl import shapes
 from clothbench.backends.gl.compute import GLSLComputeBackend
+from clothbench.backends.tuning import TUNING_ROUNDS
 from clothbench.errors import ClothbenchError
 from clothbench.harness import reference
 
@@ -206,19 +207,19 @@ def test_tuning_measures_once_per_key_and_again_on_retune(tuning, tmp_path):
     with build(scene, strict=True) as b:
         assert b.shape == "wg=8x8" and b.mode.endswith("/wg=8x8")
         driver = b.driver
-    assert sorted(tuning) == sorted(candidates)  # each candidate timed once
+    assert sorted(tuning) == sorted(candidates * TUNING_ROUNDS)  # each candidate timed once a turn
     stored = json.loads((tmp_path / "tuning" / "glsl-compute.json").read_text())
     (key,) = [json.loads(k) for k in stored]
     assert key["driver"] == driver and key["grid"] == "32" and key["arithmetic"] == "strict"
     with build(scene, strict=True) as b:  # cached: nothing measured
         assert b.shape == "wg=8x8"
-    assert len(tuning) == len(candidates)
+    assert len(tuning) == TUNING_ROUNDS * len(candidates)
     with build(scene, strict=True, retune=True) as b:  # measured again
         assert b.shape == "wg=8x8"
-    assert len(tuning) == 2 * len(candidates)
+    assert len(tuning) == 2 * TUNING_ROUNDS * len(candidates)
     with build(scene, strict=False):  # another key (fast arithmetic): measured for it
         pass
-    assert len(tuning) == 3 * len(candidates)
+    assert len(tuning) == 3 * TUNING_ROUNDS * len(candidates)
 
 
 def test_a_real_tuning_run_picks_a_candidate_that_stays_exact(monkeypatch, tmp_path):

@@ -2,7 +2,10 @@
 
 A backend with several kernel shapes (vector width, work-group size, tile shape, ...) lists
 them as candidates; the first time a (backend, device, driver version, scene shape, grid,
-arithmetic) is met, each candidate is timed for a few steps and the fastest is kept in
+arithmetic) is met, each candidate is timed for a few steps, the candidates taking turns for
+TUNING_ROUNDS rounds and each keeping its fastest turn (a load that comes and goes on a shared
+machine then falls on every candidate alike, rather than on whichever was being timed), and
+the fastest is kept in
 `<cache>/tuning/<backend>.json` (clothbench.native.cache_dir). Later runs read the choice
 back without measuring; `--retune` measures again and replaces it. The chosen shape is part
 of the row's mode, so a CSV says what ran.
@@ -28,6 +31,9 @@ from clothbench.errors import ClothbenchError
 from clothbench.native import cache_dir
 
 TUNING_ENV = "CLOTHBENCH_TUNING"
+# turns per candidate: one timed turn each picked a band shape 20% slower than another at 128^2
+# on the Zen 5 (docs/pbd.md); the fastest of three interleaved turns is what the sweep then saw
+TUNING_ROUNDS = 3
 
 
 def tuning_enabled() -> bool:
@@ -77,7 +83,8 @@ def choose_shape(
     """The shape to run for `key` among `candidates` (names; the first is the default).
 
     time_candidate(name) -> seconds for a short synchronised run of that shape (the backend
-    builds it, warms it up and times a few steps). A candidate that raises is dropped (a
+    builds it, warms it up and times a few steps), called TUNING_ROUNDS times per candidate in
+    turns; a candidate's fastest turn counts. A candidate that raises is dropped (a
     work-group too large for this device, say), unless every one does."""
     if not candidates:
         raise ClothbenchError(f"{backend}: no kernel shape to choose from")
@@ -90,11 +97,17 @@ def choose_shape(
             return entry["choice"]
     measured: dict[str, float] = {}
     failures: dict[str, str] = {}
-    for name in candidates:
-        try:
-            measured[name] = time_candidate(name)
-        except ClothbenchError as e:
-            failures[name] = str(e).splitlines()[0]
+    for _ in range(TUNING_ROUNDS):
+        for name in candidates:
+            if name in failures:
+                continue
+            try:
+                seconds = time_candidate(name)
+            except ClothbenchError as e:
+                failures[name] = str(e).splitlines()[0]
+                measured.pop(name, None)
+                continue
+            measured[name] = min(seconds, measured.get(name, seconds))
     if not measured:
         raise ClothbenchError(f"{backend}: no kernel shape runs here ({'; '.join(f'{k}: {v}' for k, v in failures.items())})")
     choice = min(measured, key=measured.get)
