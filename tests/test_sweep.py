@@ -294,8 +294,11 @@ def test_generic_both_measures_each_kernel_and_reports_the_specialised_speedup(t
     generic = [r for r in rows if r["backend"] == "fake-generic" and r["generic"] == "true"]
     special = [r for r in rows if r["backend"] == "fake-generic" and r["generic"] == "false"]
     assert len(generic) == 1 and len(special) == 1
-    # the generic kernel does three times the work here: the speed-up is measured, not assumed
-    assert float(generic[0]["specialised_speedup"]) > 1.5
+    # the speed-up is the two kernels' measured medians, not assumed (and no timed assertion:
+    # on a loaded machine a fake's three times the work need not take three times as long)
+    ratio = float(generic[0]["ms_median"]) / float(special[0]["ms_median"])
+    assert float(generic[0]["specialised_speedup"]) == pytest.approx(ratio, rel=1e-5)  # 6 digits in the CSV
+    assert special[0]["specialised_speedup"] == ""
     assert all(r["generic"] == "false" for r in rows if r["backend"] == "numpy")  # numpy has one kernel
 
 
