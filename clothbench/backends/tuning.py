@@ -31,8 +31,9 @@ from clothbench.errors import ClothbenchError
 from clothbench.native import cache_dir
 
 TUNING_ENV = "CLOTHBENCH_TUNING"
-# turns per candidate: one timed turn each picked a band shape 20% slower than another at 128^2
-# on the Zen 5 (docs/pbd.md); the fastest of three interleaved turns is what the sweep then saw
+# turns per candidate: with one timed turn each, the tuner picked a band shape ~20% slower than
+# another at 128^2 on the Zen 5 (docs/pbd.md); with interleaved turns a passing load falls on one
+# turn of every candidate instead of deciding the choice
 TUNING_ROUNDS = 3
 
 
