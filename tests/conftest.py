@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -63,6 +64,35 @@ def bent_state(n: int) -> tuple[Scene, np.ndarray]:
     return scene, pos.astype(np.float32)
 
 
+# Two tiers from one switch (README, "Tests"). `python -m pytest` is the quick tier: every
+# backend's contract at small sizes, every command's happy path and its refusals. A test marked
+# `full` (a long physics check, a study's rerun, a second runtime's or size's copy of a check the
+# quick tier makes once) runs only with `--full`, which is what .ci/run runs. The mark is put on a
+# test or a module (`pytestmark = pytest.mark.full`), or by FULL_TIER below for parameters of the
+# registry-driven tests, so that the choice is made where the test is, not in a list elsewhere.
+def pytest_addoption(parser):
+    parser.addoption("--full", action="store_true", help="run the full tier too (tests marked `full`): what CI runs")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "full: in the full tier only (`python -m pytest --full`)")
+    config.addinivalue_line(
+        "markers", "serial: times something or holds a GL context: kept in one xdist worker (group 'serial')"
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.get_closest_marker("serial") is not None:
+            item.add_marker(pytest.mark.xdist_group("serial"))
+    if config.getoption("--full"):
+        return
+    quick = [item for item in items if item.get_closest_marker("full") is None]
+    if len(quick) < len(items):
+        config.hook.pytest_deselected(items=[item for item in items if item.get_closest_marker("full") is not None])
+        items[:] = quick
+
+
 @pytest.fixture
 def sphere_scene():
     return load_scene("sphere")
@@ -71,6 +101,29 @@ def sphere_scene():
 @pytest.fixture
 def drape_scene():
     return load_scene("drape")
+
+
+def wait_until(ready, proc=None, what: str = "the child to be ready", bound_s: float = 600.0) -> None:
+    """Poll `ready()` until it holds: the tests that signal a child act on what the child says
+    (a line it wrote, a row it finished), never after a guessed sleep. `proc` ending first fails
+    at once; `bound_s` only stops a broken child from hanging the suite, it is no speed claim."""
+    end = time.monotonic() + bound_s
+    while not ready():
+        if proc is not None and proc.poll() is not None:
+            err = proc.stderr.read() if proc.stderr else ""
+            raise AssertionError(f"the child exited ({proc.returncode}) before {what}: {err}")
+        if time.monotonic() > end:
+            raise AssertionError(f"still waiting for {what} after {bound_s:.0f} s: the child is stuck")
+        time.sleep(0.01)
+
+
+def lines_in(path) -> int:
+    """Lines in a file, 0 while it does not exist."""
+    try:
+        with open(path) as f:
+            return sum(1 for _ in f)
+    except FileNotFoundError:
+        return 0
 
 
 def assert_bit_exact(actual: np.ndarray, expected: np.ndarray, what: str = "") -> None:

@@ -15,6 +15,7 @@ import pytest
 
 from clothbench.harness.sweep_csv import row_key
 
+from conftest import lines_in, wait_until
 from test_sweep import read_csv
 
 ARGS = ["sweep", "--backends", "numpy", "--grids", "8,12", "--steps", "3", "--repeat", "2"]
@@ -33,16 +34,13 @@ def _data_rows(path) -> int:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_a_signal_mid_row_keeps_finished_rows_and_resume_completes(tmp_path, sig):
-    out = tmp_path / "s.csv"
-    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:slow")  # every row takes >= 2 s
+    out, started = tmp_path / "s.csv", tmp_path / "started"
+    # the first row runs; the second hangs in its worker and says so: the signal comes mid-row
+    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started))
     proc = subprocess.Popen(_clothbench(*ARGS, "--out", str(out)), env=env, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    while _data_rows(out) < 1 and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    assert _data_rows(out) == 1, proc.poll()
-    time.sleep(0.7)  # the second row is running in its worker now
+    wait_until(lambda: lines_in(started) >= 2 and _data_rows(out) >= 1, proc, "the second row to start")
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=30)
+    _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "interrupted" in err and "--resume" in err
     rows = read_csv(out)  # whole lines only (read_csv checks), the finished row kept
@@ -83,23 +81,36 @@ def test_a_signal_in_accuracy_or_stability_exits_130_and_writes_no_partial_row(t
         "stability": ["stability", "--backends", "numpy", "--grid", "16", "--steps", "20000", "--scenes", "flat",
                       "--stiffness", "1000,10000,100000"],
     }[command]  # fmt: skip
-    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang")  # accuracy rows never end; stability is long anyway
+    started = tmp_path.parent / f"{tmp_path.name}-started"  # outside tmp_path: the test lists it
+    # accuracy rows never end, and each says when it started; stability is long anyway, and its
+    # bisection's workers are running once the parent has children
+    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_READY=str(started))
     proc = subprocess.Popen(_clothbench(*args, "--out", str(out)), env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    while not _children(proc.pid) and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.05)  # its rows' worker processes are running
-    assert _children(proc.pid), proc.poll()
-    time.sleep(0.5)
+    if command == "accuracy":
+        wait_until(lambda: lines_in(started) >= 1, proc, "a row to start")
+    wait_until(lambda: bool(_children(proc.pid)), proc, "its rows' worker processes")
     workers = _children(proc.pid)
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=30)
+    _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == [out]  # the CSV (its header, any finished row), nothing else
     text = out.read_text()
     assert text.endswith("\n") and len({len(r) for r in csv.reader(text.splitlines())}) == 1  # whole rows
-    time.sleep(0.2)
-    assert not [w for w in workers if os.path.exists(f"/proc/{w}") and open(f"/proc/{w}/stat").read().split()[2] != "Z"]
+    wait_until(lambda: not _alive(workers), what="the workers to be gone", bound_s=60)
+
+
+def _alive(pids: list[str]) -> list[str]:
+    """Those of `pids` that still run (a zombie has ended, its parent not yet told)."""
+    alive = []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().split()[2] != "Z":
+                    alive.append(pid)
+        except OSError:
+            pass
+    return alive
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
@@ -132,16 +143,13 @@ def _study_rows(path):
 def test_an_interrupted_study_keeps_its_finished_rows_and_resume_completes_it(tmp_path, command):
     from clothbench.cli import main
 
-    out = tmp_path / "part.csv"
-    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:slow")  # accuracy rows take 2 s each
+    out, started = tmp_path / "part.csv", tmp_path / "started"
+    # the first row to start runs, every later one hangs in its worker: the signal comes after one
+    # finished row and before the study could end, however fast or slow the machine is
+    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started))
     proc = subprocess.Popen(_clothbench(*STUDIES[command], "--out", str(out)), env=env,
                             stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        if out.exists() and out.read_text().count("\n") >= 2:  # the header and a finished row
-            break
-        time.sleep(0.05)
-    assert proc.poll() is None, "finished before it could be interrupted"
+    wait_until(lambda: _data_rows(out) >= 1, proc, "a finished row")  # the header and a finished row
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err

@@ -15,6 +15,7 @@ import numpy as np
 from clothbench.analysis.lattice import gershgorin_dt_max, predicted_dt_max
 from clothbench.backends import create_backend
 from clothbench.errors import ClothbenchError
+from clothbench.harness import faults
 from clothbench.harness.energy import ENERGY_GROWTH, energy_bound, energy_problem, total_energy
 from clothbench.harness.plan import Variant
 from clothbench.scene import Scene
@@ -211,6 +212,7 @@ def measure_stability_limit(
     stable there, the row says "stable up to the cap" (capped) without bisecting; otherwise
     the bracket never widens past it. check_60hz also runs dt = 1/60 s for the same steps and
     writes the verdict to at_60hz."""
+    faults.inject(variant.backend)  # a test's fault switch, in the row's worker (harness/faults.py)
     scene = stability_scene(kind, stiffness, grid, damping)
     solver = variant.solver
     pbd = solver.name == "pbd"
