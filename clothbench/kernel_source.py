@@ -35,6 +35,8 @@ def read_kernel(filename: str) -> str:
 
 
 _INCLUDE = re.compile(r'^[ \t]*#include[ \t]+(?:"([^"]+)"|<([^>]+)>)[ \t]*(?://.*)?$', re.M)
+# a conditional directive, with any continuation lines
+_CONDITIONAL = re.compile(r"^[ \t]*#[ \t]*(if|ifdef|ifndef|elif|else|endif)\b(?:[^\n]*\\\n)*[^\n]*$", re.M)
 
 
 def resolve_includes(
@@ -49,6 +51,12 @@ def resolve_includes(
     file and after each include, so that a compiler message gives the line of the file it is
     in. Returns the source and the names of its files, numbered in order of appearance.
 
+    A `#line` in a group the preprocessor skips is not obeyed (C's rule; seen on PoCL's and
+    Intel's compilers: with an include inside `#ifndef CLOTH_GENERIC`, the generic build's
+    errors after it were named 33 lines late), so after each `#else`, `#elif` and `#endif` of
+    a group that holds an include the mark is given again; a file without includes in
+    conditionals is left as it is.
+
     On the host, not by the compiler: GLSL has no #include, and the source handed to an
     OpenCL driver is then all of the program, so a program cache keyed on the source text
     (ours, PoCL's) sees an edit to an included file."""
@@ -59,16 +67,28 @@ def resolve_includes(
         number = len(files)
         files.append(name)
         out, last = [line_mark(1, number, name) + "\n"], 0
-        for match in _INCLUDE.finditer(text):
-            out.append(text[last : match.start()])
-            included, special = match.groups()
-            if included:
-                out.append(expand(included, read_kernel(included)))
-            elif special in generated:
-                out.append(expand(f"<{special}>", generated[special]()))
+        holds_include: list[bool] = []  # per open conditional: does it hold an include yet
+        directives = sorted([*_INCLUDE.finditer(text), *_CONDITIONAL.finditer(text)], key=lambda m: m.start())
+        for match in directives:
+            if match.re is _CONDITIONAL:
+                kind = match.group(1)
+                if kind in ("if", "ifdef", "ifndef"):
+                    holds_include.append(False)
+                    continue
+                if not holds_include or not (holds_include.pop() if kind == "endif" else holds_include[-1]):
+                    continue  # nothing of this group moved the lines
+                out.append(text[last : match.end()])
             else:
-                raise ClothbenchError(f"{name}: unknown #include <{special}>")
-            line = text.count("\n", 0, match.end()) + 2  # the line after the #include
+                out.append(text[last : match.start()])
+                holds_include = [True] * len(holds_include)
+                included, special = match.groups()
+                if included:
+                    out.append(expand(included, read_kernel(included)))
+                elif special in generated:
+                    out.append(expand(f"<{special}>", generated[special]()))
+                else:
+                    raise ClothbenchError(f"{name}: unknown #include <{special}>")
+            line = text.count("\n", 0, match.end()) + 2  # the line after the directive
             out.append("\n" + line_mark(line, number, name))
             last = match.end()
         out.append(text[last:])

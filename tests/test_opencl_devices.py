@@ -334,3 +334,90 @@ def test_driver_names_the_platform_and_its_versions(runtime):
         platform = b._device.platform
         assert b.driver.startswith(f"{platform.name}: {' '.join(platform.version.split())}")
         assert b.driver.endswith(f"driver {b._device.driver_version}")
+
+
+# --- a build error names the file, the line and the compiler's error on every runtime ------
+
+# The exceptions pyopencl 2026.1 raised for one failed build (file names from #line marks),
+# trimmed: PoCL's log is also the program's own, Intel's only the exception's (build_log.py)
+POCL_FAILURE = """clBuildProgram failed: BUILD_PROGRAM_FAILURE - clBuildProgram failed: BUILD_PROGRAM_FAILURE
+
+Build on <pyopencl.Device 'pthread-haswell-AMD EPYC' on 'Portable Computing Language' at 0x5>:
+
+error: foo.cl:3:14: expected ';' after expression
+error: bar.cl:40:41: use of undeclared identifier 'undefined_x'
+Device pthread-haswell-AMD EPYC failed to build the program
+
+(options: -I /site-packages/pyopencl/cl)"""
+INTEL_FAILURE = """clBuildProgram failed: BUILD_PROGRAM_FAILURE - clBuildProgram failed: BUILD_PROGRAM_FAILURE
+
+Build on <pyopencl.Device 'AMD EPYC' on 'Intel(R) OpenCL' at 0x5>:
+
+Compilation started
+foo.cl:3:14: error: expected ';' after expression
+    3 |   a[0] = 1.0f
+      |              ^
+bar.cl:40:41: error: use of undeclared identifier 'undefined_x'
+Compilation failed
+
+(options: -I /site-packages/pyopencl/cl)
+(source saved as /tmp/tmpvmiy32wp.cl)"""
+
+
+@pytest.mark.parametrize("text", [POCL_FAILURE, INTEL_FAILURE], ids=["pocl", "intel"])
+def test_the_build_log_is_read_from_either_runtimes_exception(text):
+    from clothbench.backends.opencl.build_log import compiler_log, error_places, first_error
+
+    log = compiler_log(text)
+    assert "Build on" not in log and "clBuildProgram" not in log and "(options:" not in log, log
+    assert "Compilation" not in log and "source saved" not in log, log
+    assert error_places(log) == [
+        ("foo.cl", 3, "expected ';' after expression"),
+        ("bar.cl", 40, "use of undeclared identifier 'undefined_x'"),
+    ]
+    assert first_error(text) == "expected ';' after expression"
+
+
+# (the kernel file, a file it includes that this build compiles, what builds it): the
+# includes sit inside conditionals (collide.cl, fast_math.cl, <mesh_colliders>) that a
+# build skips in part, and the lines after a skipped one must still be named right
+BROKEN_BUILDS = {
+    "verlet": ("verlet_cloth.cl", "fast_math.cl", lambda spec: (sphere(8), VERLET, BackendOptions(strict=True, device=spec))),
+    "verlet-generic": ("verlet_cloth.cl", "collide.cl",
+                       lambda spec: (sphere(8), VERLET, BackendOptions(strict=True, generic=True, device=spec))),
+    "pbd": ("pbd_cloth.cl", "collide.cl", lambda spec: (*_pbd_curtain(), BackendOptions(strict=True, device=spec))),
+}
+
+
+def _pbd_curtain():
+    from conftest import setup
+
+    s = setup("curtain", 16).replace(solver="pbd", method="jacobi", iterations=4)
+    return s.scene, s.solver
+
+
+@pytest.mark.parametrize("build", BROKEN_BUILDS)
+@pytest.mark.parametrize("runtime", RUNTIMES)
+def test_a_broken_kernel_names_file_line_and_error_on_every_runtime(runtime, build, monkeypatch):
+    # an error at the end of the kernel file and one at the end of a file it includes: each
+    # named at its own line through the #line marks, whichever runtime compiles (and wherever
+    # it keeps the log)
+    from clothbench import kernel_source
+    from clothbench.backends.opencl.build_log import error_places
+
+    spec = _device_of(runtime)
+    filename, included, arguments = BROKEN_BUILDS[build]
+    real = kernel_source.read_kernel
+    broken = {filename: "float broken(void) { return no_such_value; }", included: "no_such_type broken_too;"}
+    edited = {name: f"{real(name)}\n{line}\n" for name, line in broken.items()}
+    monkeypatch.setattr(kernel_source, "read_kernel", lambda name: edited.get(name) or real(name))
+    monkeypatch.setattr(device, "read_kernel", lambda name: edited.get(name) or real(name))
+    with pytest.raises(ClothbenchError) as e:
+        create_backend("opencl", *arguments(spec))
+    message = str(e.value)
+    assert message.startswith("OpenCL build failed on "), message
+    places = error_places(message)
+    errors = {filename: "use of undeclared identifier 'no_such_value'", included: "unknown type name 'no_such_type'"}
+    for name, line in broken.items():
+        number = edited[name].splitlines().index(line) + 1
+        assert (name, number, errors[name]) in places, f"{runtime} ({spec}) {build}: {message}"

@@ -19,6 +19,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.opencl import runtimes
+from clothbench.backends.opencl.build_log import compiler_log
 from clothbench.backends.opencl.isolated import in_child_per_device
 from clothbench.backends.opencl.runtimes import INTEL_EXTRA
 from clothbench.native import cache_dir
@@ -348,14 +349,6 @@ def platform_driver(device) -> str:
     return f"{platform.name}: {' '.join(platform.version.split())}; driver {device.driver_version}"
 
 
-def _first_error_line(message: str) -> str:
-    """The compiler's first error, without its 'error: <file>:line:col:' prefix."""
-    for line in message.splitlines():
-        if line.startswith("error:"):
-            return line.split(": ")[-1].strip()
-    return message.splitlines()[-1].strip() if message else "?"
-
-
 def device_context(device):
     """The process's one context for `device`, shared by every backend on it."""
     key = device.int_ptr
@@ -390,13 +383,12 @@ def build_program(context, source: str, options: tuple[str, ...]):
                 warnings.simplefilter("ignore", cl.CompilerWarning)
                 program.build(options=list(options))
         except cl.Error as e:
+            # the log is in the exception on every runtime; the program's own only on PoCL's
+            # (build_log.py), and asking an unbuilt one makes pyopencl warn and build nothing
             device = context.devices[0]
-            try:
-                log = program.get_build_info(device, cl.program_build_info.LOG).strip()
-            except cl.Error:
-                log = str(e)
             raise ClothbenchError(
-                f"OpenCL build failed on {device.name} (options: {' '.join(options) or 'none'}):\n{log}"
+                f"OpenCL build failed on {device.name} (options: {' '.join(options) or 'none'}):\n"
+                + compiler_log(str(e))
             ) from None
         _programs[key] = program
     return _programs[key]

@@ -63,7 +63,8 @@ def _child(target: str, specs: list[str], args: tuple) -> tuple[dict | None, str
 def probe_devices(specs: list[str], source: str) -> dict:
     """In the child: None for each device of `specs` that builds and runs `source`'s
     clothbench_probe, else the compiler's first error (device.compile_error asks)."""
-    from clothbench.backends.opencl.device import _first_error_line, build_program, device_context, import_pyopencl
+    from clothbench.backends.opencl.build_log import first_error
+    from clothbench.backends.opencl.device import build_program, device_context, import_pyopencl
 
     cl = import_pyopencl()
     result = {}
@@ -84,7 +85,7 @@ def probe_devices(specs: list[str], source: str) -> dict:
             queue.finish()
             result[spec] = None
         except ClothbenchError as e:
-            result[spec] = _first_error_line(str(e))
+            result[spec] = first_error(str(e))
         except cl.Error as e:
             result[spec] = f"{type(e).__name__}: {e}"
     return result
