@@ -22,8 +22,8 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from clothbench import environment
-from clothbench.backends import BackendOptions, availability, create_backend
+from clothbench import environment, machine_load
+from clothbench.backends import BackendOptions, availability, create_backend, tuning
 from clothbench.errors import ClothbenchError
 from clothbench.harness import faults
 from clothbench.harness.executor import Outcome, fork_safe, run_isolated, start_method
@@ -179,16 +179,19 @@ def measure_row(
     out = base_row(row, setup, steps, repeats)
     out["budget_s"] = fmt(budget_s)
     try:
+        tuning.forget_met()  # so that check_row below sees this backend's choice only
         t0 = time.perf_counter()
         backend = create_backend(row.backend, scene, solver, row.options)
         build_s = time.perf_counter() - t0
         with backend:
             out["mode"], out["device"], out["driver"] = backend.mode, backend.device, backend.driver
             faults.inject(row.backend)
+            watch = machine_load.LoadSampler().start()  # a row far off its tuning counts only if quiet
             result = run_timed(
                 backend, total, chunk=steps, on_progress=on_progress, raise_on_blowup=False, build_s=build_s,
                 budget_s=budget_s,
             )
+            quiet = watch.stop().busy is False
     except MemoryError as e:  # a Python-side allocation the machine could not hold
         out.update(status="crashed", note=one_line(f"out of memory: {e}"), **environment.collect())
         return out
@@ -203,6 +206,7 @@ def measure_row(
 
     spread = result.spread()
     ms = result.ms_per_step
+    shape_note = tuning.check_row(backend.name, getattr(backend, "shape", None), ms, quiet)  # provisional?
     if result.budget_cut:
         total = result.steps
         out.update(
@@ -239,6 +243,7 @@ def measure_row(
             out["note"] = "the float64 reference blew up: no error measured"
     except Exception as e:
         out["note"] = one_line(f"no error measured: float64 reference failed: {type(e).__name__}: {e}")
+    out["note"] = "; ".join(n for n in (out.get("note", ""), shape_note) if n)
     out.update(environment.collect())
     return out
 
