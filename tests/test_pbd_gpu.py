@@ -225,13 +225,22 @@ def test_fast_pbd_error_is_of_the_order_of_numpy_f32s_own(backend, scene_name, m
     # chaotic, not wrong). Measured ratios 0.7 to 1.7; the bound 3x (with a 1 um floor) still
     # catches a physics slip by orders of magnitude: dropping XPBD's compliance term
     # alpha~*lambda gave 550x to 23000x, relax/12 instead of relax/cnt 3900x, no damping 28000x.
+    # Intel's runtime rounds its default (per-stage) Jacobi step further from float64 on the
+    # three colliders: 3.06x (Zen 3, 2026-12-03; its one-launch shape 0.91x, as PoCL's per-stage),
+    # so its bound is 5x, still two orders below the slips.
     require(backend)
     scene, solver = SCENES[scene_name](method)
     steps = 30
     ref64 = simulate("numpy", scene, solver, steps, F64)[0]
     _, f32_max = position_error(simulate("numpy", scene, solver, steps, F32)[0], ref64)
+    bound = 3
+    if backend == "opencl":
+        from clothbench.backends.opencl import runtimes
+
+        with create_backend(backend, scene, solver, FAST) as b:
+            bound = 5 if runtimes.runtime_of(b._device.platform) == runtimes.INTEL_CPU else 3
     _, fast_max = position_error(simulate(backend, scene, solver, steps, FAST)[0], ref64)
-    assert fast_max <= 3 * max(f32_max, 1e-6), f"fast {fast_max:.3g} m vs numpy f32 {f32_max:.3g} m"
+    assert fast_max <= bound * max(f32_max, 1e-6), f"fast {fast_max:.3g} m vs numpy f32 {f32_max:.3g} m"
 
 
 # --- profiling, modes, options ---------------------------------------------------------------
