@@ -42,7 +42,8 @@ def inject(backend: str) -> None:
     if not _armed:
         return
     kind = faults().get(backend)
-    if _mark_started(backend) <= int(os.environ.get(AFTER_ENV, "0") or 0):
+    place = _mark_started(backend)  # 0: no READY file, nothing spared
+    if place and place <= int(os.environ.get(AFTER_ENV, "0") or 0):
         return
     if kind == "abort":
         os.abort()
