@@ -12,7 +12,7 @@ import types
 import numpy as np
 import pytest
 
-from clothbench.backends import BACKENDS, Availability, BackendEntry, Capabilities, availability, capabilities
+from clothbench.backends import BACKENDS, Availability, Capabilities, availability, capabilities
 from clothbench.backends.base import MESH_COLLISIONS
 from clothbench.backends.numpy.verlet import NumpyBackend
 from clothbench.cli import main
@@ -24,6 +24,7 @@ from clothbench.harness.sweep import SweepSettings, plan_sweep, run_sweep
 from clothbench.scene import load_setup
 
 from conftest import VERLET, require
+from test_sweep import fake_entry
 
 
 def tiny(name: str, grid: int = 6):
@@ -139,7 +140,7 @@ def fakes(monkeypatch):
     monkeypatch.setitem(sys.modules, usable.__name__, usable)
     for cls in (FixedCollidersOnly, BothAlgorithms):
         setattr(usable, cls.__name__, cls)
-        monkeypatch.setitem(BACKENDS, cls.name, BackendEntry(cls.name, f"{usable.__name__}:{cls.__name__}"))
+        monkeypatch.setitem(BACKENDS, cls.name, fake_entry(cls.name, f"{usable.__name__}:{cls.__name__}"))
     availability.cache_clear()
     yield
     availability.cache_clear()

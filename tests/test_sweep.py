@@ -4,6 +4,7 @@ nothing lost or duplicated when a sweep is killed and resumed."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import shlex
@@ -15,12 +16,13 @@ import types
 import numpy as np
 import pytest
 
-from clothbench.backends import BACKENDS, Availability, BackendEntry, Capabilities, availability
+from clothbench.backends import BACKENDS, PEERS, Availability, BackendEntry, Capabilities, availability
 from clothbench.backends.numpy.verlet import NumpyBackend
 from clothbench import environment
 from clothbench.cli import main
 from clothbench.harness import sweep as sweep_module
 from clothbench.harness.sweep_csv import COLUMNS, MEASUREMENT_COLUMNS, row_key
+from clothbench.reports.viewer.keys import BACKEND_KEY_NAMES
 from clothbench.scene import count_springs
 from clothbench.solver import Pbd
 
@@ -102,6 +104,16 @@ class GenericBackend(NumpyBackend):
         super().advance(steps * (3 if self.options.generic else 1))
 
 
+def fake_entry(name: str, target: str, peer: bool = False) -> BackendEntry:
+    """A registry entry for a fake: numpy's facts (a fake is numpy's step, fork-safe as it is),
+    its own name, class and display name, a peer's platform where it is one, and the first view
+    key no registered backend has (every command's --help lists them, one backend a key)."""
+    numpy = BACKENDS["numpy"]
+    key = next(k for k in BACKEND_KEY_NAMES if k not in {e.view_key for e in BACKENDS.values()})
+    return dataclasses.replace(numpy, name=name, verlet=target, pbd=None, peer=peer, display=name,
+                               platform=PEERS if peer else numpy.platform, view_key=key)  # fmt: skip
+
+
 def register_fake_backends(monkeypatch, *classes: type, peers: tuple[str, ...] = ()) -> None:
     """Register each Backend class under its `name` for one test, usable on a "fake device"."""
     usable = types.ModuleType("clothbench.backends._fake_usable")
@@ -109,7 +121,7 @@ def register_fake_backends(monkeypatch, *classes: type, peers: tuple[str, ...] =
     monkeypatch.setitem(sys.modules, usable.__name__, usable)
     for cls in classes:
         setattr(usable, cls.__name__, cls)
-        entry = BackendEntry(cls.name, f"{usable.__name__}:{cls.__name__}", peer=cls.name in peers)
+        entry = fake_entry(cls.name, f"{usable.__name__}:{cls.__name__}", peer=cls.name in peers)
         monkeypatch.setitem(BACKENDS, cls.name, entry)
     availability.cache_clear()
 
@@ -119,7 +131,7 @@ def fake_backends(monkeypatch):
     absent = types.ModuleType("clothbench.backends._fake_absent")
     absent.probe = lambda: Availability(False, "no fake device on this machine")
     monkeypatch.setitem(sys.modules, absent.__name__, absent)
-    monkeypatch.setitem(BACKENDS, "fake-absent", BackendEntry("fake-absent", f"{absent.__name__}:Nothing"))
+    monkeypatch.setitem(BACKENDS, "fake-absent", fake_entry("fake-absent", f"{absent.__name__}:Nothing"))
     register_fake_backends(
         monkeypatch, LocalSizeBackend, ExplodingBackend, NaNBackend, PeerBackend, GenericBackend, InterruptedBackend,
         peers=("fake-peer",),

@@ -4,12 +4,19 @@ Each backend is a module exposing `probe() -> Availability` (cheap, never raises
 `Backend` subclass per solver it implements, named here as "module:Class". Modules are
 imported only when asked for, so a missing optional package costs nothing until its backend
 is used. Options are checked against the class's declared Capabilities before it is built.
+
+Every other fact about a backend is its entry's: the name tables and figures give it, the
+figures' panel it goes to, whether it is GPU-style, its viewer key, whether a forked child may
+run it. None has a default, so an entry cannot leave one out; tests/test_registry_facts.py
+checks each one's value. The one fact of the class instead is the device clock it reads
+(Backend.device_timer), because a device's driver decides it (GL timestamps are no device's
+clock on llvmpipe).
 """
 
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 from clothbench.errors import BackendUnavailable, ClothbenchError
@@ -25,35 +32,63 @@ class BackendEntry:
     pbd: str | None = None  # "module:Class" of its PBD backend, if it has one
     peer: bool = False  # a system users would pick instead of clothbench (not ours)
     summary: str = ""
+    # the facts the reports, the viewer and the executor read, keyword-only and required:
+    display: str = field(kw_only=True)  # its name in tables and figure legends
+    platform: str = field(kw_only=True)  # its figures' panel (PLATFORMS); every peer's is PEERS
+    gpu_style: bool = field(kw_only=True)  # a GPGPU platform the chapter compares (the peer table's own side)
+    view_key: str = field(kw_only=True)  # the viewer's key for it (reports/viewer/keys.py BACKEND_KEY_NAMES)
+    # a forked child may run it: it touches no driver state a parent could hold half-made
+    # (numpy's steppers only); any other gets a clean process (harness/executor.py)
+    fork_safe: bool = field(kw_only=True)
 
     def solvers(self) -> tuple[str, ...]:
         return tuple(s for s in SOLVERS if getattr(self, s) is not None)
 
 
 _OWN = "clothbench.backends"
+PEERS = "peers"  # the platform of every peer: the figures give them a panel of their own
+# the figures' panels, in the order they are drawn
+PLATFORMS = ("CPU", "OpenCL", "GL", "CUDA", PEERS)
+# the view keys are the chapter's F1 CPU, F2 GLSL, F3 OpenCL, F4 CUDA, then the registry's order;
+# past F12 (moderngl-window has no F13) a backend's key is shift and an F-key
 BACKENDS: dict[str, BackendEntry] = {
     e.name: e
     for e in (
         BackendEntry("numpy", f"{_OWN}.numpy.verlet:NumpyBackend", f"{_OWN}.numpy.pbd:NumpyPbdBackend",
-                     summary="vectorised NumPy reference (CPU)"),
-        BackendEntry("c", f"{_OWN}.c.verlet:CBackend", summary="native C with OpenMP (CPU line)"),
+                     summary="vectorised NumPy reference (CPU)",
+                     display="CPU (numpy)", platform="CPU", gpu_style=False, view_key="F1", fork_safe=True),
+        BackendEntry("c", f"{_OWN}.c.verlet:CBackend", summary="native C with OpenMP (CPU line)",
+                     display="C (OpenMP)", platform="CPU", gpu_style=False, view_key="F6", fork_safe=False),
         BackendEntry("opencl", f"{_OWN}.opencl.verlet:OpenCLBackend", f"{_OWN}.opencl.pbd:OpenCLPbdBackend",
-                     summary="OpenCL kernel via pyopencl"),
-        BackendEntry("glsl", f"{_OWN}.gl.fragment:GLSLBackend", summary="GLSL fragment shader, FBO ping-pong"),
+                     summary="OpenCL kernel via pyopencl",
+                     display="OpenCL", platform="OpenCL", gpu_style=True, view_key="F3", fork_safe=False),
+        BackendEntry("glsl", f"{_OWN}.gl.fragment:GLSLBackend", summary="GLSL fragment shader, FBO ping-pong",
+                     display="GLSL", platform="GL", gpu_style=True, view_key="F2", fork_safe=False),
         BackendEntry("glsl-compute", f"{_OWN}.gl.compute:GLSLComputeBackend",
-                     f"{_OWN}.gl.compute_pbd:GLSLComputePbdBackend", summary="GLSL compute shader"),
-        BackendEntry("cuda", f"{_OWN}.cuda.verlet:CudaBackend", summary="CUDA kernel via CuPy RawKernel"),
-        BackendEntry("taichi", "clothbench.peers.taichi:TaichiBackend", peer=True, summary="Taichi (peer)"),
-        BackendEntry("warp", "clothbench.peers.warp:WarpBackend", peer=True, summary="NVIDIA Warp (peer)"),
-        BackendEntry("numba", "clothbench.peers.numba:NumbaBackend", peer=True, summary="Numba (peer)"),
+                     f"{_OWN}.gl.compute_pbd:GLSLComputePbdBackend", summary="GLSL compute shader",
+                     display="GLSL compute", platform="GL", gpu_style=True, view_key="F5", fork_safe=False),
+        BackendEntry("cuda", f"{_OWN}.cuda.verlet:CudaBackend", summary="CUDA kernel via CuPy RawKernel",
+                     display="CUDA", platform="CUDA", gpu_style=True, view_key="F4", fork_safe=False),
+        BackendEntry("taichi", "clothbench.peers.taichi:TaichiBackend", peer=True, summary="Taichi (peer)",
+                     display="Taichi", platform=PEERS, gpu_style=False, view_key="F7", fork_safe=False),
+        BackendEntry("warp", "clothbench.peers.warp:WarpBackend", peer=True, summary="NVIDIA Warp (peer)",
+                     display="Warp", platform=PEERS, gpu_style=False, view_key="F8", fork_safe=False),
+        BackendEntry("numba", "clothbench.peers.numba:NumbaBackend", peer=True, summary="Numba (peer)",
+                     display="Numba", platform=PEERS, gpu_style=False, view_key="F9", fork_safe=False),
         BackendEntry("newton", None, "clothbench.peers.newton:NewtonPbdBackend", peer=True,
-                     summary="NVIDIA Newton XPBD (peer, pbd only)"),
-        BackendEntry("torch", "clothbench.peers.torch:TorchBackend", peer=True, summary="PyTorch tensors (peer)"),
-        BackendEntry("jax", "clothbench.peers.jax:JaxBackend", peer=True, summary="JAX jit (peer)"),
+                     summary="NVIDIA Newton XPBD (peer, pbd only)",
+                     display="Newton", platform=PEERS, gpu_style=False, view_key="F10", fork_safe=False),
+        BackendEntry("torch", "clothbench.peers.torch:TorchBackend", peer=True, summary="PyTorch tensors (peer)",
+                     display="PyTorch", platform=PEERS, gpu_style=False, view_key="F11", fork_safe=False),
+        BackendEntry("jax", "clothbench.peers.jax:JaxBackend", peer=True, summary="JAX jit (peer)",
+                     display="JAX", platform=PEERS, gpu_style=False, view_key="F12", fork_safe=False),
         BackendEntry("cupy", "clothbench.peers.cupy_numpy:CupyNumpyBackend", peer=True,
-                     summary="the NumPy step on CuPy arrays (peer)"),
+                     summary="the NumPy step on CuPy arrays (peer)",
+                     display="CuPy (NumPy step)", platform=PEERS, gpu_style=False, view_key="shift+F1",
+                     fork_safe=False),  # NumPy's step, but CuPy's CUDA context: not fork-safe
         BackendEntry("numba-cuda", "clothbench.peers.numba_cuda:NumbaCudaBackend", peer=True,
-                     summary="numba-cuda @cuda.jit kernel (peer)"),
+                     summary="numba-cuda @cuda.jit kernel (peer)",
+                     display="Numba CUDA", platform=PEERS, gpu_style=False, view_key="shift+F2", fork_safe=False),
     )
 }  # fmt: skip
 
@@ -129,9 +164,12 @@ __all__ = [
     "BackendOptions",
     "BACKENDS",
     "Capabilities",
+    "PEERS",
+    "PLATFORMS",
     "availability",
     "backend_class",
     "capabilities",
+    "check_name",
     "create_backend",
     "resolve_names",
     "solver_backends",

@@ -280,6 +280,17 @@ class Backend(ABC):
         """(n*n, 4) normals of the last step, where the backend computed them."""
         return None
 
+    # The device clock device_elapsed_ms() reads (harness/timing.py DEVICE_TIMERS), '' for
+    # none. No default: every backend class says which, beside the code that reads it (a GL
+    # backend's depends on its driver), and tests/test_registry_facts.py fails one that does not.
+    device_timer: str
+
+    @property
+    def device_timer_note(self) -> str:
+        """Why this run has no device time although its backend reads a device clock (a GL
+        driver whose timestamps are the host's), in one line; '' otherwise."""
+        return ""
+
     def device_elapsed_ms(self) -> float | None:
         """Device-measured time of the last advance() (profiling events), where available."""
         return None

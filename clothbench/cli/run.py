@@ -95,7 +95,7 @@ def cmd_run(args) -> int:
     if result.device_ms_per_step:
         summary["device_ms_per_step"] = statistics.median(result.device_ms_per_step)
         summary["device_timer"] = result.device_timer
-    elif note := getattr(backend, "device_timer_note", ""):
+    elif note := backend.device_timer_note:
         summary["device_timer_note"] = note  # why a device that has timers reports no device time
     if args.profile:
         summary["stages_ms_per_step"] = stages  # None: this backend has one stage

@@ -15,19 +15,20 @@ keys:
 {keys}
 
 Driven without a person: --keys "40:F3,80:F2,120:P" presses F3 before frame 40 is stepped,
-F2 before frame 80, P before frame 120 (key names as on the keyboard: F1..F12, digits,
-letters, space, left, right, up, down, escape); --frames N stops after N frames and writes
---screenshot (the last frame), --record (every frame), --save (the final pos and prev, as
-`run --save` writes them) and --log (one JSON line per frame: backend, grid, step, ms, fps,
-the profiler tree, the shadow error when on). Without a display, run it under a virtual one:
+F2 before frame 80, P before frame 120, key names as on the keyboard:
+  {names}
+--frames N stops after N frames and writes --screenshot (the last frame), --record (every
+frame), --save (the final pos and prev, as `run --save` writes them) and --log (one JSON line
+per frame: backend, grid, step, ms, fps, the profiler tree, the shadow error when on). Without a
+display, run it under a virtual one:
   xvfb-run -a clothbench view --scene sphere --backend numpy --strict \\
       --keys "40:F3,80:F2,120:F5" --frames 200 --screenshot s.png --log l.jsonl --save v.npz"""
 
 
 def _epilog() -> str:
-    from clothbench.reports.viewer.keys import HELP
+    from clothbench.reports.viewer.keys import KEYS_TEXT, help_lines
 
-    return EPILOG.format(keys="\n".join(f"  {key:<9} {what}" for key, what in HELP))
+    return EPILOG.format(keys="\n".join(f"  {key:<11} {what}" for key, what in help_lines()), names=KEYS_TEXT)
 
 
 def register(subparsers) -> None:

@@ -26,7 +26,7 @@ from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from clothbench.errors import signal_name
+from clothbench.errors import ClothbenchError, signal_name
 from clothbench.harness import faults
 
 DEFAULT_ROW_TIMEOUT = 3600.0  # seconds; --row-timeout
@@ -82,15 +82,15 @@ def start_method(fork_safe: bool = True) -> str:
 
 
 def fork_safe(backend: str, solver: str = "verlet") -> bool:
-    """Whether a forked child can run `backend`: numpy's own steppers (and their subclasses)
-    touch no driver state the parent may hold; any other backend gets a clean process."""
-    from clothbench.backends import backend_class
-    from clothbench.backends.numpy.verlet import NumpyBackend
+    """Whether a forked child can run `backend` (its registry entry says; every solver of a
+    backend shares it): one that touches no driver state the parent may hold. Any other gets a
+    clean process. A solver the backend lacks is refused, as backend_class() refuses it."""
+    from clothbench.backends import check_name
 
-    try:
-        return issubclass(backend_class(backend, solver), NumpyBackend)
-    except Exception:
-        return False
+    entry = check_name(backend)
+    if solver not in entry.solvers():
+        raise ClothbenchError(f"{backend} has no {solver} solver (it has: {', '.join(entry.solvers())})")
+    return entry.fork_safe
 
 
 def _die_with_parent() -> None:

@@ -94,12 +94,6 @@ class RunResult:
         return {"min": xs[0], "max": xs[-1], "iqr": float(q[1] - q[0])}
 
 
-def device_timer(backend) -> str:
-    """The name of the device clock backend.device_elapsed_ms() reads (DEVICE_TIMERS), '' for
-    none; the base Backend has no `device_timer`, so a backend without one names none."""
-    return getattr(backend, "device_timer", "") or ""
-
-
 def default_chunk(steps: int) -> int:
     """About ten timed chunks, each at least one step."""
     return max(1, steps // 10)
@@ -170,7 +164,7 @@ def run_timed(
             dev = backend.device_elapsed_ms()
             if dev is not None:
                 result.device_ms_per_step.append(dev / c)
-                result.device_timer = device_timer(backend) or UNNAMED_DEVICE_TIMER
+                result.device_timer = backend.device_timer or UNNAMED_DEVICE_TIMER  # declared by every class
             new_pos, new_prev = backend.read()
             problem = state_problem(new_pos, new_prev, scene, solver, done + c)
             if problem is not None:

@@ -55,6 +55,7 @@ def _device_name(cupy) -> str:
 
 class CupyNumpyBackend(NumpyBackend):
     name = "cupy"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
     # one mode, float32, fixed colliders: the reference's operations, each one IEEE kernel
     capabilities = Capabilities(strict=False)
 

@@ -151,6 +151,7 @@ COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "plane": _c
 
 class JaxBackend(Backend):
     name = "jax"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
     # a sweep times fast only: a strict row after a fast one in the same process is refused
     # (JAX started with FMA), and a fast row after a strict one would not be JAX's default
     capabilities = Capabilities(device=True, sweep_variants=({"strict": False},))

@@ -70,6 +70,7 @@ def stencil_springs(n: int) -> list[tuple[int, int, int]]:
 
 class NewtonPbdBackend(Backend):
     name = "newton"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
     # one mode (Newton's kernels, no strict form of docs/pbd.md); --device picks Warp's device
     capabilities = Capabilities(strict=False, device=True)
 

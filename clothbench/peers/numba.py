@@ -141,6 +141,7 @@ def _kernel(fastmath: bool):
 
 class NumbaBackend(Backend):
     name = "numba"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
     capabilities = Capabilities(sweep_variants=({"strict": False}, {"strict": True}))
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):

@@ -172,6 +172,7 @@ def _compiler_missing(torch, device) -> str:
 
 class TorchBackend(Backend):
     name = "torch"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
     capabilities = Capabilities(device=True, sweep_variants=({"strict": False}, {"strict": True}))
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):

@@ -195,6 +195,7 @@ def _kernel(wp):
 
 class WarpBackend(Backend):
     name = "warp"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
     # --strict and fast run the same kernel, Warp's CPU default being IEEE already (module
     # docstring): one sweep variant
     capabilities = Capabilities(device=True)

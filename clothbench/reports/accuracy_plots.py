@@ -27,8 +27,8 @@ from matplotlib.lines import Line2D
 from clothbench.analysis.lattice import damping_rate, dt_limit, gershgorin_omega, omega_max
 from clothbench.analysis.stability import DT_60HZ, STRETCH
 from clothbench.reports.figures_common import (
-    FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, PEERS, PLATFORM_COLORS, Chart, draw_front, fit_labels,
-    is_peer, panel_axes, panel_legend, pareto_front, platform_of, platform_rank, save_figure, series_style,
+    FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, PEERS, Chart, draw_front, fit_labels, is_peer, panel_axes,
+    panel_legend, pareto_front, platform_color, platform_of, platform_rank, save_figure, series_style,
     small_multiples, titled_figure,
 )  # fmt: skip
 from clothbench.scene import Scene
@@ -136,7 +136,7 @@ def _every_run(ax, rows) -> list[str]:
             pts = [r for r in rows if platform_of(r.backend) == platform and (r.pbd_method or "verlet") == solver]
             if not pts:
                 continue
-            color = PLATFORM_COLORS.get(platform, "black")
+            color = platform_color(platform)
             face = "white" if platform == PEERS else color
             ax.plot([r.disc_rms for r in pts], [r.ms_per_sim_s for r in pts], linestyle="none", marker=marker,
                     markersize=5, color=color, alpha=0.8, markerfacecolor=face)  # fmt: skip
@@ -152,8 +152,8 @@ def _every_run_key(rows) -> list[Line2D]:
     platforms = _platforms(rows)
     solvers = [s for s in SOLVER_MARKERS if any((r.pbd_method or "verlet") == s for r in rows)]
     handles = [
-        Line2D([], [], color=PLATFORM_COLORS.get(p, "black"), marker="o", linestyle="none",
-               markerfacecolor="white" if p == PEERS else PLATFORM_COLORS.get(p, "black"),
+        Line2D([], [], color=platform_color(p), marker="o", linestyle="none",
+               markerfacecolor="white" if p == PEERS else platform_color(p),
                label="peers (not clothbench)" if p == PEERS else p)
         for p in platforms
     ]  # fmt: skip
@@ -290,7 +290,7 @@ def _stability_points(ax, rows) -> list[str]:
         shift = 1.07 ** (j - (len(platforms) - 1) / 2)
         modes = len({r.label for r in pts})
         label = f"Verlet, {'peers' if platform == PEERS else platform} ({modes} mode{'s' * (modes > 1)})"
-        color = PLATFORM_COLORS.get(platform, "black")
+        color = platform_color(platform)
         ax.loglog([r.stiffness * shift for r in pts], [r.dt_stable for r in pts], "o", color=color, fillstyle="none",
                   markersize=6, alpha=0.8, label=label, linestyle="none")
         drawn.append(label)

@@ -21,17 +21,14 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
-from clothbench.backends import BACKENDS
+from clothbench.backends import BACKENDS, PEERS, PLATFORMS, check_name
 
 T = TypeVar("T")
 
 MAX_SERIES = 8  # more lines than this in one panel and a reader stops telling them apart
 
-PEERS = "peers"
-CPU = "CPU (numpy, c)"
-PLATFORM_OF = {"numpy": CPU, "c": CPU, "opencl": "OpenCL", "glsl": "GL", "glsl-compute": "GL", "cuda": "CUDA"}
-PLATFORM_ORDER = (CPU, "OpenCL", "GL", "CUDA", PEERS)
-PLATFORM_COLORS = {CPU: "#404040", "OpenCL": "#1f77b4", "GL": "#2ca02c", "CUDA": "#d62728", PEERS: "#ff7f0e"}
+# each platform's colour where a figure colours by platform (the registry's PLATFORMS, each one)
+COLORS_OF = {"CPU": "#404040", "OpenCL": "#1f77b4", "GL": "#2ca02c", "CUDA": "#d62728", PEERS: "#ff7f0e"}
 NATIVE_COLOR = "black"  # the c backend's fast line, drawn in every panel as the native CPU line
 # distinct at a glance and in print; a panel's series take them in order
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f",
@@ -57,23 +54,41 @@ class Chart:
     fronts: dict[str, list[str]] = field(default_factory=dict)
 
 
+# A backend's facts are its registry entry's (backends/__init__.py); a results file naming a
+# backend the registry does not know is refused in one line (check_name), never drawn under a guess.
+
+
+def display_name(backend: str) -> str:
+    """Its name in tables and legends ('CPU (numpy)', 'GLSL compute')."""
+    return check_name(backend).display
+
+
 def is_peer(backend: str) -> bool:
     """A system users would pick instead of clothbench (the registry's peer flag)."""
-    entry = BACKENDS.get(backend)
-    return bool(entry and entry.peer)
+    return check_name(backend).peer
 
 
-def platform_of(backend: str, peer: bool | None = None) -> str:
-    """The panel a backend's series go to: numpy, OpenCL, GL (fragment and compute), CUDA,
-    or peers."""
-    if is_peer(backend) if peer is None else peer:
-        return PEERS
-    return PLATFORM_OF.get(backend, backend)
+def platform_title(platform: str) -> str:
+    """A platform's panel title: its name, the CPU's with the backends on it ('CPU (numpy, c)')."""
+    if platform != "CPU":
+        return platform
+    return f"CPU ({', '.join(name for name, e in BACKENDS.items() if e.platform == platform)})"
 
 
-def platform_rank(platform: str) -> int:
-    """Where a platform's panel goes: PLATFORM_ORDER, then any other."""
-    return PLATFORM_ORDER.index(platform) if platform in PLATFORM_ORDER else len(PLATFORM_ORDER)
+def platform_of(backend: str) -> str:
+    """The panel a backend's series go to (its registry platform's title): CPU, OpenCL, GL
+    (fragment and compute), CUDA, or peers."""
+    return platform_title(check_name(backend).platform)
+
+
+def platform_rank(title: str) -> int:
+    """Where a platform's panel goes: the registry's PLATFORMS order."""
+    return [platform_title(p) for p in PLATFORMS].index(title)
+
+
+def platform_color(title: str) -> str:
+    """The colour of a platform's points, by its panel title (platform_of)."""
+    return {platform_title(p): c for p, c in COLORS_OF.items()}[title]
 
 
 def series_style(index: int, *, peer: bool = False, pbd: bool = False, color: str | None = None) -> dict:
@@ -94,8 +109,8 @@ def small_multiples(
     series: list[T], platform: Callable[[T], str], model: Callable[[T], str] | None = None
 ) -> list[tuple[str, list[T]]]:
     """(title, series) panels of at most MAX_SERIES each: one panel when they all fit; else a
-    panel per platform (in PLATFORM_ORDER), a platform with too many split per solver model
-    where `model` tells them apart, and what is still too many in chunks."""
+    panel per platform (in the registry's PLATFORMS order), a platform with too many split per
+    solver model where `model` tells them apart, and what is still too many in chunks."""
     if len(series) <= MAX_SERIES:
         return [("", list(series))]
     panels = []

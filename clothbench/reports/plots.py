@@ -37,18 +37,17 @@ from matplotlib.ticker import FuncFormatter
 
 from clothbench.errors import ClothbenchError
 from clothbench.reports.figures_common import (
-    BOUND_COLOR, CPU, FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, MAX_SERIES, PEERS, PLATFORM_COLORS,
-    Chart, draw_bound_lines, draw_front, draw_native_line, fit_labels, key_legend, panel_axes, panel_legend,
-    pareto_front, plain_log_labels, platform_rank, save_figure, small_multiples, titled_figure,
+    BOUND_COLOR, FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, MAX_SERIES, PEERS, Chart, display_name,
+    draw_bound_lines, draw_front, draw_native_line, fit_labels, key_legend, panel_axes, panel_legend, pareto_front,
+    plain_log_labels, platform_color, platform_rank, platform_title, save_figure, small_multiples, titled_figure,
 )  # fmt: skip
 from clothbench.reports.sweep_rows import (
-    DISPLAY, REQUIRED, Row, Series, by_variant, by_variant_grid, devices_line, footer, group, load,
+    REQUIRED, Row, Series, by_variant, by_variant_grid, devices_line, footer, group, load,
 )  # fmt: skip
 from clothbench.reports.mesh_plots import MESH_FILE, _mesh_triangles, crossover, plot_mesh_triangles
 
 FILES = ("time_vs_grid", "throughput", "speed_vs_error", "local_size")
 MODEL_MARKERS = {"Verlet": "o", "PBD jacobi": "s", "PBD coloured": "D"}
-PEER_NAMES = "Taichi, Warp, Numba"
 
 
 @dataclass
@@ -115,7 +114,7 @@ def _fastest_per_platform(series: list[Series]) -> list[Series]:
         name = f"{platform}, {model}" if len(models) > 1 else platform
         out.append(Series(key=("fastest", platform, model), rows=[best[g] for g in sorted(best)],
                           label=name, peer=platform == PEERS, pbd=model != "Verlet",
-                          color=PLATFORM_COLORS.get(platform)))  # fmt: skip
+                          color=platform_color(platform)))  # fmt: skip
     return out
 
 
@@ -165,7 +164,7 @@ def plot_time_vs_grid(rows: list[Row], report: PlotReport) -> None:
     for ax, (panel, members) in panels:
         mine = [r for s in members for r in s.rows]
         draw_bound_lines(ax, mine, x=lambda r: r.grid, y=lambda r: r.bound_ms)
-        if panel != CPU:
+        if panel != platform_title("CPU"):
             draw_native_line(ax, rows, x=lambda r: r.grid, y=lambda r: r.ms)
         _grid_axis(ax, [r.grid for r in mine])
         panel_legend(ax)
@@ -196,7 +195,7 @@ def plot_throughput(rows: list[Row], report: PlotReport) -> None:
     for ax, (panel, members) in panels:
         mine = [r for s in members for r in s.rows]
         draw_bound_lines(ax, mine, x=lambda r: r.particles, y=lambda r: r.particles * 1e3 / r.bound_ms)
-        if panel != CPU:
+        if panel != platform_title("CPU"):
             draw_native_line(ax, rows, x=lambda r: r.particles, y=lambda r: r.particles * 1e3 / r.ms)
         panel_legend(ax)
     ax = panels[0][0]
@@ -231,7 +230,7 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
         panel = f"{n}×{n} ({n * n:,} particles)"
         platforms = sorted({platform_of_row[id(r)] for r in mine}, key=platform_rank)
         for platform in platforms:
-            color = PLATFORM_COLORS.get(platform, "black")
+            color = platform_color(platform)
             for model in models:
                 pts = [r for r in mine if platform_of_row[id(r)] == platform and r.model == model]
                 ax.plot([max(r.err_rms, floor) for r in pts], [r.cost for r in pts], linestyle="none",
@@ -255,7 +254,8 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
     axes[0].set_yscale("log")
     plain_log_labels(axes[0], axes[0].yaxis)
     platforms = sorted(set(platform_of_row.values()), key=platform_rank)
-    handles = [_marker_key(p, PLATFORM_COLORS.get(p, "black"), "o") for p in platforms]
+    peers = ", ".join(dict.fromkeys(display_name(r.backend) for r in with_err if platform_of_row[id(r)] == PEERS))
+    handles = [_marker_key(p, platform_color(p), "o", peers) for p in platforms]
     if len(models) > 1:
         handles += [_marker_key(m, "0.45", MODEL_MARKERS.get(m, "^")) for m in models]
     handles.append(Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8,
@@ -267,11 +267,12 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
     report.charts["speed_vs_error"] = chart
 
 
-def _marker_key(label: str, color: str, marker: str) -> Line2D:
+def _marker_key(label: str, color: str, marker: str, peers: str = "") -> Line2D:
+    """A key entry; the peers' names their display names, `peers`."""
     peer = label == PEERS
     return Line2D([], [], color=color, marker=marker, linestyle="none", markersize=6,
                   markerfacecolor="white" if peer else color,
-                  label=f"peers ({PEER_NAMES}; not clothbench)" if peer else label)  # fmt: skip
+                  label=f"peers ({peers}; not clothbench)" if peer else label)  # fmt: skip
 
 
 def plot_local_size(rows: list[Row], report: PlotReport) -> None:
@@ -309,7 +310,7 @@ def plot_local_size(rows: list[Row], report: PlotReport) -> None:
     for ax, (backend, panel_grids) in zip(axes, panels):
         mine = [r for r in sized if r.backend == backend and r.grid in panel_grids]
         series = group(mine + [r for r in defaults if r.backend == backend and r.grid in panel_grids], by_variant_grid)
-        title = f"{DISPLAY.get(backend, backend)} on {mine[0].device}"
+        title = f"{display_name(backend)} on {mine[0].device}"
         title += f", n={panel_grids[0]}" if len(panel_grids) == 1 and len(grids) > 1 else ""
         ax.set_title(title, fontsize=9)
         chart.panels[title] = []

@@ -3,8 +3,8 @@ in README is the CSV's (tests/test_readme_tables.py regenerates them and looks f
 README.md). `python -m clothbench.reports.readme_tables results/FILE.csv` prints them.
 
 Ratios are taken within the one file, on the one machine that wrote it: the fastest
-GPU-style backend (opencl, glsl, glsl-compute, cuda) against the native `c` line, the
-fastest peer and the machine's bound (`bound_ms`, docs/bounds.md)."""
+GPU-style backend (the registry's gpu_style) against the native `c` line, the fastest peer
+and the machine's bound (`bound_ms`, docs/bounds.md)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import csv
 import re
 import sys
 
-from clothbench.backends import BACKENDS
-from clothbench.reports.tables import GPU_STYLE
+from clothbench.backends import BACKENDS, check_name
+from clothbench.reports.tables import gpu_style
 
 
 def _ok(rows: list[dict], grid: int) -> list[dict]:
@@ -34,7 +34,7 @@ def limits_rows(rows: list[dict]) -> list[dict]:
     for grid in sorted({int(r["grid"]) for r in rows}):
         here = _ok(rows, grid)
         native = _fastest([r for r in here if r["backend"] == "c"])
-        best = _fastest([r for r in here if r["backend"] in GPU_STYLE])
+        best = _fastest([r for r in here if gpu_style(r["backend"])])
         peer = _fastest([r for r in here if r["peer"] == "true"])
         if native is None or best is None:
             continue
@@ -96,7 +96,7 @@ def ms_markdown(rows: list[dict]) -> str:
     for r in rows:
         if r["status"] != "ok" or r["solver"] != "verlet" or r["local_size"]:
             continue
-        label = (order.index(r["backend"]) if r["backend"] in order else len(order), r["backend"], base_mode(r["mode"]))
+        label = (order.index(check_name(r["backend"]).name), r["backend"], base_mode(r["mode"]))
         table.setdefault(label, {})[int(r["grid"])] = r
     head = " | ".join(f"{g}²" for g in grids)
     lines = [f"| backend | mode | {head} | × c at the largest |", "| --- | --- |" + " --- |" * (len(grids) + 1)]

@@ -14,30 +14,13 @@ from dataclasses import dataclass
 
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BUDGET_NOTE, read_sweep
-from clothbench.reports.figures_common import platform_of, series_style
+from clothbench.reports.figures_common import display_name, platform_of, series_style
 
 # Columns the figures need; a CSV without them is refused with their names.
 REQUIRED = (
     "backend", "peer", "mode", "precision", "strict", "transfer", "local_size", "generic", "device", "scene",
     "grid", "particles", "dt", "steps", "repeats", "status", "ms_median", "ms_min", "ms_max", "err_rms_m",
 )  # fmt: skip
-
-DISPLAY = {
-    "numpy": "CPU (numpy)",
-    "c": "C (OpenMP)",
-    "opencl": "OpenCL",
-    "glsl": "GLSL",
-    "glsl-compute": "GLSL compute",
-    "cuda": "CUDA",
-    "taichi": "Taichi",
-    "warp": "Warp",
-    "numba": "Numba",
-    "numba-cuda": "Numba CUDA",
-    "torch": "PyTorch",
-    "jax": "JAX",
-    "cupy": "CuPy (NumPy step)",
-    "newton": "Newton",
-}
 
 
 @dataclass
@@ -91,7 +74,7 @@ class Series:
 
     @property
     def platform(self) -> str:
-        return platform_of(self.rows[0].backend, self.peer)
+        return platform_of(self.rows[0].backend)
 
     @property
     def model(self) -> str:
@@ -180,7 +163,7 @@ def group(rows: list[Row], by) -> list[Series]:
     for key, members in groups.items():
         first = members[0]
         variant = _variant(first, precisions[first.backend], stricts[first.backend])
-        label = f"{DISPLAY.get(first.backend, first.backend)} {variant}".rstrip()
+        label = f"{display_name(first.backend)} {variant}".rstrip()
         if first.peer:
             label += " (peer)"
         if len(devices[first.backend]) > 1:

@@ -6,6 +6,8 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from clothbench.backends import check_name
+
 
 def print_run(s: dict) -> None:
     table = Table(title=f"clothbench run: {s['scene']} on {s['backend']}", show_header=False)
@@ -49,9 +51,10 @@ def print_backends(rows: list[dict]) -> None:
     Console().print(table)
 
 
-# clothbench's GPGPU platforms: what the chapter compares (numpy is the reference, c the
-# native CPU line each is measured against)
-GPU_STYLE = ("opencl", "glsl", "glsl-compute", "cuda")
+def gpu_style(backend: str) -> bool:
+    """One of clothbench's GPGPU platforms, what the chapter compares (the registry says; numpy
+    is the reference, c the native CPU line each is measured against)."""
+    return check_name(backend).gpu_style
 
 
 def peer_ratios(rows: list[dict]) -> list[dict]:
@@ -59,7 +62,7 @@ def peer_ratios(rows: list[dict]) -> list[dict]:
     against the fastest peer, from sweep rows with status ok. The README's performance table."""
     out = []
     for grid in sorted({int(r["grid"]) for r in rows}):
-        mine = [r for r in rows if int(r["grid"]) == grid and r["backend"] in GPU_STYLE and not r["local_size"]
+        mine = [r for r in rows if int(r["grid"]) == grid and gpu_style(r["backend"]) and not r["local_size"]
                 and r["status"] == "ok" and r["precision"] == "f32"]  # fmt: skip
         peers = [r for r in rows if int(r["grid"]) == grid and r["peer"] == "true" and r["status"] == "ok"]
         if not mine or not peers:

@@ -146,6 +146,7 @@ def aligned(count: int, dtype) -> np.ndarray:
 
 class CBackend(Backend):
     name = "c"
+    device_timer = ""  # host code: the wall clock is its only clock
     capabilities = Capabilities(
         precisions=("f32", "f64"),
         strict=True,

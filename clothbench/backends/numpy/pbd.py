@@ -29,6 +29,7 @@ from clothbench.backends.numpy.verlet import (
 
 class NumpyPbdBackend(GridPlanes, Backend):
     name = "numpy"
+    device_timer = ""  # host code: the wall clock is its only clock
     # the same two precisions and one mode; meshes and motion too (docs/pbd.md, "Colliders,
     # motion and attached pins")
     capabilities = replace(NumpyBackend.capabilities, meshes=("verlet", "pbd"), moving_colliders=("verlet", "pbd"))

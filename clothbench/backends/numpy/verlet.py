@@ -60,6 +60,7 @@ class GridPlanes:
 
 class NumpyBackend(GridPlanes, Backend):
     name = "numpy"
+    device_timer = ""  # host code: the wall clock is its only clock
     # one mode, no --strict: it is what --strict is measured against
     capabilities = Capabilities(
         precisions=("f32", "f64"), strict=False, sweep_variants=({"precision": "f32"}, {"precision": "f64"}),

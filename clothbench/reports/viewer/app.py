@@ -28,7 +28,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.reports.render import write_gif
 from clothbench.reports.viewer.camera import WHEEL_ZOOM, KEY_ZOOM, Trackball
 from clothbench.reports.viewer.draw import Overlay, WindowRenderer
-from clothbench.reports.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, window_key_names
+from clothbench.reports.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, name_of, window_key_names
 from clothbench.reports.viewer.overlay_text import panels
 from clothbench.reports.viewer.profiler import FrameProfile, GLTimer, gl_timer_queries
 from clothbench.reports.viewer.session import Session
@@ -145,7 +145,9 @@ class Viewer:
         self._log = None
         codes = window_key_names(window.keys)
         window.key_event_func = lambda key, action, mods: (
-            self._keys.append(codes[key]) if action == window.keys.ACTION_PRESS and key in codes else None
+            self._keys.append(name)
+            if action == window.keys.ACTION_PRESS and (name := name_of(codes, key, bool(mods.shift)))
+            else None
         )
         window.mouse_drag_event_func = lambda x, y, dx, dy: self.trackball.drag(x, y, dx, dy)
         window.mouse_scroll_event_func = lambda dx, dy: self.trackball.zoom(WHEEL_ZOOM ** dy)

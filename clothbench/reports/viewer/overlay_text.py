@@ -4,15 +4,11 @@ event and the keys (bottom left)."""
 from __future__ import annotations
 
 from clothbench.reports.viewer.draw import DIM, WARN
-from clothbench.reports.viewer.keys import BACKEND_KEYS, HELP
+from clothbench.reports.viewer.keys import backend_key_span, help_lines, key_of
 
 WIDTH = 58  # characters of the run panel's widest line
 PROFILER_WIDTH = 44
-HINT = "H keys  F1-F{} backend  1-5 grid  S C G colliders  R reset  space pause  N step  W wire  P profiler  E f64 error"
-
-
-def _key_of(backend: str) -> str:
-    return next((k for k, name in BACKEND_KEYS.items() if name == backend), "")
+HINT = "H keys  {} backend  1-5 grid  S C G colliders  R reset  space pause  N step  W wire  P profiler  E f64 error"
 
 
 def _ms(value) -> str:
@@ -25,7 +21,7 @@ def run_lines(viewer, profile) -> list:
     n = scene.grid
     lines = [
         f"{scene.name}  {solver.spec}  {n}x{n}: {scene.particles:,} particles, {scene.springs:,} springs",
-        f"backend   {_key_of(s.backend_name)} {s.backend_name}  {b.mode}",
+        f"backend   {key_of(s.backend_name)} {s.backend_name}  {b.mode}",
         f"device    {_cut(b.device, WIDTH - 10)}",
     ]
     step_ms = profile.step_ms
@@ -99,8 +95,8 @@ def panels(viewer, profile) -> list:
     if viewer.session.message:
         bottom.append((viewer.session.message, WARN))
     if viewer.show_help:
-        bottom += [f"{key:<9} {what}" for key, what in HELP]
+        bottom += [f"{key:<11} {what}" for key, what in help_lines()]
     else:
-        bottom.append((HINT.format(len(BACKEND_KEYS)), DIM))
+        bottom.append((HINT.format(backend_key_span()), DIM))
     out.append(("bottom-left", bottom))
     return out

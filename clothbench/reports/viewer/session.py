@@ -27,7 +27,7 @@ from clothbench.harness.normals import grid_normals
 from clothbench.harness.simulate import position_error
 from clothbench.scene import Scene, load_scene
 from clothbench.solver import Solver
-from clothbench.reports.viewer.keys import BACKEND_KEYS, COLLIDER_KEYS, GRID_KEYS
+from clothbench.reports.viewer.keys import COLLIDER_KEYS, GRID_KEYS, backend_keys
 from clothbench.reports.viewer.profiler import FrameProfile, GLTimer
 
 SHADOW_MAX_GRID = 128  # float64 NumPy keeps up with a frame up to here (~2 ms/step at 128)
@@ -76,8 +76,8 @@ class Session:
     def press(self, key: str, profile: FrameProfile) -> bool:
         """Apply a simulation key; False if the key is not one (the window's keys)."""
         self._profile = profile
-        if key in BACKEND_KEYS:
-            self.switch_backend(BACKEND_KEYS[key], key)
+        if key in (keys := backend_keys()):
+            self.switch_backend(keys[key], key)
         elif key in GRID_KEYS:
             self.set_grid(GRID_KEYS[key])
         elif key in COLLIDER_KEYS:
