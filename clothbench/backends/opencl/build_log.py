@@ -16,8 +16,8 @@ import re
 # or the options and saved-source notes pyopencl appends, or the end
 _SECTION = re.compile(r"^Build on <[^\n]*>:\n\n(.*?)(?=={75}|^\(options: |^\(source saved as |\Z)", re.M | re.S)
 
-# Lines a runtime writes on every build, failed or not, that say nothing about the error:
-# Intel's progress lines and clang's error count (PoCL prints that to stderr, Intel into the log)
+# Lines that say nothing about the error: Intel's progress lines (in its log on every build)
+# and clang's error count (PoCL's compiler prints it to the process's stderr, not the log)
 _NOISE = re.compile(
     r"^(Compilation (started|done|failed)|Linking (started|done|failed)|Device build (started|done)"
     r"|\d+ (error|warning)s? generated\.?)$"
@@ -36,20 +36,6 @@ def compiler_log(error_text: str) -> str:
     return "\n".join(line for line in log.splitlines() if not _NOISE.match(line.strip())).strip()
 
 
-def first_error(message: str) -> str:
-    """The compiler's first error in `message`, without its file and line; else its first
-    line that says "error", else its last line."""
-    lines = [line.strip() for line in message.splitlines() if line.strip()]
-    for line in lines:
-        placed = _PLACED.match(line)
-        if placed:
-            return (placed.group(3) or placed.group(6)).strip()
-    for line in lines:
-        if line.startswith("error:"):
-            return line.partition("error:")[2].strip()
-    return lines[-1] if lines else "?"
-
-
 def error_places(message: str) -> list[tuple[str, int, str]]:
     """(file, line, message) of every placed compiler error in `message`, either runtime's form."""
     found = []
@@ -59,3 +45,16 @@ def error_places(message: str) -> list[tuple[str, int, str]]:
             g = placed.groups()
             found.append((g[0], int(g[1]), g[2]) if g[0] else (g[3], int(g[4]), g[5]))
     return found
+
+
+def first_error(message: str) -> str:
+    """The compiler's first error in `message`, without its file and line; else the first
+    line starting "error:" without that, else the last line."""
+    places = error_places(message)
+    if places:
+        return places[0][2].strip()
+    lines = [line.strip() for line in message.splitlines() if line.strip()]
+    for line in lines:
+        if line.startswith("error:"):
+            return line.partition("error:")[2].strip()
+    return lines[-1] if lines else "?"
