@@ -66,31 +66,26 @@ def bent_state(n: int) -> tuple[Scene, np.ndarray]:
 
 # Two tiers from one switch (README, "Tests"). `python -m pytest` is the quick tier: every
 # backend's contract at small sizes, every command's happy path and its refusals. A test marked
-# `full` (a long physics check, a study's rerun, a second runtime's or size's copy of a check the
-# quick tier makes once) runs only with `--full`, which is what .ci/run runs. The mark is put on a
-# test or a module (`pytestmark = pytest.mark.full`), or by FULL_TIER below for parameters of the
-# registry-driven tests, so that the choice is made where the test is, not in a list elsewhere.
+# `full` (a long physics check, a study's rerun, a larger size's or another runtime's copy of a
+# check the quick tier makes once) runs only with `--full`, which is what .ci/run runs. The mark
+# stands on the test, its parameter or its module (`pytestmark`), where a reader of the test sees it.
 def pytest_addoption(parser):
-    parser.addoption("--full", action="store_true", help="run the full tier too (tests marked `full`): what CI runs")
+    parser.addoption("--full", action="store_true", help="also run the tests marked `full` (what CI runs)")
 
 
-def pytest_configure(config):
-    config.addinivalue_line("markers", "full: in the full tier only (`python -m pytest --full`)")
-    config.addinivalue_line(
-        "markers", "serial: times something or holds a GL context: kept in one xdist worker (group 'serial')"
-    )
-
-
+@pytest.hookimpl(tryfirst=True)  # before `-m` selects: the `opencl` mark must be on by then
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("serial") is not None:
             item.add_marker(pytest.mark.xdist_group("serial"))
+        if "opencl" in item.nodeid:  # its file, its name or its registry parameter: CI reruns these per runtime
+            item.add_marker(pytest.mark.opencl)
     if config.getoption("--full"):
         return
-    quick = [item for item in items if item.get_closest_marker("full") is None]
-    if len(quick) < len(items):
-        config.hook.pytest_deselected(items=[item for item in items if item.get_closest_marker("full") is not None])
-        items[:] = quick
+    full = [item for item in items if item.get_closest_marker("full") is not None]
+    if full:
+        config.hook.pytest_deselected(items=full)
+        items[:] = [item for item in items if item.get_closest_marker("full") is None]
 
 
 @pytest.fixture

@@ -9,7 +9,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -100,6 +99,16 @@ def test_a_signal_in_accuracy_or_stability_exits_130_and_writes_no_partial_row(t
     wait_until(lambda: not _alive(workers), what="the workers to be gone", bound_s=60)
 
 
+def _catches(pid: int, sig: signal.Signals) -> bool:
+    """Whether process `pid` has a handler for `sig` (the SigCgt mask of /proc/PID/status)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            mask = next(int(line.split()[1], 16) for line in f if line.startswith("SigCgt:"))
+    except (OSError, StopIteration):
+        return False
+    return bool(mask >> (sig - 1) & 1)
+
+
 def _alive(pids: list[str]) -> list[str]:
     """Those of `pids` that still run (a zombie has ended, its parent not yet told)."""
     alive = []
@@ -118,8 +127,9 @@ def test_a_signal_in_run_exits_130_and_saves_nothing_partial(tmp_path, sig):
     save = tmp_path / "s.npz"
     args = ["run", "--backend", "numpy", "--grid", "32", "--steps", "100000000", "--save", str(save)]
     proc = subprocess.Popen(_clothbench(*args), stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    time.sleep(4)  # imported, stepping
-    assert proc.poll() is None
+    # the command is past its imports once it catches SIGTERM (cli/args.py sigterm_interrupts): the
+    # kernel lists caught signals in /proc/PID/status, so no guess at how long the imports take
+    wait_until(lambda: _catches(proc.pid, signal.SIGTERM), proc, "the command to take SIGTERM")
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err

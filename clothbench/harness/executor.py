@@ -137,7 +137,7 @@ def run_isolated(
     timeout: float | None = DEFAULT_ROW_TIMEOUT,
     on_progress: Callable[[int], None] | None = None,
     method: str | None = None,
-    live: set | None = None,
+    live: "_LiveWorkers | None" = None,
 ) -> Outcome:
     """fn(*args, **kwargs) in a child process (see the module's doc). `on_progress`, when
     given, is passed to fn as its on_progress keyword, and called here with what it reports."""
@@ -215,6 +215,34 @@ class _TimingLock:
             self._cond.notify_all()
 
 
+class _LiveWorkers:
+    """The worker processes running now, and whether the run is closing. One lock over both: a
+    worker whose row thread was starting it while an interrupt killed the others is killed as it
+    is added, rather than left to run (a hung row then held the command up to its row timeout)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._processes: set = set()
+        self.closing = False
+
+    def add(self, process) -> None:
+        with self._lock:
+            self._processes.add(process)
+            if self.closing:
+                process.kill()
+
+    def discard(self, process) -> None:
+        with self._lock:
+            self._processes.discard(process)
+
+    def kill_all(self) -> None:
+        with self._lock:
+            self.closing = True
+            for process in self._processes:
+                if process.is_alive():
+                    process.kill()
+
+
 class LocalExecutor(Executor):
     """Tasks in child processes on this machine: `jobs` untimed at a time, timed ones alone.
 
@@ -234,8 +262,7 @@ class LocalExecutor(Executor):
         self.timeout = timeout
         self._lock = _TimingLock()
         self._pool = ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="clothbench-row")
-        self._live: set = set()  # the worker processes running now
-        self._closing = False
+        self._live = _LiveWorkers()
 
     def submit(
         self, fn, /, *args, timing: bool = False, timeout: float | None = -1.0, fork_safe: bool = True, **kwargs
@@ -246,7 +273,7 @@ class LocalExecutor(Executor):
         def task():
             self._lock.acquire(timing)
             try:
-                if self._closing:
+                if self._live.closing:
                     return Outcome("crashed", note="the run was interrupted before this task started")
                 return run_isolated(fn, args, kwargs, timeout=limit, method=method, live=self._live)
             finally:
@@ -265,10 +292,7 @@ class LocalExecutor(Executor):
 
     def kill_all(self) -> None:
         """An interrupt: no task starts now, every worker process running is killed."""
-        self._closing = True
-        for process in list(self._live):
-            if process.is_alive():
-                process.kill()
+        self._live.kill_all()
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is not None:

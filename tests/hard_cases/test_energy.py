@@ -38,7 +38,7 @@ def _energies(v, scene, steps, every):
     return np.array(out)
 
 
-@pytest.mark.slow
+@pytest.mark.full
 def test_undamped_energy_stays_in_its_band_for_100000_steps(variant):
     scene = DRAPE.scene.replace(damping=0.0)
     e0 = total_energy(*SOLVER.initial_state(scene, np.float64), scene, SOLVER.dt).total

@@ -23,7 +23,7 @@ N = 1024
 STEPS = 10
 
 
-@pytest.mark.slow
+@pytest.mark.full
 @pytest.mark.parametrize("backend", [name for name, entry in BACKENDS.items() if entry.verlet])  # a Verlet case
 def test_a_million_particles_run_without_blow_up(backend):
     require(backend)
