@@ -123,7 +123,7 @@ def test_without_a_gpu_the_summary_says_why_each_gpu_part_was_skipped_and_the_cp
     gpu_parts = summary.split("## GPU parts")[1].split("\n## ")[0]
     for part in ("CUDA backend", "GL fragment on the NVIDIA driver", "GL compute on the NVIDIA driver",
                  "OpenCL on the NVIDIA ICD", "GPU copy bandwidth", "GPU tests", "GPU peers in the sweep"):  # fmt: skip
-        line = next((l for l in gpu_parts.splitlines() if l.startswith(f"- {part}")), None)
+        line = next((row for row in gpu_parts.splitlines() if row.startswith(f"- {part}")), None)
         assert line is not None, f"{part} missing from:\n{gpu_parts}"
         assert "skipped: nvidia-smi not found" in line, line
     parts = json.loads((out / "parts.json").read_text())
