@@ -62,6 +62,21 @@ def test_backends_lists_every_platform_with_a_reason(capsys):
         (["run", "--steps", "0"], "steps must be an integer >= 1"),
         (["run", "--dt", "0"], "dt must be > 0"),
         (["run", "--dt=-1e-3"], "dt must be > 0"),
+        # issue 31 item 13: a negative number is a value, so the range check answers
+        (["run", "--dt", "-1e-3"], "dt must be > 0"),
+        (["run", "--dt", "-inf"], "dt must be a finite number"),
+        (["run", "--grid", "-5"], "grid must be an integer >= 3"),
+        (["sweep", "--backends", "numpy", "--row-timeout", "-1E+3"], "--row-timeout must be > 0"),
+        # item 2: the fix, not where newton runs
+        (["run", "--backend", "newton"], "newton has no verlet solver: use --solver pbd"),
+        # item 3: which backends run f64, from their Capabilities
+        (["run", "--backend", "opencl", "--precision", "f64"], "f64 runs on: numpy, c"),
+        # item 10: options that would be ignored are refused
+        (["run", "--strict", "--precision", "f64"], "numpy does not take --strict"),
+        (["run", "--backend", "numpy", "--strict"], "numpy does not take --strict"),
+        (["run", "--pbd-method", "jacobi"], "--pbd-method applies to the pbd solver only"),
+        (["run", "--iterations", "4"], "--iterations applies to the pbd solver only"),
+        (["run", "--retune"], "numpy does not take --retune"),
         (["run", "--dt", "nan"], "dt must be a finite number"),
         (["run", "--scene", "nowhere.toml"], "cannot read scene file"),
         (["run", "--scene", "spheer"], "unknown scene 'spheer'"),
@@ -114,6 +129,7 @@ PYTHON_PACKAGES = {
     "taichi": ("taichi", "taichi"),
     "warp": ("warp", "warp-lang"),
     "numba": ("numba", "numba"),
+    "newton": ("newton", "newton"),  # a peer: named by the [peers] extra as the other peers are
 }
 
 
@@ -138,7 +154,8 @@ def test_a_missing_package_is_named_with_the_pip_command_that_installs_it(backen
     monkeypatch.setitem(sys.modules, module, None)  # as if it were not installed: import fails
     for name in ("ENABLE_TAICHI_HEADER_PRINT", "TI_SKIP_VERSION_CHECK"):  # taichi's probe sets these
         monkeypatch.setenv(name, "x")
-    probe = importlib.import_module(BACKENDS[backend].verlet.partition(":")[0]).probe
+    entry = BACKENDS[backend]
+    probe = importlib.import_module((entry.verlet or entry.pbd).partition(":")[0]).probe
     reason = probe().reason
     assert f"{module} not installed (pip install " in reason, reason
     # "'clothbench[cuda]' for CUDA 12, 'clothbench[cuda13]' for CUDA 13": each extra is checked
@@ -177,3 +194,22 @@ def test_backends_table_prints_an_install_hint_with_its_brackets(capsys):
     print_backends([{"backend": "x", "kind": "peer", "usable": False, "device": "",
                      "reason": "pip install 'clothbench[peers]'"}])  # fmt: skip
     assert "clothbench[peers]" in capsys.readouterr().out
+
+
+def test_sweep_columns_names_every_backend_that_runs_f64(capsys):
+    # issue 31 item 3: not "numpy only" while c runs f64 too; from the declared Capabilities
+    from clothbench.backends import BACKENDS, capabilities
+
+    f64 = [n for n, e in BACKENDS.items() if any("f64" in capabilities(n, s).precisions for s in e.solvers())]
+    assert "c" in f64 and "numpy" in f64
+    assert main(["sweep", "--columns"]) == 0
+    line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("precision "))
+    assert f"runs on: {', '.join(f64)}" in line and "numpy only" not in line
+
+
+def test_pbd_options_with_the_pbd_solver_still_run(capsys):
+    # the item-10 refusals refuse only what would be ignored
+    assert main(["run", "--solver", "pbd", "--pbd-method", "jacobi", "--iterations", "2", "--grid", "4",
+                 "--steps", "2", "--json"]) == 0  # fmt: skip
+    assert main(["run", "--backend", "c", "--precision", "f64", "--strict", "--grid", "4", "--steps", "2",
+                 "--json"]) == 0  # fmt: skip

@@ -45,6 +45,7 @@ def cmd_run(args) -> int:
     setup = setup_from_args(args)
     scene, solver, steps = setup.scene, setup.solver, setup.steps
     options = options_from_args(args)
+    check_strict(args.backend, solver.name, options)
     check_mesh_collision(options.mesh_collision, scene)
     save = check_writable(_npz(args.save), "--save") if args.save else None  # before the run, not after
     check_memory([scene.grid], [args.precision])
@@ -108,6 +109,17 @@ def cmd_run(args) -> int:
         if line := device_clock_line(summary):
             print(line)
     return 0
+
+
+def check_strict(backend: str, solver: str, options) -> None:
+    """--strict where the backend has no fast mode would be ignored (numpy is the reference
+    --strict matches, in either precision): refused instead."""
+    from clothbench.backends import capabilities
+    from clothbench.errors import ClothbenchError
+
+    if options.strict and not capabilities(backend, solver).strict:
+        why = "it is the reference --strict matches" if backend == "numpy" else "it has one mode, no fast one"
+        raise ClothbenchError(f"{backend} does not take --strict ({why}; --strict applies to backends with a fast mode)")
 
 
 def device_clock_line(summary: dict) -> str:

@@ -146,9 +146,12 @@ def cmd_sweep(args) -> int:
     from clothbench.scene import load_setup
 
     if args.columns:
+        from clothbench.backends import precision_backends
+
         width = max(map(len, COLUMN_DOCS))
+        f64 = ", ".join(precision_backends("f64"))  # from the backends' Capabilities, not a list here
         for name, doc in COLUMN_DOCS.items():
-            print(f"{name:<{width}}  {doc}")
+            print(f"{name:<{width}}  {doc.replace('{f64_backends}', f64)}")
         print(f"\none row per key: {', '.join(KEY_COLUMNS)}")
         return 0
     sigterm_interrupts()

@@ -49,7 +49,7 @@ COLUMN_DOCS: dict[str, str] = {
     "iterations": "pbd only: constraint passes per substep",
     "substeps": "pbd only: substeps per step",
     "mode": "the backend's own name for the settings that change speed or results",
-    "precision": "working precision: f32, or f64 (numpy only, the reference)",
+    "precision": "working precision: f32, or f64 (the reference precision; runs on: {f64_backends})",
     "strict": "the strict option: bit-exact with numpy f32 (no FMA contraction, no fast math)",
     "transfer": "transfer mode (opencl resident|per-step, cuda swap|copy); empty = the backend's default",
     "local_size": "work-group / block size; empty = the runtime chooses",

@@ -25,7 +25,7 @@ from clothbench.solver import Pbd
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import rest_by_kind
 
-_INSTALL = "pip install newton"
+_INSTALL = "pip install 'clothbench[peers]'"
 # Where a particle's contact with a shape is looked for, beyond touching (m): the largest
 # distance a free particle moves in one substep at the speeds of these scenes (~3 m/s at
 # 1/60 s) must fit, or a fast particle passes a collider between two contact searches.
