@@ -156,7 +156,6 @@ KNOWN_CYCLES = {
     ("clothbench.backends.gl.bodies", "clothbench.backends.gl.context", "clothbench.backends.gl.timers"),
     ("clothbench.backends.opencl.device", "clothbench.backends.opencl.isolated", "clothbench.backends.opencl.verlet"),
     ("clothbench.harness.dask_executor", "clothbench.harness.executor"),
-    ("clothbench.reports.html", "clothbench.reports.html_sections"),
     ("clothbench.reports.mesh_plots", "clothbench.reports.plots"),
 }
 KNOWN_PRIVATE_IMPORTS = {
