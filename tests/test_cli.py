@@ -213,3 +213,20 @@ def test_pbd_options_with_the_pbd_solver_still_run(capsys):
                  "--steps", "2", "--json"]) == 0  # fmt: skip
     assert main(["run", "--backend", "c", "--precision", "f64", "--strict", "--grid", "4", "--steps", "2",
                  "--json"]) == 0  # fmt: skip
+
+
+def test_accuracy_help_agrees_with_docs_pbd_on_when_the_methods_meet(capsys):
+    # issue 31 item 4: not "they converge to different answers"
+    import re
+    from pathlib import Path
+
+    with pytest.raises(SystemExit):
+        main(["accuracy", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "converge to different answers" not in text
+    help_line = re.search(r"--pbd-methods PBD_METHODS (.*?\))", text).group(1)
+    docs = " ".join((Path(__file__).parents[1] / "docs" / "pbd.md").read_text().split())
+    assert "What Jacobi and Gauss-Seidel converge to" in help_line and "substeps" in help_line
+    for figure in ("1.7e-5 m RMS", "2e-4 m"):  # the figures the help quotes are the doc's
+        assert figure in help_line
+    assert "1.7e-5 m RMS" in docs and "2.0e-4 m away" in docs

@@ -67,7 +67,9 @@ def add_pbd_args(p) -> None:
     """--pbd-methods and --pbd-iterations: which PBD lines --solvers pbd stands for."""
     p.add_argument(
         "--pbd-methods", default="jacobi,coloured",
-        help="PBD formulations to run (default both: they converge to different answers)",
+        help="PBD formulations to run (default both: they meet on a sheet nearly at rest or with substeps, "
+        "1.7e-5 m RMS after 20 steps of 4 substeps, and part as it swings within a step, 2e-4 m with one "
+        "substep: docs/pbd.md, \"What Jacobi and Gauss-Seidel converge to\")",
     )
     p.add_argument(
         "--pbd-iterations", type=int_list("--pbd-iterations", 1),

@@ -58,6 +58,10 @@ def setup_from_args(args):
         if given:
             option = "--" + given[0].replace("_", "-")
             raise ClothbenchError(f"{option} applies to the pbd solver only, and this run's is {setup.solver.name}: add --solver pbd")
+    if getattr(args, "precision", "f32") == "f32":
+        from clothbench.harness.preflight import check_float32_motion
+
+        check_float32_motion(setup.scene, setup.solver)
     return setup
 
 

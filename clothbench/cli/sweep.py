@@ -157,10 +157,11 @@ def cmd_sweep(args) -> int:
     sigterm_interrupts()
     check_row_args(args)
     json_path = _check_json_path(args.json, args.out) if args.json else None
-    from clothbench.harness.preflight import check_memory
+    from clothbench.harness.preflight import check_float32_motion, check_memory
 
     names = resolve_names(args.backends)
     setup = load_setup(args.scene).replace(dt=args.dt)
+    check_float32_motion(setup.scene, setup.solver)  # every sweep has float32 rows
     check_memory(args.grids, ("f32", "f64"))
     scene = setup.scene
     settings = SweepSettings(
