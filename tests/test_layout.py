@@ -156,7 +156,6 @@ KNOWN_CYCLES = {
     ("clothbench.backends.gl.bodies", "clothbench.backends.gl.context", "clothbench.backends.gl.timers"),
     ("clothbench.backends.opencl.device", "clothbench.backends.opencl.isolated", "clothbench.backends.opencl.verlet"),
     ("clothbench.harness.dask_executor", "clothbench.harness.executor"),
-    ("clothbench.reports.mesh_plots", "clothbench.reports.plots"),
 }
 KNOWN_PRIVATE_IMPORTS = {
     "backends/cuda/verlet.py imports _driver_note from clothbench.backends.cuda.runtime",
@@ -169,8 +168,6 @@ KNOWN_PRIVATE_IMPORTS = {
     "backends/gl/context.py imports _GL_TIMESTAMP from clothbench.backends.gl.timers",
     "peers/newton.py imports _import_warp from clothbench.peers.warp",
     "peers/newton.py imports _init_quietly from clothbench.peers.warp",
-    "reports/mesh_plots.py imports _log_if_wide from clothbench.reports.plots",
-    "reports/plots.py imports _mesh_triangles from clothbench.reports.mesh_plots",
     "reports/render.py imports _moved from clothbench.reports.render_bounds",
     "reports/render.py imports _placed from clothbench.reports.render_bounds",
     "reports/viewer/overlay_text.py imports _has_stages from clothbench.reports.viewer.session",
