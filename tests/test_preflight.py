@@ -272,3 +272,12 @@ def test_a_far_cloth_runs_in_f64_and_a_near_one_in_f32(tmp_path, capsys):
     assert main([*COMMANDS["run"], "--scene", str(scene), "--precision", "f64", "--json"]) == 0
     scene.write_text("[cloth]\nheight = 20\n")  # g dt^2 is above half the spacing at 20 m: it moves
     assert main([*COMMANDS["run"], "--scene", str(scene), "--json"]) == 0
+
+
+def test_a_default_results_path_makes_its_folders(tmp_path, monkeypatch):
+    # accuracy/stability/pbd-study write results/... by default: that folder is theirs to make
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(Exception, match="there is no folder results"):
+        preflight.check_writable("results/x.csv")
+    preflight.check_writable("results/study/x.csv", make_folders=True)
+    assert (tmp_path / "results" / "study").is_dir()

@@ -177,7 +177,7 @@ def cmd_accuracy(args) -> int:
     out = Path(args.out or f"results/accuracy-{scene.name}.csv")
     outputs = [out, out.with_name(out.stem + "-speed.png"), out.with_name(out.stem + "-convergence.png")]
     for path in outputs + ([out.with_name(out.stem + "-artefacts.csv")] if args.artefacts else []):
-        check_writable(path)  # before the run, not after it
+        check_writable(path, make_folders=args.out is None)  # before the run, not after it; results/ made
     check_memory([scene.grid], ("f64",), jobs=args.jobs)
     variants = variants_for(args.backends, solvers)
     levels = lambda v: sorted(pbd_dts if v.solver.name == "pbd" else dts, reverse=True)  # noqa: E731

@@ -20,12 +20,15 @@ ITEMSIZE = {"f32": 4, "f64": 8}
 HEADROOM = 0.9  # of the available memory a run may plan to use
 
 
-def check_writable(path: str | os.PathLike, what: str = "output", new_folder: bool = False) -> Path:
+def check_writable(
+    path: str | os.PathLike, what: str = "output", new_folder: bool = False, make_folders: bool = False
+) -> Path:
     """`path` can be written, checked by creating it and, when it did not exist, removing it
     again: the same error now that the write would give later. Its folder must exist: a
     command that writes one file makes no folders (a typo would plant them anywhere, the
     filesystem root included); new_folder: the folder is itself the output (render's
-    frames/), made here if its own folder exists, and removed again if it was made."""
+    frames/), made here if its own folder exists, and removed again if it was made;
+    make_folders: a command's default path (results/...), whose folders it makes itself."""
     path = Path(path)
     if path.is_dir():
         raise ClothbenchError(f"{what} {path} is a directory: name a file")
@@ -34,7 +37,12 @@ def check_writable(path: str | os.PathLike, what: str = "output", new_folder: bo
         if above.exists() and not above.is_dir():
             raise ClothbenchError(f"cannot write {what} {path}: {above} is a file, not a folder")
     base = folder.parent if new_folder else folder
-    if not base.is_dir():
+    if make_folders:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ClothbenchError(f"cannot write {what} {path}: {e.strerror}") from None
+    elif not base.is_dir():
         raise ClothbenchError(f"cannot write {what} {path}: there is no folder {base} (make it first)")
     made = new_folder and not folder.exists()
     try:
