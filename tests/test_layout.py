@@ -168,8 +168,6 @@ KNOWN_PRIVATE_IMPORTS = {
     "backends/gl/context.py imports _GL_TIMESTAMP from clothbench.backends.gl.timers",
     "peers/newton.py imports _import_warp from clothbench.peers.warp",
     "peers/newton.py imports _init_quietly from clothbench.peers.warp",
-    "scene.py imports _COLLIDER_KEYS from clothbench.colliders.analytic",
-    "scene.py imports _COLLIDER_OPTIONAL_KEYS from clothbench.colliders.analytic",
 }
 
 
