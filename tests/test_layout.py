@@ -158,12 +158,6 @@ KNOWN_CYCLES = {
     ("clothbench.harness.dask_executor", "clothbench.harness.executor"),
 }
 KNOWN_PRIVATE_IMPORTS = {
-    "backends/cuda/verlet.py imports _driver_note from clothbench.backends.cuda.runtime",
-    "backends/cuda/verlet.py imports _installed from clothbench.backends.cuda.runtime",
-    "backends/cuda/verlet.py imports _nvcc_available from clothbench.backends.cuda.runtime",
-    "backends/cuda/verlet.py imports _nvrtc_available from clothbench.backends.cuda.runtime",
-    "backends/cuda/verlet.py imports _short from clothbench.backends.cuda.runtime",
-    "backends/cuda/verlet.py imports _version from clothbench.backends.cuda.runtime",
     "backends/gl/context.py imports _GL_QUERY_COUNTER_BITS from clothbench.backends.gl.timers",
     "backends/gl/context.py imports _GL_TIMESTAMP from clothbench.backends.gl.timers",
     "peers/newton.py imports _import_warp from clothbench.peers.warp",
