@@ -230,3 +230,30 @@ def test_accuracy_help_agrees_with_docs_pbd_on_when_the_methods_meet(capsys):
     for figure in ("1.7e-5 m RMS", "2e-4 m"):  # the figures the help quotes are the doc's
         assert figure in help_line
     assert "1.7e-5 m RMS" in docs and "2.0e-4 m away" in docs
+
+
+DEVICE = {"device": "0:0", "default": True, "name": "Intel(R) Xeon(R) Processor @ 2.10GHz",
+          "runtime": "Intel CPU runtime", "platform": "Intel(R) OpenCL",
+          "platform_version": "OpenCL 3.0 PoCL 3.1+debian Linux, None+Asserts, RELOC, SPIR, LLVM 15.0.6, SLEEF",
+          "driver_version": "2026.22.10.0.01_160000", "llvm": None, "compiles": True}  # fmt: skip
+
+
+@pytest.mark.parametrize("width", [80, 40])
+def test_backends_device_list_fits_a_narrow_terminal_with_every_cell_whole(width, capsys):
+    # issue 31 item 16: at 80 columns (or piped) the table cut cells to "Intel… Xeon(… Proce…"
+    from clothbench.cli.backends import print_opencl_devices
+
+    print_opencl_devices([DEVICE], "default: 0:0", width=width)
+    out = capsys.readouterr().out
+    assert "…" not in out
+    for cell in (DEVICE["name"], DEVICE["platform_version"], DEVICE["driver_version"], "Intel CPU runtime (Intel(R) OpenCL)"):
+        assert cell in out, out
+    assert "0:0*" in out and out.rstrip().endswith("default: 0:0")
+
+
+def test_backends_device_list_is_a_table_where_it_fits(capsys):
+    from clothbench.cli.backends import print_opencl_devices
+
+    print_opencl_devices([DEVICE], "default: 0:0", width=400)
+    out = capsys.readouterr().out
+    assert "┃ device" in out and DEVICE["platform_version"] in out and "…" not in out

@@ -281,3 +281,44 @@ def test_a_default_results_path_makes_its_folders(tmp_path, monkeypatch):
         preflight.check_writable("results/x.csv")
     preflight.check_writable("results/study/x.csv", make_folders=True)
     assert (tmp_path / "results" / "study").is_dir()
+
+
+# --- issue 31 item 12: a truncated CSV is said to be truncated ------------------------
+
+
+def _cut(tmp_path, where: str):
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "results" / "cpu-llvmpipe-pocl.csv").read_text()
+    lines = text.splitlines(keepends=True)
+    if where == "header":
+        cut = lines[0][:20]
+    elif where == "first row":
+        cut = lines[0] + lines[1][: len(lines[1]) // 2]
+    else:  # the last row
+        cut = text[: len(text) - len(lines[-1]) // 2]
+    path = tmp_path / f"cut-{where.replace(' ', '-')}.csv"
+    path.write_text(cut)
+    return path, len(lines) - 1
+
+
+@pytest.mark.parametrize("where", ["header", "first row"])
+@pytest.mark.parametrize("command", ["plot", "compare"])
+def test_a_csv_cut_before_any_whole_row_is_refused_as_truncated(command, where, tmp_path, capsys):
+    path, _ = _cut(tmp_path, where)
+    argv = ["plot", str(path), "--out", str(tmp_path / "figs")] if command == "plot" else ["compare", str(path), str(path)]
+    assert main(argv) == 2
+    _one_line_error(capsys, str(path), f"truncated inside its {where}")
+
+
+def test_compare_warns_that_a_truncated_last_row_was_dropped(tmp_path, capsys):
+    from clothbench.harness.sweep_csv import read_sweep
+
+    path, rows = _cut(tmp_path, "last row")
+    assert len(read_sweep(path)) == rows - 1
+    capsys.readouterr()
+    whole = tmp_path / "whole.csv"
+    whole.write_text((tmp_path / "cut-last-row.csv").read_text().rsplit("\n", 1)[0] + "\n")
+    assert main(["compare", str(whole), str(path)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"warning: {path} is truncated: its last line" in err and "dropped" in err, err
