@@ -160,8 +160,6 @@ KNOWN_CYCLES = {
 KNOWN_PRIVATE_IMPORTS = {
     "backends/gl/context.py imports _GL_QUERY_COUNTER_BITS from clothbench.backends.gl.timers",
     "backends/gl/context.py imports _GL_TIMESTAMP from clothbench.backends.gl.timers",
-    "peers/newton.py imports _import_warp from clothbench.peers.warp",
-    "peers/newton.py imports _init_quietly from clothbench.peers.warp",
 }
 
 
