@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clothbench.colliders.analytic import _COLLIDER_KEYS, _COLLIDER_OPTIONAL_KEYS, ANCHOR, COLLIDER_KINDS, Cylinder, Plane, Sphere, body_pose  # noqa: F401 (body_pose, ANCHOR: re-exported)
+from clothbench.colliders.analytic import ANCHOR, COLLIDER_KINDS, COLLIDER_OPTIONAL_KEYS, COLLIDER_TABLE_KEYS, Cylinder, Plane, Sphere, body_pose  # noqa: F401 (body_pose, ANCHOR: re-exported)
 from clothbench.colliders.mesh import Mesh
 from clothbench.colliders.motion import Frame, Motion, array_of_tables, frames_from_toml, motion_from_toml
 from clothbench.errors import SceneError
@@ -41,8 +41,8 @@ _CLOTH_KEYS = {"grid", "size", "height", "mass", "stiffness", "damping"}
 _SIM_KEYS = {"dt", "steps", "gravity", "start", "solver"}
 _PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance", "chebyshev_rho"}
 _PIN_KEYS = {"indices", "corners", "edge", "attach"}
-_MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *_COLLIDER_OPTIONAL_KEYS}
-_TABLES = {"name", "description", "cloth", "sim", "pbd", "pins", *_COLLIDER_KEYS, "mesh", "frame"}
+_MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *COLLIDER_OPTIONAL_KEYS}
+_TABLES = {"name", "description", "cloth", "sim", "pbd", "pins", *COLLIDER_TABLE_KEYS, "mesh", "frame"}
 
 
 @dataclass(frozen=True)
@@ -248,7 +248,7 @@ def _check_float32_range(s: Scene) -> None:
     for c in s.colliders:
         for f in dataclasses.fields(c):
             v = getattr(c, f.name)
-            if f.name in _COLLIDER_OPTIONAL_KEYS:
+            if f.name in COLLIDER_OPTIONAL_KEYS:
                 continue  # a name, and a motion (an overflowing pose shows as a blow-up)
             values[f"{c.kind} {f.name}"] = max(map(abs, v)) if isinstance(v, tuple) else v
     for name, value in values.items():
@@ -298,15 +298,15 @@ def _table(data: dict, key: str, allowed: set, where: str) -> dict:
 
 def _colliders(data: dict, kind: str, where: str) -> tuple:
     """The [[kind]] array of tables as collider objects, every key checked."""
-    keys = _COLLIDER_KEYS[kind]
+    keys = COLLIDER_TABLE_KEYS[kind]
     out = []
     for table in array_of_tables(data.get(kind, []), kind, "colliders", where):
         optional = _optional_keys(table, kind, where)
-        unknown = set(table) - set(keys) - set(_COLLIDER_OPTIONAL_KEYS)
+        unknown = set(table) - set(keys) - set(COLLIDER_OPTIONAL_KEYS)
         missing = set(keys) - set(table)
         if unknown or missing:
             raise SceneError(
-                f"{where}: [[{kind}]] needs {', '.join(keys)} (optional: {', '.join(_COLLIDER_OPTIONAL_KEYS)})"
+                f"{where}: [[{kind}]] needs {', '.join(keys)} (optional: {', '.join(COLLIDER_OPTIONAL_KEYS)})"
                 + (f" (unknown: {sorted(unknown)[0]!r})" if unknown else "")
                 + (f" (missing: {sorted(missing)[0]!r})" if missing else "")
             )

@@ -245,3 +245,20 @@ def test_check_matches_takes_the_committed_run():
     run = read_accuracy_csv(CSV)
     check_matches(run, load_setup("drape"))
     assert run.time_s == 0.1 and run.grid == 32 and run.cpu == "AMD EPYC"
+
+
+def test_readme_advise_line_answers_from_another_folder(tmp_path, monkeypatch, capsys):
+    # issue 31 item 14: the committed results are found from the package, as its kernels are
+    from pathlib import Path
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["advise", "--scene", "drape", "--max-error", "1e-3"]) == 0
+    committed = Path(__file__).resolve().parents[1] / "results" / "accuracy-drape.csv"
+    assert f"from {committed}" in capsys.readouterr().out
+
+
+def test_advise_without_any_run_says_what_to_pass(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["advise", "--scene", "sphere", "--max-error", "1e-3"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "give --csv FILE, or --run" in err, err

@@ -62,6 +62,21 @@ def test_backends_lists_every_platform_with_a_reason(capsys):
         (["run", "--steps", "0"], "steps must be an integer >= 1"),
         (["run", "--dt", "0"], "dt must be > 0"),
         (["run", "--dt=-1e-3"], "dt must be > 0"),
+        # issue 31 item 13: a negative number is a value, so the range check answers
+        (["run", "--dt", "-1e-3"], "dt must be > 0"),
+        (["run", "--dt", "-inf"], "dt must be a finite number"),
+        (["run", "--grid", "-5"], "grid must be an integer >= 3"),
+        (["sweep", "--backends", "numpy", "--row-timeout", "-1E+3"], "--row-timeout must be > 0"),
+        # item 2: the fix, not where newton runs
+        (["run", "--backend", "newton"], "newton has no verlet solver: use --solver pbd"),
+        # item 3: which backends run f64, from their Capabilities
+        (["run", "--backend", "opencl", "--precision", "f64"], "f64 runs on: numpy, c"),
+        # item 10: options that would be ignored are refused
+        (["run", "--strict", "--precision", "f64"], "numpy does not take --strict"),
+        (["run", "--backend", "numpy", "--strict"], "numpy does not take --strict"),
+        (["run", "--pbd-method", "jacobi"], "--pbd-method applies to the pbd solver only"),
+        (["run", "--iterations", "4"], "--iterations applies to the pbd solver only"),
+        (["run", "--retune"], "numpy does not take --retune"),
         (["run", "--dt", "nan"], "dt must be a finite number"),
         (["run", "--scene", "nowhere.toml"], "cannot read scene file"),
         (["run", "--scene", "spheer"], "unknown scene 'spheer'"),
@@ -114,6 +129,7 @@ PYTHON_PACKAGES = {
     "taichi": ("taichi", "taichi"),
     "warp": ("warp", "warp-lang"),
     "numba": ("numba", "numba"),
+    "newton": ("newton", "newton"),  # a peer: named by the [peers] extra as the other peers are
 }
 
 
@@ -138,7 +154,8 @@ def test_a_missing_package_is_named_with_the_pip_command_that_installs_it(backen
     monkeypatch.setitem(sys.modules, module, None)  # as if it were not installed: import fails
     for name in ("ENABLE_TAICHI_HEADER_PRINT", "TI_SKIP_VERSION_CHECK"):  # taichi's probe sets these
         monkeypatch.setenv(name, "x")
-    probe = importlib.import_module(BACKENDS[backend].verlet.partition(":")[0]).probe
+    entry = BACKENDS[backend]
+    probe = importlib.import_module((entry.verlet or entry.pbd).partition(":")[0]).probe
     reason = probe().reason
     assert f"{module} not installed (pip install " in reason, reason
     # "'clothbench[cuda]' for CUDA 12, 'clothbench[cuda13]' for CUDA 13": each extra is checked
@@ -177,3 +194,66 @@ def test_backends_table_prints_an_install_hint_with_its_brackets(capsys):
     print_backends([{"backend": "x", "kind": "peer", "usable": False, "device": "",
                      "reason": "pip install 'clothbench[peers]'"}])  # fmt: skip
     assert "clothbench[peers]" in capsys.readouterr().out
+
+
+def test_sweep_columns_names_every_backend_that_runs_f64(capsys):
+    # issue 31 item 3: not "numpy only" while c runs f64 too; from the declared Capabilities
+    from clothbench.backends import BACKENDS, capabilities
+
+    f64 = [n for n, e in BACKENDS.items() if any("f64" in capabilities(n, s).precisions for s in e.solvers())]
+    assert "c" in f64 and "numpy" in f64
+    assert main(["sweep", "--columns"]) == 0
+    line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("precision "))
+    assert f"runs on: {', '.join(f64)}" in line and "numpy only" not in line
+
+
+def test_pbd_options_with_the_pbd_solver_still_run(capsys):
+    # the item-10 refusals refuse only what would be ignored
+    assert main(["run", "--solver", "pbd", "--pbd-method", "jacobi", "--iterations", "2", "--grid", "4",
+                 "--steps", "2", "--json"]) == 0  # fmt: skip
+    assert main(["run", "--backend", "c", "--precision", "f64", "--strict", "--grid", "4", "--steps", "2",
+                 "--json"]) == 0  # fmt: skip
+
+
+def test_accuracy_help_agrees_with_docs_pbd_on_when_the_methods_meet(capsys):
+    # issue 31 item 4: not "they converge to different answers"
+    import re
+    from pathlib import Path
+
+    with pytest.raises(SystemExit):
+        main(["accuracy", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "converge to different answers" not in text
+    help_line = re.search(r"--pbd-methods PBD_METHODS (.*?\))", text).group(1)
+    docs = " ".join((Path(__file__).parents[1] / "docs" / "pbd.md").read_text().split())
+    assert "What Jacobi and Gauss-Seidel converge to" in help_line and "substeps" in help_line
+    for figure in ("1.7e-5 m RMS", "2e-4 m"):  # the figures the help quotes are the doc's
+        assert figure in help_line
+    assert "1.7e-5 m RMS" in docs and "2.0e-4 m away" in docs
+
+
+DEVICE = {"device": "0:0", "default": True, "name": "Intel(R) Xeon(R) Processor @ 2.10GHz",
+          "runtime": "Intel CPU runtime", "platform": "Intel(R) OpenCL",
+          "platform_version": "OpenCL 3.0 PoCL 3.1+debian Linux, None+Asserts, RELOC, SPIR, LLVM 15.0.6, SLEEF",
+          "driver_version": "2026.22.10.0.01_160000", "llvm": None, "compiles": True}  # fmt: skip
+
+
+@pytest.mark.parametrize("width", [80, 40])
+def test_backends_device_list_fits_a_narrow_terminal_with_every_cell_whole(width, capsys):
+    # issue 31 item 16: at 80 columns (or piped) the table cut cells to "Intel… Xeon(… Proce…"
+    from clothbench.cli.backends import print_opencl_devices
+
+    print_opencl_devices([DEVICE], "default: 0:0", width=width)
+    out = capsys.readouterr().out
+    assert "…" not in out
+    for cell in (DEVICE["name"], DEVICE["platform_version"], DEVICE["driver_version"], "Intel CPU runtime (Intel(R) OpenCL)"):
+        assert cell in out, out
+    assert "0:0*" in out and out.rstrip().endswith("default: 0:0")
+
+
+def test_backends_device_list_is_a_table_where_it_fits(capsys):
+    from clothbench.cli.backends import print_opencl_devices
+
+    print_opencl_devices([DEVICE], "default: 0:0", width=400)
+    out = capsys.readouterr().out
+    assert "┃ device" in out and DEVICE["platform_version"] in out and "…" not in out

@@ -253,9 +253,9 @@ def test_backend_compiles_the_kernel_the_way_it_loads_it(using):
     # no device, only cupy and the compiler. The every-kind defines hold commas, which nvcc
     # would split at without escaping.
     pytest.importorskip("cupy", reason="cupy not installed (pip install 'clothbench[cuda]')")
-    if using == "nvrtc" and not cuda._nvrtc_available():
+    if using == "nvrtc" and not cuda.nvrtc_available():
         pytest.skip("libnvrtc not loadable (pip install 'clothbench[cuda]', or [cuda13] for CuPy's CUDA 13 build)")
-    if using == "nvcc" and not cuda._nvcc_available():
+    if using == "nvcc" and not cuda.nvcc_available():
         pytest.skip("nvcc not found by cupy")
     specialised = cuda.kernel_defines(every_kind(), VERLET, normals=True)
     strict_ptx = cuda.compile_kernel(True, "80", using, "ptx", specialised).decode()
@@ -889,7 +889,7 @@ def cupy_of(monkeypatch):
     def install(package: str, module: types.ModuleType) -> None:
         monkeypatch.setitem(sys.modules, "cupy", module)
         monkeypatch.setitem(sys.modules, "cupy.cuda", module.cuda)
-        monkeypatch.setattr(cuda, "_installed", lambda name: module.__version__ if name == package else None)
+        monkeypatch.setattr(cuda, "installed_version", lambda name: module.__version__ if name == package else None)
 
     return install
 

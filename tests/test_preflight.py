@@ -206,3 +206,119 @@ def test_advise_refuses_an_accuracy_run_written_as_measured_but_not_finished(tmp
         w.writerow(row)
     assert main(["advise", "--max-error", "1e-3", "--csv", str(path)]) == 2
     _one_line_error(capsys, "unfinished", "--resume")
+
+
+# --- issue 31 items 8, 9, 11 ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["result", "x.npy"])
+def test_run_save_refuses_a_name_np_savez_would_change(name, tmp_path, capsys, no_work):
+    # np.savez would write result.npz and x.npy.npz: a path the user did not name
+    assert main([*COMMANDS["run"], "--save", str(tmp_path / name)]) == 2
+    _one_line_error(capsys, "--save takes a .npz file")
+    assert not list(tmp_path.iterdir())
+
+
+def test_run_save_refuses_a_folder(tmp_path, capsys, no_work):
+    folder = tmp_path / "outdir"
+    folder.mkdir()
+    assert main([*COMMANDS["run"], "--save", str(folder)]) == 2
+    _one_line_error(capsys, "is a directory")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outdir"]  # no outdir.npz beside it
+
+
+def test_run_says_where_it_saved(tmp_path, capsys):
+    path = tmp_path / "state.npz"
+    assert main([*COMMANDS["run"], "--save", str(path)]) == 0
+    assert capsys.readouterr().out.rstrip().endswith(f"wrote {path}")
+    assert main([*COMMANDS["run"], "--save", str(path), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert f"wrote {path}" in err and f"wrote {path}" not in out  # stdout stays one JSON object
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [[*COMMANDS["run"], "--save", "{tmp}/no/such/x.npz"],
+     ["render", "--backend", "numpy", "--frames", "1", "--out", "{tmp}/nodir/sub/c.png"],
+     ["render", "--backend", "numpy", "--frames", "1", "--out", "{tmp}/nodir/sub/"]],
+)  # fmt: skip
+def test_a_missing_parent_folder_is_refused_and_none_is_made(argv, tmp_path, capsys, no_work):
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    _one_line_error(capsys, "cannot write", "there is no folder", "make it first")
+    assert not list(tmp_path.iterdir()), "a refused command made a folder"
+
+
+def test_render_into_a_new_frames_folder_of_an_existing_one_is_checked_and_not_left(tmp_path):
+    preflight.check_writable(tmp_path / "frames" / "frame_0001.png", "--out", new_folder=True)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "line, words",
+    [("height = 1e4", ["height 10000 is too far from 0 for float32", "np.spacing", "never moves"]),
+     ("size = 1e30", ["size 1e+30 overflows float32", "squared length"])],
+)  # fmt: skip
+def test_positions_float32_cannot_carry_are_refused_before_work(line, words, tmp_path, capsys, no_work):
+    scene = tmp_path / "s.toml"
+    scene.write_text(f"[cloth]\n{line}\n")
+    for command in ("run", "sweep"):
+        assert main([*COMMANDS[command], "--scene", str(scene)]) == 2
+        _one_line_error(capsys, *words)
+
+
+def test_a_far_cloth_runs_in_f64_and_a_near_one_in_f32(tmp_path, capsys):
+    scene = tmp_path / "s.toml"
+    scene.write_text("[cloth]\nheight = 1e4\n")
+    assert main([*COMMANDS["run"], "--scene", str(scene), "--precision", "f64", "--json"]) == 0
+    scene.write_text("[cloth]\nheight = 20\n")  # g dt^2 is above half the spacing at 20 m: it moves
+    assert main([*COMMANDS["run"], "--scene", str(scene), "--json"]) == 0
+
+
+def test_a_default_results_path_makes_its_folders(tmp_path, monkeypatch):
+    # accuracy/stability/pbd-study write results/... by default: that folder is theirs to make
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(Exception, match="there is no folder results"):
+        preflight.check_writable("results/x.csv")
+    preflight.check_writable("results/study/x.csv", make_folders=True)
+    assert (tmp_path / "results" / "study").is_dir()
+
+
+# --- issue 31 item 12: a truncated CSV is said to be truncated ------------------------
+
+
+def _cut(tmp_path, where: str):
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "results" / "cpu-llvmpipe-pocl.csv").read_text()
+    lines = text.splitlines(keepends=True)
+    if where == "header":
+        cut = lines[0][:20]
+    elif where == "first row":
+        cut = lines[0] + lines[1][: len(lines[1]) // 2]
+    else:  # the last row
+        cut = text[: len(text) - len(lines[-1]) // 2]
+    path = tmp_path / f"cut-{where.replace(' ', '-')}.csv"
+    path.write_text(cut)
+    return path, len(lines) - 1
+
+
+@pytest.mark.parametrize("where", ["header", "first row"])
+@pytest.mark.parametrize("command", ["plot", "compare"])
+def test_a_csv_cut_before_any_whole_row_is_refused_as_truncated(command, where, tmp_path, capsys):
+    path, _ = _cut(tmp_path, where)
+    argv = ["plot", str(path), "--out", str(tmp_path / "figs")] if command == "plot" else ["compare", str(path), str(path)]
+    assert main(argv) == 2
+    _one_line_error(capsys, str(path), f"truncated inside its {where}")
+
+
+def test_compare_warns_that_a_truncated_last_row_was_dropped(tmp_path, capsys):
+    from clothbench.harness.sweep_csv import read_sweep
+
+    path, rows = _cut(tmp_path, "last row")
+    assert len(read_sweep(path)) == rows - 1
+    capsys.readouterr()
+    whole = tmp_path / "whole.csv"
+    whole.write_text((tmp_path / "cut-last-row.csv").read_text().rsplit("\n", 1)[0] + "\n")
+    assert main(["compare", str(whole), str(path)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"warning: {path} is truncated: its last line" in err and "dropped" in err, err

@@ -122,12 +122,29 @@ def backend_class(name: str, solver: str = "verlet") -> type[Backend]:
         raise ClothbenchError(f"unknown solver {solver!r} (known: {', '.join(SOLVERS)})")
     target = getattr(entry, solver)
     if target is None:
-        raise ClothbenchError(f"{name} has no {solver} solver (it runs on: {', '.join(solver_backends(solver))})")
+        fix = " or ".join(f"--solver {s}" for s in entry.solvers())
+        raise ClothbenchError(
+            f"{name} has no {solver} solver: use {fix} ({solver} runs on: {', '.join(solver_backends(solver))})"
+        )
     return _load(target)
 
 
 def capabilities(name: str, solver: str = "verlet") -> Capabilities:
     return backend_class(name, solver).capabilities
+
+
+def precision_backends(precision: str) -> list[str]:
+    """The backends whose declared Capabilities take `precision` with some solver."""
+    names = []
+    for name, entry in BACKENDS.items():
+        for solver in entry.solvers():
+            try:
+                if precision in capabilities(name, solver).precisions:
+                    names.append(name)
+                    break
+            except Exception:  # a module that cannot be imported here declares nothing
+                continue
+    return names
 
 
 def solver_backends(solver: str) -> list[str]:

@@ -80,7 +80,10 @@ class Capabilities:
             return f"{backend} does not take {given} (it takes: {takes})"
 
         if options.precision not in self.precisions:
-            return no("--precision", options.precision, ", ".join(self.precisions) + "; f64 is the numpy reference")
+            from clothbench.backends import precision_backends
+
+            runs = ", ".join(precision_backends(options.precision)) or "no backend"
+            return no("--precision", options.precision, f"{', '.join(self.precisions)}; {options.precision} runs on: {runs}")
         if options.transfer is not None and options.transfer not in self.transfers:
             return no("--transfer", options.transfer, ", ".join(self.transfers) or "no transfer modes")
         if options.local_size is not None:
@@ -100,6 +103,8 @@ class Capabilities:
             return no("--gl", options.gl, "no GL context")
         if options.shape is not None and not self.shapes:
             return no("--shape", options.shape, "one kernel shape")
+        if options.retune and not self.shapes:
+            return no("--retune", "", "one kernel shape: there is nothing to tune")
         if options.mesh_collision is not None and options.mesh_collision not in self.mesh_collisions:
             return no("--mesh-collision", options.mesh_collision, ", ".join(self.mesh_collisions) or "no mesh colliders")
         return None

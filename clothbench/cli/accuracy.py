@@ -67,7 +67,9 @@ def add_pbd_args(p) -> None:
     """--pbd-methods and --pbd-iterations: which PBD lines --solvers pbd stands for."""
     p.add_argument(
         "--pbd-methods", default="jacobi,coloured",
-        help="PBD formulations to run (default both: they converge to different answers)",
+        help="PBD formulations to run (default both: they meet on a sheet nearly at rest or with substeps, "
+        "1.7e-5 m RMS after 20 steps of 4 substeps, and part as it swings within a step, 2e-4 m with one "
+        "substep: docs/pbd.md, \"What Jacobi and Gauss-Seidel converge to\")",
     )
     p.add_argument(
         "--pbd-iterations", type=int_list("--pbd-iterations", 1),
@@ -175,7 +177,7 @@ def cmd_accuracy(args) -> int:
     out = Path(args.out or f"results/accuracy-{scene.name}.csv")
     outputs = [out, out.with_name(out.stem + "-speed.png"), out.with_name(out.stem + "-convergence.png")]
     for path in outputs + ([out.with_name(out.stem + "-artefacts.csv")] if args.artefacts else []):
-        check_writable(path)  # before the run, not after it
+        check_writable(path, make_folders=args.out is None)  # before the run, not after it; results/ made
     check_memory([scene.grid], ("f64",), jobs=args.jobs)
     variants = variants_for(args.backends, solvers)
     levels = lambda v: sorted(pbd_dts if v.solver.name == "pbd" else dts, reverse=True)  # noqa: E731

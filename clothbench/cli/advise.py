@@ -74,13 +74,26 @@ def _checked_args(args):
     return setup, backends
 
 
+def default_csv(scene: str) -> Path:
+    """results/accuracy-<scene>.csv here, else the one committed beside the package (an
+    editable install or a checkout, found from the package as its kernels are), so README's
+    advise line answers from any folder; the path here where neither exists."""
+    import clothbench
+
+    name = f"accuracy-{scene}.csv"
+    here = Path("results") / name
+    committed = Path(clothbench.__file__).resolve().parents[1] / "results" / name
+    return committed if not here.exists() and committed.is_file() else here
+
+
 def _read_run(args, setup):
     from clothbench.analysis.advise import check_matches, read_accuracy_csv
 
-    path = Path(args.csv or f"results/accuracy-{setup.scene.name}.csv")
+    path = Path(args.csv) if args.csv else default_csv(setup.scene.name)
     if not args.csv and not path.exists():
         raise ClothbenchError(
-            f"no accuracy run of {setup.scene.name} at {path}: give --csv FILE, or --run to measure one here"
+            f"no accuracy run of {setup.scene.name} at {path} (nor in the repository's results/): "
+            "give --csv FILE, or --run to measure one here"
         )
     run = read_accuracy_csv(path)
     check_matches(run, setup)

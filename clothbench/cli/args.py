@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 import argparse
+import re
 
 from clothbench.errors import ClothbenchError
 from clothbench.solver import PBD_METHODS, SOLVER_SPECS, SOLVERS
 
 
+# what argparse should read as a (negative) number, not an option: its own matcher takes
+# -1 and -0.5 but not -1e-3 or -inf, so `--dt -1e-3` said "expected one argument" instead of
+# the range check's answer
+NEGATIVE_NUMBER = re.compile(r"^-(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|inf(?:inity)?|nan)$", re.IGNORECASE)
+
+
 class Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NEGATIVE_NUMBER
+
     def error(self, message):  # one line, not usage + error
         where = self.prog.removeprefix("clothbench").strip()
         raise ClothbenchError(f"{where}: {message}" if where else message)
@@ -33,7 +44,7 @@ def setup_from_args(args):
     """The scene file named by --scene with the command line's overrides applied."""
     from clothbench.scene import load_setup
 
-    return load_setup(args.scene).replace(
+    setup = load_setup(args.scene).replace(
         grid=args.grid,
         steps=getattr(args, "steps", None),
         dt=args.dt,
@@ -42,6 +53,16 @@ def setup_from_args(args):
         iterations=getattr(args, "iterations", None),
         substeps=getattr(args, "substeps", None),
     )
+    if setup.solver.name != "pbd":  # the PBD settings would be ignored: say so instead
+        given = [o for o in ("pbd_method", "iterations", "substeps") if getattr(args, o, None) is not None]
+        if given:
+            option = "--" + given[0].replace("_", "-")
+            raise ClothbenchError(f"{option} applies to the pbd solver only, and this run's is {setup.solver.name}: add --solver pbd")
+    if getattr(args, "precision", "f32") == "f32":
+        from clothbench.harness.preflight import check_float32_motion
+
+        check_float32_motion(setup.scene, setup.solver)
+    return setup
 
 
 def add_backend_args(p: argparse.ArgumentParser) -> None:

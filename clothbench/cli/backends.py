@@ -60,19 +60,41 @@ def opencl_devices(retune: bool) -> tuple[list[dict] | None, str]:
         return None, str(e)
 
 
-def print_opencl_devices(devices: list[dict], default: str) -> None:
+DEVICE_COLUMNS = ("device", "name", "runtime", "platform version", "driver", "LLVM", "compiles")
+
+
+def device_cells(d: dict) -> tuple[str, ...]:
+    """One OpenCL device's cells, plain text (a driver's text is not rich markup)."""
+    compiles = "yes" if d["compiles"] else f"no: {d['error']}"
+    return (d["device"] + ("*" if d["default"] else ""), d["name"], f"{d['runtime']} ({d['platform']})",
+            d["platform_version"], d["driver_version"], d["llvm"] or "-", compiles)  # fmt: skip
+
+
+def print_opencl_devices(devices: list[dict], default: str, width: int | None = None) -> None:
+    """The devices as a table where it fits the terminal unwrapped, else (narrow, or piped:
+    rich then assumes 80 columns) as lines under a heading, each cell whole: a table squeezed
+    to 80 columns cut every cell to a few letters."""
     from rich.console import Console
     from rich.markup import escape
     from rich.table import Table
 
-    table = Table(title="OpenCL devices")
-    for col in ("device", "name", "runtime", "platform version", "driver", "LLVM", "compiles"):
-        table.add_column(col, no_wrap=col in ("device", "driver", "LLVM"))
-    for d in devices:
-        compiles = "[green]yes[/green]" if d["compiles"] else f"[red]no[/red]: {escape(d['error'])}"
-        mark = "*" if d["default"] else ""
-        cells = (d["device"] + mark, d["name"], f"{d['runtime']} ({d['platform']})", d["platform_version"],
-                 d["driver_version"], d["llvm"] or "-")  # fmt: skip
-        table.add_row(*map(escape, cells), compiles)  # a driver's text is not rich markup
-    Console().print(table)
+    console = Console() if width is None else Console(width=width)
+    width = console.width
+    rows = [device_cells(d) for d in devices]
+    widths = [max(len(c) for c in col) for col in zip(DEVICE_COLUMNS, *rows)]
+    if sum(widths) + 3 * len(widths) + 1 <= width:  # cells, padding and borders: rich's box
+        table = Table(title="OpenCL devices")
+        for col in DEVICE_COLUMNS:
+            table.add_column(col, no_wrap=True)
+        for d, cells in zip(devices, rows):
+            compiles = "[green]yes[/green]" if d["compiles"] else f"[red]no[/red]: {escape(d['error'])}"
+            table.add_row(*map(escape, cells[:-1]), compiles)
+        console.print(table)
+    else:
+        print("OpenCL devices (* the default):")
+        for cells in rows:
+            device, *rest = cells
+            print(f"  {device} {rest[0]}")
+            for label, value in zip(DEVICE_COLUMNS[2:], rest[1:]):
+                print(f"      {label}: {value}")
     print(default)  # one line, unwrapped: what a script or a bug report quotes

@@ -11,6 +11,8 @@ from clothbench.cli.args import int_list, sigterm_interrupts
 from clothbench.cli.study_files import add_resume_args, say_interrupted
 from clothbench.errors import ClothbenchError
 
+DEFAULT_OUT = "results/pbd-study/pbd-study.csv"
+
 STUDY_KEY = ("scene", "method", "substeps", "iterations")
 STUDY_GRID = 32  # the accuracy study's grid: the reference runs in seconds, the ranking is the same at 64
 STUDY_TIME_S = 0.5  # 30 frames: the curtain is on the sphere, the drape in its first swing
@@ -39,7 +41,7 @@ def register(subparsers) -> None:
         "--cost-backends", default="numpy,opencl",
         help="backends whose float32 ms/step is measured (default numpy,opencl; 'none' for error only)",
     )  # fmt: skip
-    p.add_argument("--out", default="results/pbd-study/pbd-study.csv", help="CSV path (rows written as measured); PNG beside")
+    p.add_argument("--out", default=DEFAULT_OUT, help="CSV path (rows written as measured); PNG beside")
     add_resume_args(p, "the same as --resume: an unstable pair is a row, so nothing is retried")
     p.set_defaults(func=cmd_pbd_study)
 
@@ -82,7 +84,7 @@ def cmd_pbd_study(args) -> int:
     out = Path(args.out)
     png = out.with_suffix(".png")
     for path in (out, png):
-        check_writable(path)
+        check_writable(path, make_folders=args.out == DEFAULT_OUT)  # results/pbd-study/ made
     plan = [(s, m, sub, it) for s in scenes for m in methods for c in args.costs for sub, it in pairs_at(c)]
     plan = list({(s.name, m, sub, it): (s, m, sub, it) for s, m, sub, it in plan}.values())  # 20 = 2 x 10 = ...
     key = lambda name, m, sub, it: (name, m, cell(sub), cell(it))  # noqa: E731

@@ -79,8 +79,9 @@ def cmd_render(args) -> int:
     if args.backend is None:
         args.backend = default_backend(scene, solver.name)
     check_memory([scene.grid], reference=False)  # before any work, as every output path is
-    first = Path(args.out) / "frame_0001.png" if output_kind(args.out) == "folder" else Path(args.out)
-    check_writable(first, "--out")
+    folder = output_kind(args.out) == "folder"
+    first = Path(args.out) / "frame_0001.png" if folder else Path(args.out)
+    check_writable(first, "--out", new_folder=folder)
     options = BackendOptions(strict=args.strict, generic=args.generic, gl=args.gl)
     with LazyProgress(settings.frames, f"render {scene.name} on {args.backend}") as progress:
         report = render(scene, solver, args.backend, options, settings, args.out, on_frame=progress.update)

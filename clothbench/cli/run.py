@@ -24,7 +24,11 @@ def register(subparsers) -> None:
     p.add_argument("--backend", default="numpy", help=f"one of: {', '.join(BACKENDS)}")
     add_scene_args(p)
     add_backend_args(p)
-    p.add_argument("--save", help="write pos, prev (and normals) to this .npz")
+    p.add_argument(
+        "--save", metavar="FILE.npz",
+        help="write pos, prev (and normals) to this .npz file, in a folder that exists, and say where "
+        "(a folder or another suffix is refused)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
     p.set_defaults(func=cmd_run)
@@ -45,8 +49,9 @@ def cmd_run(args) -> int:
     setup = setup_from_args(args)
     scene, solver, steps = setup.scene, setup.solver, setup.steps
     options = options_from_args(args)
+    check_strict(args.backend, solver.name, options)
     check_mesh_collision(options.mesh_collision, scene)
-    save = check_writable(_npz(args.save), "--save") if args.save else None  # before the run, not after
+    save = _npz(check_writable(args.save, "--save")) if args.save is not None else None  # before the run, not after
     check_memory([scene.grid], [args.precision])
     if warning := predicted_fast_impact(scene, solver):
         print(f"clothbench: warning: {warning}", file=sys.stderr)
@@ -70,6 +75,8 @@ def cmd_run(args) -> int:
         with open(partial, "wb") as f:  # an interrupt leaves the old file or the new one, never half
             np.savez(f, **arrays)
         partial.replace(save)
+        if args.json or result.blowup is not None:  # stdout is one JSON object, or there is no table
+            print(f"wrote {save}", file=sys.stderr)
     if result.blowup is not None:
         raise result.blowup
     summary = {
@@ -107,7 +114,20 @@ def cmd_run(args) -> int:
         print_run(summary)
         if line := device_clock_line(summary):
             print(line)
+        if save is not None:
+            print(f"wrote {save}")
     return 0
+
+
+def check_strict(backend: str, solver: str, options) -> None:
+    """--strict where the backend has no fast mode would be ignored (numpy is the reference
+    --strict matches, in either precision): refused instead."""
+    from clothbench.backends import capabilities
+    from clothbench.errors import ClothbenchError
+
+    if options.strict and not capabilities(backend, solver).strict:
+        why = "it is the reference --strict matches" if backend == "numpy" else "it has one mode, no fast one"
+        raise ClothbenchError(f"{backend} does not take --strict ({why}; --strict applies to backends with a fast mode)")
 
 
 def device_clock_line(summary: dict) -> str:
@@ -124,6 +144,11 @@ def device_clock_line(summary: dict) -> str:
     return ""
 
 
-def _npz(path: str) -> str:
-    """The file np.savez writes for `path` (it adds .npz to a name without it)."""
-    return path if path.endswith(".npz") else path + ".npz"
+def _npz(path):
+    """--save's file, a .npz name as given, or one line saying why not (np.savez would add .npz
+    to any other name: outdir.npz beside a folder, x.npy.npz for x.npy)."""
+    from clothbench.errors import ClothbenchError
+
+    if path.suffix.lower() != ".npz":
+        raise ClothbenchError(f"--save takes a .npz file, got {str(path)!r}")
+    return path

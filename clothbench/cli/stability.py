@@ -80,7 +80,7 @@ def cmd_stability(args) -> int:
     out = Path(args.out or "results/stability.csv")
     png = out.with_suffix(".png")
     for path in (out, png):
-        check_writable(path)  # before the bisections, not after them
+        check_writable(path, make_folders=args.out is None)  # before the bisections, not after them
     check_memory([args.grid], ("f64",), jobs=args.jobs)
     for kind in kinds:  # every scene's constants checked (float32 included) before any bisection
         for k in ks:

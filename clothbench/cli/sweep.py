@@ -146,18 +146,22 @@ def cmd_sweep(args) -> int:
     from clothbench.scene import load_setup
 
     if args.columns:
+        from clothbench.backends import precision_backends
+
         width = max(map(len, COLUMN_DOCS))
+        f64 = ", ".join(precision_backends("f64"))  # from the backends' Capabilities, not a list here
         for name, doc in COLUMN_DOCS.items():
-            print(f"{name:<{width}}  {doc}")
+            print(f"{name:<{width}}  {doc.replace('{f64_backends}', f64)}")
         print(f"\none row per key: {', '.join(KEY_COLUMNS)}")
         return 0
     sigterm_interrupts()
     check_row_args(args)
     json_path = _check_json_path(args.json, args.out) if args.json else None
-    from clothbench.harness.preflight import check_memory
+    from clothbench.harness.preflight import check_float32_motion, check_memory
 
     names = resolve_names(args.backends)
     setup = load_setup(args.scene).replace(dt=args.dt)
+    check_float32_motion(setup.scene, setup.solver)  # every sweep has float32 rows
     check_memory(args.grids, ("f32", "f64"))
     scene = setup.scene
     settings = SweepSettings(

@@ -1,5 +1,5 @@
-"""The analytic colliders (sphere, capped cylinder, plane) and the pose of any named body:
-separate from scene.py so the scene model and its file reader stay under the size limit."""
+"""The analytic colliders (sphere, capped cylinder, plane), the keys of their scene-file
+tables, and the pose of any named body."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ from clothbench.colliders.mesh import Mesh
 from clothbench.colliders.motion import Motion, pose
 
 # The keys each analytic collider's scene-file table needs, and those any collider may add.
-_COLLIDER_KEYS = {
+COLLIDER_TABLE_KEYS = {
     "sphere": ("center", "radius"),
     "cylinder": ("start", "end", "radius"),
     "plane": ("point", "normal"),
 }
-_COLLIDER_OPTIONAL_KEYS = ("name", "motion")  # any collider may be named and may move
+COLLIDER_OPTIONAL_KEYS = ("name", "motion")  # any collider may be named and may move
 
 
 @dataclass(frozen=True)

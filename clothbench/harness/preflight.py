@@ -20,14 +20,34 @@ ITEMSIZE = {"f32": 4, "f64": 8}
 HEADROOM = 0.9  # of the available memory a run may plan to use
 
 
-def check_writable(path: str | os.PathLike, what: str = "output") -> Path:
-    """`path` can be written (its folder made if need be), checked by creating it and, when
-    it did not exist, removing it again: the same error now that the write would give later."""
+def check_writable(
+    path: str | os.PathLike, what: str = "output", new_folder: bool = False, make_folders: bool = False
+) -> Path:
+    """`path` can be written, checked by creating it and, when it did not exist, removing it
+    again: the same error now that the write would give later. Its folder must exist: a
+    command that writes one file makes no folders (a typo would plant them anywhere, the
+    filesystem root included); new_folder: the folder is itself the output (render's
+    frames/), made here if its own folder exists, and removed again if it was made;
+    make_folders: a command's default path (results/...), whose folders it makes itself."""
     path = Path(path)
     if path.is_dir():
         raise ClothbenchError(f"{what} {path} is a directory: name a file")
+    folder = path.parent
+    for above in (folder, *folder.parents):
+        if above.exists() and not above.is_dir():
+            raise ClothbenchError(f"cannot write {what} {path}: {above} is a file, not a folder")
+    base = folder.parent if new_folder else folder
+    if make_folders:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ClothbenchError(f"cannot write {what} {path}: {e.strerror}") from None
+    elif not base.is_dir():
+        raise ClothbenchError(f"cannot write {what} {path}: there is no folder {base} (make it first)")
+    made = new_folder and not folder.exists()
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        if made:
+            folder.mkdir()
         existed = path.exists()
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         os.close(fd)
@@ -35,7 +55,51 @@ def check_writable(path: str | os.PathLike, what: str = "output") -> Path:
             path.unlink()
     except OSError as e:
         raise ClothbenchError(f"cannot write {what} {path}: {e.strerror}") from None
+    finally:
+        if made and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
     return path
+
+
+def check_float32_motion(scene, solver) -> None:
+    """What float32 positions cannot carry, refused in one line (as dt^2 underflow is, in
+    solver.py): a cloth so far from 0 that the g*h^2 a free particle falls in its first
+    (sub)step is at most half the float32 spacing of its coordinates (np.spacing), so that
+    2x - x_prev + a h^2 rounds back to x and the cloth never moves (height 1e4 at dt 5e-4:
+    tests/hard_cases/test_far_from_origin.py); a fall of one to two spacings still moves, coarsely. And a size
+    whose springs' squared lengths and forces overflow float32 (inf, then NaN, at step 1).
+    For float32 runs only: float64 holds both."""
+    import math
+
+    import numpy as np
+
+    from clothbench.solver import FLOAT32_MAX
+
+    h = solver.dt / getattr(solver, "substeps", 1)
+    g = [abs(c) for c in scene.gravity]
+    axis = max(range(3), key=g.__getitem__)
+    fall = g[axis] * h * h
+    extent = (scene.size, abs(scene.height), scene.size)  # x and z span the sheet, y is its height
+    where = ("size", "height", "size")[axis]
+    ulp = float(np.spacing(np.float32(extent[axis])))
+    if fall > 0 and fall <= ulp / 2:
+        raise ClothbenchError(
+            f"{where} {extent[axis]:g} is too far from 0 for float32: positions there are {ulp:.3g} m apart "
+            f"(np.spacing), and the g*dt^2 = {fall:.3g} m a particle falls in a step is under half that, so "
+            "it rounds away and the cloth never moves; put the scene nearer 0, use a larger dt or --precision f64"
+        )
+    longest = max(scene.rest_lengths())
+    terms = {
+        "the longest spring's squared length": longest * longest,
+        "the sheet's squared extent (collider distances)": 3 * max(scene.size, abs(scene.height)) ** 2,
+        "a spring's force k*rest*dt^2/m": scene.stiffness * longest * solver.dt**2 / scene.mass if scene.mass else 0.0,
+    }
+    for name, value in terms.items():
+        if not math.isfinite(value) or value > FLOAT32_MAX:
+            raise ClothbenchError(
+                f"size {scene.size:g} overflows float32 in the step: {name} is {value:.3g}, above its max "
+                f"{FLOAT32_MAX:.4g} (the state would be inf at step 1); use a smaller size or --precision f64"
+            )
 
 
 def available_memory() -> int | None:

@@ -13,6 +13,7 @@ import csv
 import io
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Iterable
 
@@ -49,7 +50,7 @@ COLUMN_DOCS: dict[str, str] = {
     "iterations": "pbd only: constraint passes per substep",
     "substeps": "pbd only: substeps per step",
     "mode": "the backend's own name for the settings that change speed or results",
-    "precision": "working precision: f32, or f64 (numpy only, the reference)",
+    "precision": "working precision: f32, or f64 (the reference precision; runs on: {f64_backends})",
     "strict": "the strict option: bit-exact with numpy f32 (no FMA contraction, no fast math)",
     "transfer": "transfer mode (opencl resident|per-step, cuda swap|copy); empty = the backend's default",
     "local_size": "work-group / block size; empty = the runtime chooses",
@@ -325,7 +326,8 @@ class SweepFile:
 
 def read_sweep(path: str | os.PathLike, required: Iterable[str] = ()) -> list[dict[str, str]]:
     """The rows of a sweep CSV (as strings), checking `required` columns are present.
-    A partial last line (a sweep still running, or killed mid-write) is ignored."""
+    A partial last line (a sweep still running, or killed mid-write) is dropped with a
+    warning on stderr naming the file; one line refuses a file cut before any whole row."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -337,12 +339,20 @@ def read_sweep(path: str | os.PathLike, required: Iterable[str] = ()) -> list[di
         raise ClothbenchError(f"{path} is not a clothbench sweep CSV (not UTF-8 text)") from None
     except OSError as e:
         raise ClothbenchError(f"cannot read {path}: {e.strerror}") from None
-    if text and not text.endswith("\n"):
+    truncated = bool(text) and not text.endswith("\n")
+    if truncated:
         text = text[: text.rfind("\n") + 1]
+        why = "(a sweep still writing it, or one killed mid-write)"
+        if not text:
+            raise ClothbenchError(f"{path} is truncated inside its header {why}: no whole line to read")
     reader = csv.DictReader(io.StringIO(text))
     header = reader.fieldnames or []
     if not header:
         raise ClothbenchError(f"{path} is empty: expected a CSV written by `clothbench sweep`")
+    if truncated:
+        if text.count("\n") == 1:  # the header alone is whole
+            raise ClothbenchError(f"{path} is truncated inside its first row {why}: no whole row to read")
+        print(f"clothbench: warning: {path} is truncated: its last line, cut mid-row, was dropped {why}", file=sys.stderr)
     missing = [c for c in required if c not in header]
     if missing:
         raise ClothbenchError(

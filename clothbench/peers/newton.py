@@ -24,8 +24,9 @@ from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Pbd
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import rest_by_kind
+from clothbench.peers.warp import import_warp, init_quietly
 
-_INSTALL = "pip install newton"
+_INSTALL = "pip install 'clothbench[peers]'"
 # Where a particle's contact with a shape is looked for, beyond touching (m): the largest
 # distance a free particle moves in one substep at the speeds of these scenes (~3 m/s at
 # 1/60 s) must fit, or a fast particle passes a collider between two contact searches.
@@ -33,10 +34,8 @@ CONTACT_GAP = 0.06
 
 
 def _import_newton():
-    from clothbench.peers.warp import _import_warp, _init_quietly
-
-    wp = _import_warp()  # the same quiet Warp the warp peer runs (no banner on stdout)
-    _init_quietly(wp)
+    wp = import_warp()  # the same quiet Warp the warp peer runs (no banner on stdout)
+    init_quietly(wp)
     import newton
 
     return wp, newton

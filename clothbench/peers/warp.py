@@ -35,7 +35,7 @@ _NO_DRIVER_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA 
 _KERNEL = None  # the step, defined on first use so clothbench imports without warp
 
 
-def _import_warp():
+def import_warp():
     import warp as wp
 
     # no banner or per-module load lines on stdout (they would corrupt --json)
@@ -46,7 +46,7 @@ def _import_warp():
     return wp
 
 
-def _init_quietly(wp) -> None:
+def init_quietly(wp) -> None:
     """wp.init() without _NO_DRIVER_WARNING. Warp has no setting for it: its C++ core
     fprintf's it to stderr while loading the driver (native/cuda_util.cpp, init_cuda_driver),
     before any Python-level log level applies. So file descriptor 2 is pointed at a temporary
@@ -74,8 +74,8 @@ def _init_quietly(wp) -> None:
 
 def probe() -> Availability:
     try:
-        wp = _import_warp()
-        _init_quietly(wp)
+        wp = import_warp()
+        init_quietly(wp)
     except ModuleNotFoundError as e:
         if e.name == "warp":
             return Availability(False, f"warp not installed ({_INSTALL})")
@@ -202,8 +202,8 @@ class WarpBackend(Backend):
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
-        wp = self._wp = _import_warp()
-        _init_quietly(wp)
+        wp = self._wp = import_warp()
+        init_quietly(wp)
         name = options.device or _default_device(wp)
         try:
             self._device = wp.get_device(name)

@@ -31,7 +31,7 @@ from clothbench.backends.gl import context as gl_context
 from clothbench.reports.meshes import cloth_indices, cylinder_mesh, perpendicular, sphere_mesh, triangle_mesh
 from clothbench.errors import ClothbenchError
 from clothbench.harness.normals import grid_normals
-from clothbench.reports.render_bounds import _moved, _placed, scene_bounds
+from clothbench.reports.render_bounds import motion_matrix, placement_matrix, scene_bounds
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 
@@ -115,7 +115,7 @@ class _Shape:
     def model_at(self, t: float) -> np.ndarray:
         if self.body is None or self.body.motion is None:
             return self.model
-        return _moved(self.body, t) @ self.model
+        return motion_matrix(self.body, t) @ self.model
 
 
 class Renderer:
@@ -199,7 +199,7 @@ class Renderer:
                 square_vao = vao(vertices, np.array([0, 1, 2, 0, 2, 3], np.uint32))
                 shapes.append(_Shape(square_vao, np.eye(4), FLOOR_COLOUR, tiles=True, body=p))
         for m in self.scene.meshes:  # its triangles in the body frame, placed by its pose
-            shapes.append(_Shape(vao(*triangle_mesh(m.geometry.corners, COLLIDER_SHRINK)), _placed(m),
+            shapes.append(_Shape(vao(*triangle_mesh(m.geometry.corners, COLLIDER_SHRINK)), placement_matrix(m),
                                  COLLIDER_COLOUR, body=m))  # fmt: skip
         return shapes
 

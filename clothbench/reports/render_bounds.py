@@ -22,14 +22,14 @@ def _pose_matrix(body, t: float) -> np.ndarray:
     return m
 
 
-def _placed(body) -> np.ndarray:
+def placement_matrix(body) -> np.ndarray:
     """The body-to-world matrix of the scene file's placement, without its motion."""
     return _pose_matrix(replace(body, motion=None), 0.0)
 
 
-def _moved(body, t: float) -> np.ndarray:
+def motion_matrix(body, t: float) -> np.ndarray:
     """What the body's motion has done to its placement by time t (world to world)."""
-    return _pose_matrix(body, t) @ np.linalg.inv(_placed(body))
+    return _pose_matrix(body, t) @ np.linalg.inv(placement_matrix(body))
 
 
 def _mesh_box(mesh, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -66,7 +66,7 @@ def scene_bounds(scene: Scene, duration: float = 0.0) -> tuple[np.ndarray, np.nd
             hi = np.maximum(hi, np.array(end) + c.radius)
     for body in [b for b in scene.spheres + scene.cylinders if b.motion is not None]:
         for t in times:  # where its motion takes it: the same shape moved by its pose
-            moved = _moved(body, t)
+            moved = motion_matrix(body, t)
             points = [body.center] if body.kind == "sphere" else [body.start, body.end]
             for point in points:
                 centre = (moved @ np.append(point, 1.0))[:3]

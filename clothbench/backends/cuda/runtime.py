@@ -18,18 +18,18 @@ INSTALL_HINT = "cupy not installed (pip install 'clothbench[cuda]' for CUDA 12, 
 CUPY_PACKAGES = ("cupy-cuda13x", "cupy-cuda12x", "cupy-cuda11x", "cupy")
 
 
-def _version(number: int) -> str:
+def version_string(number: int) -> str:
     """13020 -> '13.2', as CUDA encodes its versions (1000 major + 10 minor)."""
     return f"{number // 1000}.{number % 1000 // 10}"
 
 
-def _short(e: BaseException) -> str:
+def error_name(e: BaseException) -> str:
     """'cudaErrorInsufficientDriver' from 'cudaErrorInsufficientDriver: CUDA driver ...'."""
     text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
     return text.split(":", 1)[0].strip() or type(e).__name__
 
 
-def _nvrtc_available() -> bool:
+def nvrtc_available() -> bool:
     try:
         from cupy_backends.cuda.libs import nvrtc
 
@@ -39,7 +39,7 @@ def _nvrtc_available() -> bool:
         return False
 
 
-def _nvcc_available() -> bool:
+def nvcc_available() -> bool:
     try:
         from cupy.cuda import get_nvcc_path  # the nvcc compile_using_nvcc will run
 
@@ -50,12 +50,12 @@ def _nvcc_available() -> bool:
 
 def compiler() -> str | None:
     """'nvrtc' where libnvrtc loads, else 'nvcc' where CuPy finds it, else None."""
-    if _nvrtc_available():
+    if nvrtc_available():
         return "nvrtc"
-    return "nvcc" if _nvcc_available() else None
+    return "nvcc" if nvcc_available() else None
 
 
-def _installed(package: str) -> str | None:
+def installed_version(package: str) -> str | None:
     from importlib import metadata
 
     try:
@@ -105,7 +105,7 @@ def install_hint(major: int | None) -> str:
     return f"pip install 'clothbench[{extra}]' for NVRTC" if extra else "install NVRTC of CuPy's CUDA major"
 
 
-def _driver_note(cupy, major: int | None) -> str:
+def driver_note(cupy, major: int | None) -> str:
     """'; the NVIDIA driver supports CUDA 12.4: pip install ...' where the driver is older than
     CuPy's CUDA, '' where it answers nothing (no driver at all) or is new enough."""
     try:
@@ -116,5 +116,5 @@ def _driver_note(cupy, major: int | None) -> str:
         return ""
     extra = EXTRAS.get(driver // 1000)
     fix = f": use cupy-cuda{driver // 1000}x (pip install 'clothbench[{extra}]')" if extra else ""
-    return f"; the NVIDIA driver supports CUDA {_version(driver)}{fix}"
+    return f"; the NVIDIA driver supports CUDA {version_string(driver)}{fix}"
 

@@ -47,8 +47,8 @@ from clothbench.solver import Solver
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.cuda import launch
 from clothbench.backends.cuda.runtime import (  # noqa: F401 (re-exported: tests and peers use them from here)
-    CUPY_PACKAGES, EXTRAS, INSTALL_HINT, _driver_note, _installed, _nvcc_available, _nvrtc_available,
-    _short, _version, compiler, compiler_name, cuda_major, install_hint,
+    CUPY_PACKAGES, EXTRAS, INSTALL_HINT, compiler, compiler_name, cuda_major, driver_note, error_name,
+    install_hint, installed_version, nvcc_available, nvrtc_available, version_string,
 )  # fmt: skip
 from clothbench.backends.cuda.launch import (
     AUTO_BLOCK, TRANSFERS, PingPong, attached_pins, kernel_constants, motion_rows,
@@ -122,15 +122,15 @@ def kernel_defines(
 # --- availability ---------------------------------------------------------------------
 
 
-# cupy_build and probe stay here: they look up compiler and _installed in this module, where the
-# tests replace them
+# cupy_build and probe stay here: they look up compiler and installed_version in this module,
+# where the tests replace them
 def cupy_build(cupy) -> str:
     """'cupy-cuda13x 14.2.0, CUDA 13.2 runtime': the CuPy wheel (or source build) imported and
     the CUDA runtime it was built with; two wheels at once are both named (CuPy warns)."""
-    found = [f"{p} {v}" for p in CUPY_PACKAGES if (v := _installed(p)) is not None]
+    found = [f"{p} {v}" for p in CUPY_PACKAGES if (v := installed_version(p)) is not None]
     build = " + ".join(found) or f"cupy {getattr(cupy, '__version__', '?')}"
     try:
-        return f"{build}, CUDA {_version(int(cupy.cuda.runtime.runtimeGetVersion()))} runtime"
+        return f"{build}, CUDA {version_string(int(cupy.cuda.runtime.runtimeGetVersion()))} runtime"
     except Exception:
         return build
 
@@ -145,12 +145,12 @@ def probe() -> Availability:
     except ImportError:
         return Availability(False, INSTALL_HINT)
     except Exception as e:  # installed but broken, e.g. built against another numpy
-        return Availability(False, f"cupy failed to import: {type(e).__name__}: {_short(e)}")
+        return Availability(False, f"cupy failed to import: {type(e).__name__}: {error_name(e)}")
     build, major = cupy_build(cupy), cuda_major(cupy)
     try:
         count = cupy.cuda.runtime.getDeviceCount()
     except Exception as e:  # no driver: cudaErrorInsufficientDriver / cudaErrorNoDevice
-        return Availability(False, f"no CUDA device ({build}: {_short(e)}{_driver_note(cupy, major)})")
+        return Availability(False, f"no CUDA device ({build}: {error_name(e)}{driver_note(cupy, major)})")
     if count < 1:
         return Availability(False, f"no CUDA device ({build}: 0 devices)")
     using = compiler()
@@ -306,7 +306,7 @@ class CudaBackend(Backend):
         self.defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision)
         module = self._load_module(options.strict, self._device.compute_capability, self.defines)
         # which CuPy (CUDA 12 or 13) and which compiler built the module: part of the tuning key
-        self._driver = f"CUDA driver {_version(rt.driverGetVersion())}, {cupy_build(cupy)}, {self._compiler}, {self._name}"
+        self._driver = f"CUDA driver {version_string(rt.driverGetVersion())}, {cupy_build(cupy)}, {self._compiler}, {self._name}"
         self._kernels = {name: module.get_function(name) for name in (launch.STEP_KERNEL, launch.STEPS_KERNEL)}
         limit = self._kernels[launch.STEP_KERNEL].max_threads_per_block
         if options.local_size is not None and options.local_size > limit:  # the base refused < 1
@@ -365,7 +365,7 @@ class CudaBackend(Backend):
         except ClothbenchError:
             raise
         except Exception as e:  # e.g. too many resources requested: this shape cannot run here
-            raise ClothbenchError(f"cuda {shape}: {_short(e)}") from None
+            raise ClothbenchError(f"cuda {shape}: {error_name(e)}") from None
         return statistics.median(times)
 
     def _load_module(self, strict: bool, arch: str, defines: tuple[str, ...]):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from clothbench.reports.viewer.draw import DIM, WARN
 from clothbench.reports.viewer.keys import backend_key_span, help_lines, key_of
+from clothbench.reports.viewer.session import has_stages
 
 WIDTH = 58  # characters of the run panel's widest line
 PROFILER_WIDTH = 44
@@ -79,9 +80,7 @@ def profiler_lines(viewer) -> list:
     lines += tree.lines(tree.ms)
     lines += [(line, DIM) for line in _wrap(viewer.timer_note, PROFILER_WIDTH)]
     if viewer.session.profiling and viewer.session.backend_name:
-        from clothbench.reports.viewer.session import _has_stages
-
-        if _has_stages(viewer.session.backend):
+        if has_stages(viewer.session.backend):
             note = "kernel stages: the backend's profile_stages, synchronised between stages"
             lines += [(line, DIM) for line in _wrap(note, PROFILER_WIDTH)]
     return lines

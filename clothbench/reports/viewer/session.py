@@ -36,7 +36,7 @@ KINDS = {"sphere": "spheres", "cylinder": "cylinders", "plane": "planes"}
 DEFAULT_SCENES = {"sphere": "sphere", "cylinder": "cylinder", "plane": "cylinder"}
 
 
-def _has_stages(backend: Backend) -> bool:
+def has_stages(backend: Backend) -> bool:
     """Whether the backend times the stages of its step itself (profile_stages)."""
     return type(backend).profile_stages is not Backend.profile_stages
 
@@ -187,7 +187,7 @@ class Session:
 
     def _run(self, steps: int, profile: FrameProfile, node) -> None:
         b = self.backend
-        if self.profiling and _has_stages(b):
+        if self.profiling and has_stages(b):
             for stage, ms in b.profile_stages(steps).items():
                 profile.add(f"step/kernel/{stage}", ms * steps)
             return
