@@ -327,6 +327,7 @@ def accuracy_rows() -> list:
     return rows
 
 
+@pytest.mark.full  # every figure of a committed accuracy run
 def test_accuracy_figures_split_by_platform_mark_peers_and_label_the_front(tmp_path):
     from types import SimpleNamespace
 

@@ -209,6 +209,7 @@ def test_generic_builds_are_one_key_per_kind_of_scene():
 # --- 3. the CPU build, bit for bit ---------------------------------------------------------
 
 
+@pytest.mark.full  # 500 steps on the CPU shim
 @pytest.mark.parametrize("build", BUILDS)
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
 def test_strict_torus_equals_numpy_after_500_steps(algorithm, build):
@@ -228,6 +229,7 @@ def test_strict_torus_in_the_multistep_kernel_equals_numpy(algorithm):
     assert_matches_reference(pp, scene, (37, STEPS), f"torus, verlet_steps, {algorithm}")
 
 
+@pytest.mark.full  # 1000 steps on the CPU shim
 @pytest.mark.parametrize("kernel", ["verlet_step", "verlet_steps"])
 @pytest.mark.parametrize("build", BUILDS)
 @pytest.mark.parametrize("name", ["sweep", "carried"])
@@ -363,6 +365,7 @@ def test_an_open_mesh_matches_numpy(tmp_path):
         assert_bit_exact(got[1:4], pos[1:4], "above, below the skin and beside the square: unchanged")
 
 
+@pytest.mark.full  # the torus to contact on the CPU shim
 def test_fast_torus_is_as_accurate_as_float32():
     # fast mode (1/sqrt for rsqrt on the CPU, contraction where g++ is allowed) against the
     # float64 reference: held to float32's own error (tests/test_cuda.py, FAST_ERROR_FACTOR)

@@ -113,6 +113,7 @@ def test_junit_counts_read_skip_reasons_and_failures(tmp_path):
     assert tool.junit_counts(tmp_path / "absent.xml")["passed"] == 0
 
 
+@pytest.mark.full  # gpu-check's whole quick run (.ci/run runs it too)
 @pytest.mark.skipif(shutil.which("nvidia-smi") is not None, reason="an NVIDIA driver is here: the GPU parts run")
 def test_without_a_gpu_the_summary_says_why_each_gpu_part_was_skipped_and_the_cpu_rows_are_swept(tmp_path):
     # the smallest run: no install, no figures, one 8x8 grid; probe, GPU tests (they all skip) and sweep

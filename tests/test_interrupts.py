@@ -149,6 +149,7 @@ def _study_rows(path):
         return [{k: v for k, v in r.items() if k not in TIMED} for r in csv.DictReader(f)]
 
 
+@pytest.mark.full  # three studies each
 @pytest.mark.parametrize("command", ["accuracy", "stability"])
 def test_an_interrupted_study_keeps_its_finished_rows_and_resume_completes_it(tmp_path, command):
     from clothbench.cli import main

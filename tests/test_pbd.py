@@ -54,6 +54,7 @@ def structural_strain(pos, s):
     return float(np.abs(lengths / s.spacing - 1).mean())
 
 
+@pytest.mark.full  # 2000 steps of the curtain
 @pytest.mark.parametrize("method", ["jacobi", "coloured"])
 def test_pinned_curtain_at_60hz_stays_bounded(method):
     run = curtain_pbd(method, iterations=10)

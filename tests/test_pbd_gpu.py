@@ -178,6 +178,7 @@ def test_substeps_and_state_round_trip_match_numpy(backend):
 # --- stability and convergence --------------------------------------------------------------
 
 
+@pytest.mark.full  # 2000 steps of the curtain
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("backend", GPU)  # numpy: tests/test_pbd.py
 def test_pinned_curtain_at_60hz_stays_bounded_for_2000_steps(backend, method):

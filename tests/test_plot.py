@@ -159,6 +159,7 @@ def test_pareto_front_is_exactly_the_points_no_other_point_beats():
     assert pareto_front(near, cost=lambda p: p[0], error=lambda p: p[1], tolerance=0.05) == [(1.0, 1.02)]
 
 
+@pytest.mark.full  # a whole committed sweep plotted
 def test_no_panel_carries_more_than_eight_series_and_every_variant_is_drawn_once(tmp_path):
     report = draw_sweep(write_csv(tmp_path / "many.csv", many_variant_rows()))
     for name in ("time_vs_grid", "throughput"):
@@ -203,6 +204,7 @@ def test_speed_vs_error_labels_exactly_the_front_of_each_grid(tmp_path):
     assert {"OpenCL", "Taichi (peer)", "CPU (numpy) f64"} <= texts and "GLSL" not in texts
 
 
+@pytest.mark.full  # two whole committed sweeps plotted
 @pytest.mark.parametrize("with_bound", [True, False])
 def test_the_machine_bound_is_drawn_only_where_the_csv_has_it(tmp_path, with_bound):
     columns = COLUMNS + (("bound_ms",) if with_bound else ())
@@ -238,6 +240,7 @@ def test_compare_of_unrelated_files_fails_in_one_line(tmp_path, capsys):
     assert err.count("\n") == 1 and "no row in common" in err
 
 
+@pytest.mark.full  # every figure of a whole committed sweep
 def test_the_committed_sweep_plots_every_figure(tmp_path):
     # the machine's own sweep: local sizes at some grids only, generic rows, peers
     committed = Path(__file__).resolve().parent.parent / "results" / "cpu-llvmpipe-pocl.csv"

@@ -47,6 +47,7 @@ def section_id(kind: str, path: Path) -> str:
     return re.sub(r"[^a-z0-9]+", "-", f"{kind} {path}".lower()).strip("-")
 
 
+@pytest.mark.full  # the report of every committed CSV: minutes
 def test_committed_results_are_each_recognised(study):
     _, page = study
     for path, what in ((SWEEP, "a sweep"), (PBD_SWEEP, "a sweep"), (ACCURACY, "an accuracy run"),
@@ -54,6 +55,7 @@ def test_committed_results_are_each_recognised(study):
         assert re.search(rf"{re.escape(str(path))}</a></td><td>{what}", page), path
 
 
+@pytest.mark.full  # the report of every committed CSV
 def test_page_holds_a_figure_for_each_input_kind(study):
     _, page = study
     for kind, path, at_least in (("sweep", SWEEP, 4), ("sweep", PBD_SWEEP, 3), ("accuracy", ACCURACY, 2),
@@ -63,6 +65,7 @@ def test_page_holds_a_figure_for_each_input_kind(study):
     assert 'aria-label="Stability against the bound"' in top_section(page, section_id("stability", STABILITY))
 
 
+@pytest.mark.full  # the report of every committed CSV
 def test_sweep_has_speed_against_error_with_its_pareto_front(study):
     _, page = study
     part = top_section(page, section_id("sweep", SWEEP))
@@ -73,6 +76,7 @@ def test_sweep_has_speed_against_error_with_its_pareto_front(study):
     assert "opencl fast/resident/ls=auto" in front.split("</table>")[0]  # the README's fastest at 256x256
 
 
+@pytest.mark.full  # the report of every committed CSV
 def test_the_readme_tables_are_on_the_page(study):
     _, page = study
     part = top_section(page, section_id("sweep", SWEEP))
@@ -87,6 +91,7 @@ def test_the_readme_tables_are_on_the_page(study):
     assert ">Verlet against PBD<" not in part  # one solver only
 
 
+@pytest.mark.full  # the report of every committed CSV
 def test_page_is_self_contained_with_ids_of_its_own(study):
     _, page = study
     links = re.findall(r'(?:href|src)="([^"]*)"', page)
@@ -118,6 +123,7 @@ def test_machine_section_says_when_rows_come_from_different_machines(tmp_path):
     assert "OMP_NUM_THREADS=4" in machine
 
 
+@pytest.mark.full  # a report of a whole sweep, twice
 @pytest.mark.parametrize("cpu, differs", [("AMD EPYC", False), ("Apple M2", True)])
 def test_an_accuracy_run_that_names_its_cpu_is_compared_with_the_sweeps(cpu, differs, tmp_path):
     sweep = _write_rows(tmp_path / "sweep.csv", list(csv.DictReader(SWEEP.open()))[:21])
@@ -214,6 +220,7 @@ return Array.from(document.querySelectorAll('svg, img')).map(e => {
 """
 
 
+@pytest.mark.full  # the report of every committed CSV, in Chromium
 def test_report_renders_in_headless_chromium(study, tmp_path):
     from PIL import Image
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clothbench.backends import BackendOptions, backend_class, create_backend
+from clothbench.backends import BACKENDS, BackendOptions, backend_class, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
 from clothbench.harness.normals import grid_normals
@@ -23,6 +23,7 @@ from conftest import VERLET, assert_bit_exact, every_collider_scene
 from registry_variants import backend_params, options, solver_params, usable
 
 SCENES = (*builtin_scenes(), "all-kinds")
+MESH_SCENES = ("torus", "sweep", "carried")  # a triangle mesh or a moving body: docs/scenes.md
 N = 32  # big enough for every collider to be touched within 500 steps (tests/test_colliders.py)
 
 
@@ -33,9 +34,23 @@ def scene_named(name: str, n: int = N):
 # --- strict: bit for bit ------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("steps", [1, 500])  # 500: after contact with every collider
-@pytest.mark.parametrize("scene_name", SCENES)
-@pytest.mark.parametrize("param", backend_params(builds=True))
+def strict_cases() -> list:
+    """(param, scene, steps): 500 steps is after contact with every collider. The quick tier runs
+    every backend and scene for 1 step and clothbench's own backends for 500 on the analytic
+    scenes; the mesh scenes' 500 steps (the fragment backend's moving mesh costs minutes on
+    llvmpipe) and the peers' run in the full tier."""
+    cases = []
+    for param in backend_params(builds=True):
+        name = param.values[0][0]
+        for scene_name in SCENES:
+            for steps in (1, 500):
+                heavy = steps == 500 and (BACKENDS[name].peer or scene_name in MESH_SCENES)
+                cases.append(pytest.param(param.values[0], scene_name, steps, id=f"{param.id}-{scene_name}-{steps}",
+                                          marks=pytest.mark.full if heavy else ()))  # fmt: skip
+    return cases
+
+
+@pytest.mark.parametrize("param, scene_name, steps", strict_cases())
 def test_strict_matches_numpy_f32_bit_for_bit(param, scene_name, steps):
     name, generic = usable(param)
     scene = scene_named(scene_name)
@@ -49,7 +64,7 @@ def test_strict_matches_numpy_f32_bit_for_bit(param, scene_name, steps):
     assert_bit_exact(prev, ref_prev, f"prev, {what}")
 
 
-@pytest.mark.parametrize("steps", [1, 500])
+@pytest.mark.parametrize("steps", [1, pytest.param(500, marks=pytest.mark.full)])  # 500 at 32^2 is quick
 @pytest.mark.parametrize("scene_name", ["sphere", "drape"])
 @pytest.mark.parametrize("param", backend_params(builds=True))
 def test_strict_matches_numpy_f32_bit_for_bit_on_a_larger_grid(param, scene_name, steps):
@@ -65,7 +80,8 @@ def test_strict_matches_numpy_f32_bit_for_bit_on_a_larger_grid(param, scene_name
 # --- fast: as accurate as float32 ------------------------------------------------------------
 
 
-@pytest.mark.parametrize("scene_name", ["sphere", "drape", "all-kinds"])
+@pytest.mark.parametrize("scene_name", ["sphere", pytest.param("drape", marks=pytest.mark.full),
+                                        pytest.param("all-kinds", marks=pytest.mark.full)])  # fmt: skip
 @pytest.mark.parametrize("param", backend_params(builds=True))
 def test_fast_error_is_of_the_order_of_numpy_f32s_own(param, scene_name):
     # Fast mode may contract FMAs and use rsqrt, division and dot built-ins: each an

@@ -30,6 +30,7 @@ def test_twelve_by_twelve_is_within_the_margin_of_the_lattice_bound():
     assert 0.95 < ratio <= 1.0
 
 
+@pytest.mark.full  # 10,000 steps per variant
 def test_five_percent_under_the_limit_stays_bounded_for_10000_steps(variant):
     solver = variant.solver.replace(dt=0.95 * predicted_dt_max(STIFF))
     with create_backend(variant.backend, STIFF, solver, variant.options) as b:
