@@ -75,7 +75,7 @@ def test_a_worker_killed_mid_sweep_has_its_rows_rescheduled_and_each_row_is_writ
 
 
 def test_timed_rows_ask_for_the_timing_resource_and_error_rows_do_not(cluster):
-    from clothbench.harness.dask_executor import DaskExecutor
+    from clothbench.harness.executor import DaskExecutor
 
     c, client = cluster
     ex = DaskExecutor(c.scheduler_address, client=client)

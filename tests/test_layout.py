@@ -155,7 +155,6 @@ KNOWN_CYCLES = {
     ("clothbench.backends", "clothbench.backends.base"),
     ("clothbench.backends.gl.bodies", "clothbench.backends.gl.context", "clothbench.backends.gl.timers"),
     ("clothbench.backends.opencl.device", "clothbench.backends.opencl.isolated", "clothbench.backends.opencl.verlet"),
-    ("clothbench.harness.dask_executor", "clothbench.harness.executor"),
 }
 KNOWN_PRIVATE_IMPORTS = {
     "backends/gl/context.py imports _GL_QUERY_COUNTER_BITS from clothbench.backends.gl.timers",

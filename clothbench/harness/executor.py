@@ -11,7 +11,19 @@ kills the child and raises KeyboardInterrupt in the parent: nothing half-done co
 run_isolated. A task submitted with `timing=True` runs alone (no other task, timed or not,
 shares the machine while it runs); other tasks (error-only work: references, bisections,
 accuracy runs) run `jobs` at a time. `executor_for(scheduler, jobs)` is that, or the Dask
-distributed one (harness/dask_executor.py) for `--scheduler tcp://HOST:PORT`.
+distributed one, `DaskExecutor`, for `--scheduler tcp://HOST:PORT` (or $CLOTHBENCH_SCHEDULER).
+
+On Dask, each task runs on a worker inside its own child process with the row's time limit
+(run_isolated, as here), and comes back as an Outcome carrying the worker's host name. A timed
+task asks for the worker resource `timing=1`: start each worker machine's one worker with
+`--resources timing=1` and no two timed rows ever share a machine; error-only tasks ask for
+nothing and run anywhere. A worker that dies mid-task (killed, its machine gone) has its tasks
+rescheduled by the scheduler on another worker; the client alone writes the CSV, from results
+only, so every row is written once.
+
+Workers must be allowed child processes: start them with DASK_DISTRIBUTED__WORKER__DAEMON=False
+(README, "Sweeps on several machines"); a daemonic worker runs each task in its own process
+(no crash isolation beyond the worker's own restart by its nanny).
 """
 
 from __future__ import annotations
@@ -26,6 +38,7 @@ from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from clothbench.environment import host_name
 from clothbench.errors import ClothbenchError, signal_name
 from clothbench.harness import faults
 
@@ -303,6 +316,75 @@ class LocalExecutor(Executor):
         return False
 
 
+def run_on_worker(fn, args, kwargs, timeout, method) -> Outcome:
+    """The task as a worker runs it: in a child process where the worker may have one."""
+    if multiprocessing.current_process().daemon:
+        try:
+            outcome = Outcome("ok", fn(*args, **kwargs))
+        except MemoryError as e:
+            outcome = Outcome("crashed", note=f"out of memory: {e}")
+    else:
+        outcome = run_isolated(fn, args, kwargs, timeout=timeout, method=method)
+    outcome.host = host_name()
+    return outcome
+
+
+class DaskExecutor(Executor):
+    """submit(fn, *args, timing=, timeout=, fork_safe=, **kwargs) -> a Dask future of an Outcome."""
+
+    where = "dask"
+
+    def __init__(self, scheduler: str, timeout: float | None = DEFAULT_ROW_TIMEOUT, client=None):
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ClothbenchError(
+                "--scheduler needs Dask distributed: pip install 'clothbench[cluster]' (or 'dask[distributed]')"
+            ) from None
+        self.timeout = timeout
+        self.scheduler = scheduler
+        if client is not None:
+            self.client = client
+        else:
+            try:
+                self.client = Client(scheduler, timeout=30)
+            except OSError as e:
+                raise ClothbenchError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
+        self._own = client is None
+
+    def submit(
+        self, fn, /, *args, timing: bool = False, timeout: float | None = -1.0, fork_safe: bool = True, **kwargs
+    ):
+        limit = self.timeout if timeout == -1.0 else timeout
+        method = start_method(fork_safe=False)  # a worker's process holds threads and sockets: a clean child
+        return self.client.submit(
+            run_on_worker, fn, args, kwargs, limit, method,
+            resources={"timing": 1} if timing else None, pure=False,
+        )  # fmt: skip
+
+    @staticmethod
+    def as_completed(futures):
+        from distributed import as_completed
+
+        return as_completed(futures)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        if self._own:
+            self.client.close()
+
+    def kill_all(self) -> None:
+        pass
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None:
+            try:
+                self.client.cancel(list(self.client.futures.values()) if hasattr(self.client, "futures") else [])
+            except Exception:
+                pass
+        self.shutdown()
+        return False
+
+
 def runner(executor: Executor | None):
     """run(fn, *args, fork_safe=, **kwargs) -> a callable giving (status, value or note):
     fn called here at once without an executor, else submitted as the executor's error-only
@@ -329,14 +411,12 @@ def executor_for(scheduler: str | None = None, jobs: int = 1, timeout: float | N
     $CLOTHBENCH_SCHEDULER), else local processes."""
     scheduler = scheduler or os.environ.get(SCHEDULER_ENV) or None
     if scheduler:
-        from clothbench.harness.dask_executor import DaskExecutor
-
         return DaskExecutor(scheduler, timeout=timeout)
     return LocalExecutor(jobs, timeout=timeout)
 
 
 __all__ = [
-    "DEFAULT_ROW_TIMEOUT", "LocalExecutor", "Outcome", "RowError", "crash_note", "executor_for", "fork_safe",
+    "DEFAULT_ROW_TIMEOUT", "DaskExecutor", "LocalExecutor", "Outcome", "RowError", "crash_note", "executor_for", "fork_safe",
     "run_isolated", "runner",
     "start_method",
 ]  # fmt: skip

@@ -429,7 +429,7 @@ def run_sweep(
     as steps run; on_row(row) after each row is on the disk. Rows run one at a time, each
     in a worker process unless settings.isolate is false; `retry_failed` measures again the
     rows the file holds as failed, crashed or timeout. With a Dask `executor`
-    (harness/dask_executor.py) every row is submitted at once as a timed task (one per
+    (harness/executor.py, DaskExecutor) every row is submitted at once as a timed task (one per
     worker machine at a time) and written here, by this process alone, as it comes back.
     """
     plan = plan_sweep(
