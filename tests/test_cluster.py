@@ -88,6 +88,7 @@ def test_timed_rows_ask_for_the_timing_resource_and_error_rows_do_not(cluster):
     assert {"timing": 1} in wanted.values() and {} in wanted.values()
 
 
+@pytest.mark.full  # two studies on a cluster; the sweep's rescheduling stays quick
 def test_accuracy_and_stability_on_the_cluster_give_the_local_numbers(tmp_path, cluster, monkeypatch):
     c, _ = cluster
     monkeypatch.delenv("CLOTHBENCH_FAULT")  # here; the workers keep theirs: slower rows, the same numbers

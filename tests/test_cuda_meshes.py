@@ -222,6 +222,7 @@ def test_strict_torus_equals_numpy_after_500_steps(algorithm, build):
     assert (ref != bare).any(axis=1).sum() > scene.particles // 4
 
 
+@pytest.mark.full  # the torus to contact on the CPU shim
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
 def test_strict_torus_in_the_multistep_kernel_equals_numpy(algorithm):
     scene = scene_named("torus")
@@ -427,6 +428,7 @@ def test_cuda_backend_runs_a_moving_mesh_in_every_shape(cuda_on_cpu, shape):  # 
     assert_bit_exact(prev, reference(scene, VERLET, MOVING_CHECKPOINTS[-1], "f32")[1], f"prev, {shape}")
 
 
+@pytest.mark.full  # the torus to contact on the CPU shim
 def test_cuda_backend_strict_torus_equals_numpy(cuda_on_cpu):  # noqa: F811
     scene = scene_named("torus")
     backend, _ = cuda_on_cpu(scene, strict=True)

@@ -54,7 +54,7 @@ def without_bodies(scene):
     return scene.replace(meshes=(), pin_attach=None, cylinders=tuple(c for c in scene.cylinders if c.motion is None))
 
 
-FULL = pytest.mark.full  # the quick tier keeps each backend's BVH (the default) on the torus and the carried sheet
+FULL = pytest.mark.full  # the quick tier: glsl-compute's BVH (the default) on the torus, each backend's carried sheet
 CASES = [
     pytest.param("glsl-compute", "torus", "naive", None, marks=FULL),
     ("glsl-compute", "torus", "accelerated", None),
@@ -66,7 +66,7 @@ CASES = [
     # the fragment path: exact while no value is subnormal (llvmpipe flushes them there,
     # docs/semantics.md), which none is in these runs
     pytest.param("glsl", "torus", "naive", None, marks=FULL),
-    ("glsl", "torus", "accelerated", None),
+    pytest.param("glsl", "torus", "accelerated", None, marks=FULL),  # the fragment path's moving carried sheet stays quick
     pytest.param("glsl", "sweep", "accelerated", None, marks=FULL),
     ("glsl", "carried", None, None),
 ]
@@ -101,7 +101,7 @@ def test_two_meshes_one_moving_match_numpy_bit_for_bit(backend, algorithm):  # p
     assert position_error(pos, bare)[1] > 1e-3, "the meshes changed nothing"
 
 
-@pytest.mark.parametrize("backend", ["glsl-compute", "glsl"])
+@pytest.mark.parametrize("backend", ["glsl-compute", pytest.param("glsl", marks=FULL)])
 def test_an_upload_restarts_the_bodies_clock_and_advances_add_up(backend):
     # step k's poses are those at (k + 1) dt counted from the last upload, however the steps
     # are split over advance() calls (here across a block of uploaded rows)
@@ -120,7 +120,7 @@ def test_an_upload_restarts_the_bodies_clock_and_advances_add_up(backend):
 
 
 @pytest.mark.parametrize("scene_name", ["torus", pytest.param("sweep", marks=FULL), "carried"])
-@pytest.mark.parametrize("backend", ["glsl-compute", "glsl"])
+@pytest.mark.parametrize("backend", ["glsl-compute", pytest.param("glsl", marks=FULL)])  # llvmpipe's fragment path: slow
 def test_fast_error_is_of_the_order_of_numpy_f32s_own(backend, scene_name):
     # Fast mode may use dot() and contract products: each an O(float32 epsilon) change per
     # operation, like the reference's own roundings. In contact those are amplified alike, so

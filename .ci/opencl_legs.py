@@ -1,0 +1,23 @@
+"""The OpenCL devices .ci/run reruns the OpenCL tests on, one per runtime not yet covered.
+
+The main run covers this machine's default device; the pip-only leg (Debian's PoCL hidden by the
+empty OCL_ICD_VENDORS folder given as argv[1]) covers the default among what pip installs. This
+prints, as PYOPENCL_CTX values of the unchanged environment, every compiling device whose runtime
+neither default is, so that every runtime that compiles here runs the OpenCL tests once.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+
+def devices(env: dict) -> list[dict]:
+    out = subprocess.run(["clothbench", "backends", "--json"], capture_output=True, text=True, check=True, env=env)
+    return next(r for r in json.loads(out.stdout) if r["backend"] == "opencl").get("devices", [])
+
+
+here = devices(dict(os.environ))
+pip_only = devices(dict(os.environ, OCL_ICD_VENDORS=sys.argv[1]))
+covered = {d["runtime"] for d in here + pip_only if d["default"]}
+print(" ".join(d["device"] for d in here if d["compiles"] and d["runtime"] not in covered))
