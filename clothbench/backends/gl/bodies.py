@@ -1,21 +1,17 @@
-"""The scene's bodies in a GL program, kept apart from the context code: the collide() source
-of its analytic colliders, and its meshes, moving colliders and attached pins (their defines,
-per-step rows and storage buffers, GLBodies)."""
+"""The scene's bodies in a GL program: the collide() source of its analytic colliders, and its
+meshes, moving colliders and attached pins (their defines, per-step rows and storage buffers,
+GLBodies)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from clothbench.kernel_source import glsl_float
 from clothbench.scene import Scene
 from clothbench.backends.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
-
-if TYPE_CHECKING:
-    from clothbench.backends.gl.context import GLDevice
 
 
 # The collider kinds, in the order the step applies them (kernels/collide_KIND.glsl).
@@ -200,9 +196,10 @@ class GLBodies:
     """The storage buffers of a scene's meshes (MESH_*, uploaded once), its per-step rows
     (MOTION_ROWS, a block of MOTION_BLOCK steps at a time) and attached-pin slots (PIN_SLOTS);
     none for a scene without meshes or motion. Step k's rows (counted from the last upload of
-    a state) are the poses at (k + 1) dt, the end of the step, as the NumPy reference's."""
+    a state) are the poses at (k + 1) dt, the end of the step, as the NumPy reference's.
+    `device` is the GLDevice (gl/context.py) whose context holds the buffers."""
 
-    def __init__(self, device: GLDevice, scene: Scene, dt: float, mesh_collision: str | None):
+    def __init__(self, device, scene: Scene, dt: float, mesh_collision: str | None):
         self.device, self.scene, self.dt = device, scene, dt
         self.buffers: dict[int, object] = {}
         self._table: list[np.ndarray] = []  # rows of step k, computed once per k
