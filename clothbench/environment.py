@@ -163,9 +163,7 @@ def git_commit() -> str:
     env = dict(os.environ, GIT_OPTIONAL_LOCKS="0")  # never take the index lock from under a user
 
     def git(*args: str) -> str:
-        out = subprocess.run(
-            ["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10, env=env
-        )
+        out = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10, env=env)
         if out.returncode != 0:
             raise RuntimeError(out.stderr.strip())
         return out.stdout.strip()

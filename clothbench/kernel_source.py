@@ -25,8 +25,7 @@ def kernel_path(filename: str) -> Path:
         if path.is_file():
             return path
     raise ClothbenchError(
-        f"kernel source {filename} not found (looked in {installed.parent} and {_REPO_KERNELS}); "
-        "reinstall clothbench"
+        f"kernel source {filename} not found (looked in {installed.parent} and {_REPO_KERNELS}); reinstall clothbench"
     )
 
 

@@ -102,7 +102,18 @@ def _compile(cc: Compiler, filename: str, source: str, flags: tuple[str, ...], l
         src = Path(tmp, Path(filename).name)
         src.write_text(source)
         built = Path(tmp, "out.so")
-        command = [cc.path, *flags, "-shared", "-fPIC", "-I", str(kernel_path(filename).parent), str(src), "-o", str(built), "-lm"]
+        command = [
+            cc.path,
+            *flags,
+            "-shared",
+            "-fPIC",
+            "-I",
+            str(kernel_path(filename).parent),
+            str(src),
+            "-o",
+            str(built),
+            "-lm",
+        ]
         out = subprocess.run(command, capture_output=True, text=True, timeout=300)
         if out.returncode != 0:
             errors = [line for line in out.stderr.splitlines() if "error" in line] or out.stderr.splitlines() or ["?"]

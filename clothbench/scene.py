@@ -16,7 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
-from clothbench.colliders.analytic import ANCHOR, COLLIDER_KINDS, COLLIDER_OPTIONAL_KEYS, COLLIDER_TABLE_KEYS, Cylinder, Plane, Sphere, body_pose  # noqa: F401 (body_pose, ANCHOR: re-exported)
+from clothbench.colliders.analytic import (
+    ANCHOR,  # noqa: F401 (re-exported: the model's names in one place)
+    COLLIDER_KINDS,
+    COLLIDER_OPTIONAL_KEYS,
+    COLLIDER_TABLE_KEYS,
+    Cylinder,
+    Plane,
+    Sphere,
+    body_pose,  # noqa: F401 (re-exported)
+)
 from clothbench.colliders.mesh import Mesh
 from clothbench.colliders.motion import Frame, Motion, array_of_tables, frames_from_toml, motion_from_toml
 from clothbench.errors import SceneError
@@ -161,11 +170,7 @@ def _finite(x) -> bool:
 
 
 def _vec3(value, what: str) -> tuple[float, float, float]:
-    if (
-        not isinstance(value, (list, tuple))
-        or len(value) != 3
-        or not all(_finite(v) for v in value)
-    ):
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(_finite(v) for v in value):
         raise SceneError(f"{what} must be three finite numbers, got {value!r}")
     return tuple(float(v) for v in value)
 
@@ -241,9 +246,7 @@ def _validate_bodies(s: Scene) -> None:
 def _check_float32_range(s: Scene) -> None:
     """Every backend but the f64 reference works in float32: a value it cannot hold is
     refused here rather than becoming inf inside a kernel."""
-    values = {
-        name: getattr(s, name) for name in ("size", "height", "mass", "stiffness", "damping")
-    }
+    values = {name: getattr(s, name) for name in ("size", "height", "mass", "stiffness", "damping")}
     values["gravity"] = max(map(abs, s.gravity))
     for c in s.colliders:
         for f in dataclasses.fields(c):
@@ -272,7 +275,9 @@ def check_float32_step(scene: Scene, solver: Solver) -> None:
     }
     for name, value in terms.items():
         if not math.isfinite(value) or abs(value) > FLOAT32_MAX:
-            raise SceneError(f"{name} = {value:.3g} overflows float32 (max {FLOAT32_MAX:.4g}): use a smaller dt or constant")
+            raise SceneError(
+                f"{name} = {value:.3g} overflows float32 (max {FLOAT32_MAX:.4g}): use a smaller dt or constant"
+            )
         if value != 0 and abs(value) < FLOAT32_TINY:
             raise SceneError(
                 f"{name} = {value:.3g} underflows float32 (smallest normal {FLOAT32_TINY:.4g}): "
@@ -290,8 +295,7 @@ def _table(data: dict, key: str, allowed: set, where: str) -> dict:
     unknown = set(table) - allowed
     if unknown:
         raise SceneError(
-            f"{where}: unknown key {sorted(unknown)[0]!r} in [{key}] "
-            f"(allowed: {', '.join(sorted(allowed))})"
+            f"{where}: unknown key {sorted(unknown)[0]!r} in [{key}] (allowed: {', '.join(sorted(allowed))})"
         )
     return table
 
@@ -310,9 +314,7 @@ def _colliders(data: dict, kind: str, where: str) -> tuple:
                 + (f" (unknown: {sorted(unknown)[0]!r})" if unknown else "")
                 + (f" (missing: {sorted(missing)[0]!r})" if missing else "")
             )
-        values = {
-            k: table[k] if k == "radius" else _vec3(table[k], f"{kind} {k}") for k in keys
-        }
+        values = {k: table[k] if k == "radius" else _vec3(table[k], f"{kind} {k}") for k in keys}
         out.append(COLLIDER_KINDS[kind](**values, **optional))
     return tuple(out)
 
@@ -335,7 +337,9 @@ def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
     for table in array_of_tables(data.get("mesh", []), "mesh", "meshes", where):
         unknown = set(table) - _MESH_KEYS
         if unknown:
-            raise SceneError(f"{where}: unknown key {sorted(unknown)[0]!r} in [[mesh]] (allowed: {', '.join(sorted(_MESH_KEYS))})")
+            raise SceneError(
+                f"{where}: unknown key {sorted(unknown)[0]!r} in [[mesh]] (allowed: {', '.join(sorted(_MESH_KEYS))})"
+            )
         values = _optional_keys(table, "mesh", where)
         if "file" in table:
             if not isinstance(table["file"], str):
@@ -349,7 +353,9 @@ def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
                 values[k] = _vec3(table[k], f"mesh {k}")
         if "scale" in table:
             scale = table["scale"]
-            values["scale"] = (float(scale),) * 3 if _finite(scale) else _vec3(scale, "mesh scale (one number or three)")
+            values["scale"] = (
+                (float(scale),) * 3 if _finite(scale) else _vec3(scale, "mesh scale (one number or three)")
+            )
         for k in ("subdivisions", "margin"):
             if k in table:
                 values[k] = table[k]
@@ -380,7 +386,9 @@ class Setup:
 
     def replace(self, grid=None, steps=None, dt=None, solver=None, method=None, iterations=None, substeps=None):
         """A copy with command-line overrides applied (None: keep), validated again."""
-        pbd_changes = {k: v for k, v in (("method", method), ("iterations", iterations), ("substeps", substeps)) if v is not None}
+        pbd_changes = {
+            k: v for k, v in (("method", method), ("iterations", iterations), ("substeps", substeps)) if v is not None
+        }
         pbd = self.pbd.replace(**pbd_changes)
         current = self.solver.replace(**({"dt": dt} if dt is not None else {}))
         if isinstance(current, Pbd):
@@ -399,8 +407,7 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
     unknown = set(data) - _TABLES
     if unknown:
         raise SceneError(
-            f"{where}: unknown table or key {sorted(unknown)[0]!r} "
-            f"(allowed: {', '.join(sorted(_TABLES))})"
+            f"{where}: unknown table or key {sorted(unknown)[0]!r} (allowed: {', '.join(sorted(_TABLES))})"
         )
     cloth = _table(data, "cloth", _CLOTH_KEYS, where)
     sim = dict(_table(data, "sim", _SIM_KEYS, where))
@@ -471,8 +478,7 @@ def load_setup(name_or_path: str) -> Setup:
     else:
         if name_or_path not in builtin_scenes():
             raise SceneError(
-                f"unknown scene {name_or_path!r} "
-                f"(built in: {', '.join(builtin_scenes())}; or give a .toml file)"
+                f"unknown scene {name_or_path!r} (built in: {', '.join(builtin_scenes())}; or give a .toml file)"
             )
         where = f"built-in scene {name_or_path}"
         text = (resources.files("clothbench") / "scenes" / f"{name_or_path}.toml").read_text()

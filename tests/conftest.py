@@ -127,6 +127,4 @@ def assert_bit_exact(actual: np.ndarray, expected: np.ndarray, what: str = "") -
     if not np.array_equal(actual, expected):
         diff = actual != expected
         worst = float(np.abs(actual.astype(np.float64) - expected.astype(np.float64)).max())
-        raise AssertionError(
-            f"{what}: {int(diff.sum())} of {diff.size} values differ (max |diff| {worst:.3g})"
-        )
+        raise AssertionError(f"{what}: {int(diff.sum())} of {diff.size} values differ (max |diff| {worst:.3g})")

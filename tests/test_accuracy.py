@@ -125,8 +125,7 @@ def test_numpy_variants_are_f32_and_f64():
 
 def test_accuracy_cli_writes_a_csv_and_both_plots(tmp_path, capsys):
     out = tmp_path / "acc.csv"
-    argv = ["accuracy", "--backends", "numpy", "--grid", "8", "--time", "0.02", "--levels", "3",
-            "--out", str(out)]
+    argv = ["accuracy", "--backends", "numpy", "--grid", "8", "--time", "0.02", "--levels", "3", "--out", str(out)]
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "fitted convergence order: numpy f64: 1.0" in text  # start = rest: first order
@@ -139,8 +138,21 @@ def test_accuracy_cli_writes_a_csv_and_both_plots(tmp_path, capsys):
 
 def test_stability_cli_prints_measured_beside_predicted(tmp_path, capsys):
     out = tmp_path / "stab.csv"
-    argv = ["stability", "--backends", "numpy", "--stiffness", "1000", "--scenes", "flat",
-            "--grid", "10", "--steps", "300", "--out", str(out)]
+    argv = [
+        "stability",
+        "--backends",
+        "numpy",
+        "--stiffness",
+        "1000",
+        "--scenes",
+        "flat",
+        "--grid",
+        "10",
+        "--steps",
+        "300",
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 0
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 2
@@ -180,7 +192,10 @@ def test_pbd_variants_come_from_each_backends_pbd_class():
     pbd = [v for v in variants if v.solver.name == "pbd"]
     assert len(variants) == 2 + 2 * 2 * 2 and len(pbd) == 8 and not skipped
     assert {(v.solver.method, v.solver.iterations) for v in pbd} == {
-        ("jacobi", 10), ("jacobi", 4), ("coloured", 10), ("coloured", 4)
+        ("jacobi", 10),
+        ("jacobi", 4),
+        ("coloured", 10),
+        ("coloured", 4),
     }
     assert pbd[0].solver.name == "pbd" and variants[0].solver.name == "verlet"
     f32 = [v for v in variants if v.options.precision == "f32"]
@@ -255,8 +270,25 @@ def test_undamped_xpbd_converges_to_the_mass_spring_answer():
 
 def test_accuracy_cli_puts_both_solvers_in_one_csv_and_states_the_model_difference(tmp_path, capsys):
     out = tmp_path / "both.csv"
-    argv = ["accuracy", "--backends", "numpy", "--solvers", "verlet,pbd", "--pbd-methods", "jacobi",
-            "--grid", "8", "--time", "0.02", "--levels", "2", "--pbd-dts", "0.004,0.002", "--out", str(out)]
+    argv = [
+        "accuracy",
+        "--backends",
+        "numpy",
+        "--solvers",
+        "verlet,pbd",
+        "--pbd-methods",
+        "jacobi",
+        "--grid",
+        "8",
+        "--time",
+        "0.02",
+        "--levels",
+        "2",
+        "--pbd-dts",
+        "0.004,0.002",
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 0
     text = capsys.readouterr().out
     rows = list(csv.DictReader(open(out)))
@@ -273,14 +305,31 @@ def test_accuracy_cli_puts_both_solvers_in_one_csv_and_states_the_model_differen
     line = next(t for t in text.splitlines() if t.startswith("converged models differ"))
     assert f"verlet vs pbd-jacobi/{DEFAULT_IT}" in line
     assert math.isfinite(float(line.split("RMS ")[1].split(" m")[0]))
-    assert f"fitted convergence order: numpy f64/pbd-jacobi/{DEFAULT_IT}: 1.0" in text  # first order, as Verlet's rest start
+    assert (
+        f"fitted convergence order: numpy f64/pbd-jacobi/{DEFAULT_IT}: 1.0" in text
+    )  # first order, as Verlet's rest start
     assert (tmp_path / "both-speed.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_stability_cli_shows_both_solvers_side_by_side_and_marks_60hz(tmp_path, capsys):
     out = tmp_path / "stab.csv"
-    argv = ["stability", "--backends", "numpy", "--solvers", "verlet,pbd-jacobi",  # the sweep's spelling
-            "--stiffness", "1000", "--scenes", "flat", "--grid", "8", "--steps", "150", "--out", str(out)]
+    argv = [
+        "stability",
+        "--backends",
+        "numpy",
+        "--solvers",
+        "verlet,pbd-jacobi",  # the sweep's spelling
+        "--stiffness",
+        "1000",
+        "--scenes",
+        "flat",
+        "--grid",
+        "8",
+        "--steps",
+        "150",
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 0
     text = capsys.readouterr().out
     rows = list(csv.DictReader(open(out)))
@@ -311,11 +360,23 @@ def accuracy_rows() -> list:
     """Four dts of 14 backend modes, Verlet and PBD, every platform: more than a panel holds."""
     from clothbench.analysis.convergence import AccuracyRow
 
-    modes = [("numpy", "f32"), ("numpy", "f64"), ("opencl", "strict"), ("opencl", "fast"), ("glsl", "strict"),
-             ("glsl-compute", "fast"), ("cuda", "swap"), ("taichi", "fast"), ("warp", "default"), ("numba", "fast")]
+    modes = [
+        ("numpy", "f32"),
+        ("numpy", "f64"),
+        ("opencl", "strict"),
+        ("opencl", "fast"),
+        ("glsl", "strict"),
+        ("glsl-compute", "fast"),
+        ("cuda", "swap"),
+        ("taichi", "fast"),
+        ("warp", "default"),
+        ("numba", "fast"),
+    ]
     rows = []
     for i, (backend, mode) in enumerate(modes):
-        for solver, method in [("verlet", "")] + ([("pbd", "jacobi"), ("pbd", "coloured")] if backend == "opencl" else []):
+        for solver, method in [("verlet", "")] + (
+            [("pbd", "jacobi"), ("pbd", "coloured")] if backend == "opencl" else []
+        ):
             label = f"{backend} {mode}" + (f"/pbd-{method}/10it" if method else "")
             for dt in (2e-3, 1e-3, 5e-4, 2.5e-4):
                 rows.append(AccuracyRow(

@@ -10,17 +10,41 @@ import pytest
 from clothbench.cli import main
 
 RUN_KEYS = {
-    "backend", "device", "grid", "particles", "springs", "steps", "dt", "precision",
-    "ms_per_step", "finite", "max_penetration",
+    "backend",
+    "device",
+    "grid",
+    "particles",
+    "springs",
+    "steps",
+    "dt",
+    "precision",
+    "ms_per_step",
+    "finite",
+    "max_penetration",
 }
 
 
 def test_run_prints_json_from_a_real_process():
     # the must-show, as a user types it (through the installed package)
     out = subprocess.run(
-        [sys.executable, "-m", "clothbench", "run", "--backend", "numpy", "--scene", "sphere",
-         "--grid", "64", "--steps", "300", "--json"],
-        capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "clothbench",
+            "run",
+            "--backend",
+            "numpy",
+            "--scene",
+            "sphere",
+            "--grid",
+            "64",
+            "--steps",
+            "300",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
@@ -203,7 +227,7 @@ def test_sweep_columns_names_every_backend_that_runs_f64(capsys):
     f64 = [n for n, e in BACKENDS.items() if any("f64" in capabilities(n, s).precisions for s in e.solvers())]
     assert "c" in f64 and "numpy" in f64
     assert main(["sweep", "--columns"]) == 0
-    line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("precision "))
+    line = next(row for row in capsys.readouterr().out.splitlines() if row.startswith("precision "))
     assert f"runs on: {', '.join(f64)}" in line and "numpy only" not in line
 
 
@@ -246,7 +270,12 @@ def test_backends_device_list_fits_a_narrow_terminal_with_every_cell_whole(width
     print_opencl_devices([DEVICE], "default: 0:0", width=width)
     out = capsys.readouterr().out
     assert "…" not in out
-    for cell in (DEVICE["name"], DEVICE["platform_version"], DEVICE["driver_version"], "Intel CPU runtime (Intel(R) OpenCL)"):
+    for cell in (
+        DEVICE["name"],
+        DEVICE["platform_version"],
+        DEVICE["driver_version"],
+        "Intel CPU runtime (Intel(R) OpenCL)",
+    ):
         assert cell in out, out
     assert "0:0*" in out and out.rstrip().endswith("default: 0:0")
 

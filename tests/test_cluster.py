@@ -100,6 +100,18 @@ def test_accuracy_and_stability_on_the_cluster_give_the_local_numbers(tmp_path, 
     timing = {"ms_per_step", "ms_per_sim_s"}
     read = lambda p: [{k: v for k, v in r.items() if k not in timing} for r in csv.DictReader(open(p))]  # noqa: E731
     assert read(tmp_path / "local.csv") == read(tmp_path / "dask.csv")
-    st = ["stability", "--backends", "numpy", "--grid", "8", "--steps", "100", "--scenes", "flat", "--stiffness", "1000"]
+    st = [
+        "stability",
+        "--backends",
+        "numpy",
+        "--grid",
+        "8",
+        "--steps",
+        "100",
+        "--scenes",
+        "flat",
+        "--stiffness",
+        "1000",
+    ]
     assert main([*st, "--out", str(tmp_path / "st.csv"), "--scheduler", c.scheduler_address]) == 0
     assert (tmp_path / "st.csv").read_text().count("\n") == 1 + 2

@@ -129,8 +129,7 @@ def nvcc_ptx(tmp_path_factory):
         pytest.skip("nvcc not found on PATH (CUDA toolkit not installed)")
     folder = tmp_path_factory.mktemp("nvcc")
     return {
-        v: nvcc_build(every_kind(), MODES[v[0]], BUILDS[v[1]], v[2], folder / f"{variant_id(v)}.ptx")
-        for v in VARIANTS
+        v: nvcc_build(every_kind(), MODES[v[0]], BUILDS[v[1]], v[2], folder / f"{variant_id(v)}.ptx") for v in VARIANTS
     }
 
 
@@ -434,8 +433,7 @@ def test_coincident_particles_take_the_documented_branch(cpu_pingpong):
 
 def test_particle_at_sphere_centre_goes_straight_up(cpu_pingpong):
     # no springs, no gravity, no damping: the particle stays exactly at the centre until collided
-    scene = Scene(grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0),
-                  spheres=(Sphere((0.5, 1.0, 0.5), 0.25),))
+    scene = Scene(grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0), spheres=(Sphere((0.5, 1.0, 0.5), 0.25),))
     pos, prev = VERLET.initial_state(scene, np.float32)  # particle 4 sits exactly at the centre
     got, want = one_step_both(cpu_pingpong(scene), scene, pos, prev)
     assert np.array_equal(got[4, :3], np.float32([0.5, 1.25, 0.5]))
@@ -972,7 +970,9 @@ def test_cli_run_without_a_device_exits_2_with_one_line():
         pytest.skip("a CUDA device is present")
     done = subprocess.run(
         [sys.executable, "-m", "clothbench", "run", "--backend", "cuda", "--steps", "1"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()

@@ -114,7 +114,9 @@ def nvcc_ptx(tmp_path_factory):
     out = {}
     for v in NVCC_VARIANTS:
         name, strict, generic, algorithm = v
-        defines = [cuda._nvcc_escaped(d) for d in cuda.kernel_defines(scene_named(name), VERLET, False, generic, algorithm)]
+        defines = [
+            cuda._nvcc_escaped(d) for d in cuda.kernel_defines(scene_named(name), VERLET, False, generic, algorithm)
+        ]
         ptx = folder / f"{nvcc_id(v)}.ptx"
         cmd = ["nvcc", "-ptx", "-arch=sm_80", *cuda.compile_options(strict), *defines,
                "-Werror", "all-warnings", "-o", str(ptx), str(KERNEL)]  # fmt: skip
@@ -156,7 +158,9 @@ def preprocessed(scene: Scene, generic=False, algorithm="accelerated") -> str:
     finds collide_mesh.cuh beside the kernel, as nvcc does)."""
     gxx = cpu.gxx() or pytest.skip("g++ not found")
     defines = cuda.kernel_defines(scene, VERLET, False, generic, algorithm)
-    done = subprocess.run([gxx, "-E", "-P", "-x", "c++", *defines, str(KERNEL)], capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [gxx, "-E", "-P", "-x", "c++", *defines, str(KERNEL)], capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     return done.stdout
 

@@ -61,7 +61,9 @@ def start(pp: PingPong, scene) -> PingPong:
 
 # --- 1. nvcc -------------------------------------------------------------------------
 
-BUILD_VARIANTS = [(strict, generic, normals) for strict in (True, False) for generic in (False, True) for normals in (False, True)]
+BUILD_VARIANTS = [
+    (strict, generic, normals) for strict in (True, False) for generic in (False, True) for normals in (False, True)
+]
 
 
 def variant_id(v) -> str:
@@ -297,7 +299,13 @@ def toy_shim(tmp_path_factory):
         out = np.zeros(64, np.float32)
         params = (ctypes.c_void_p * 1)(ctypes.cast(ctypes.pointer(ctypes.c_void_p(out.ctypes.data)), ctypes.c_void_p))
         launch_fn = getattr(lib, f"{name}_launch")
-        launch_fn.argtypes = [ctypes.c_uint, ctypes.c_uint, ctypes.c_uint, ctypes.POINTER(ctypes.c_void_p), ctypes.c_int]
+        launch_fn.argtypes = [
+            ctypes.c_uint,
+            ctypes.c_uint,
+            ctypes.c_uint,
+            ctypes.POINTER(ctypes.c_void_p),
+            ctypes.c_int,
+        ]
         return out, launch_fn(1, 64, 64 * 4, params, 1)
 
     return run
@@ -375,7 +383,9 @@ def test_backend_names_its_shape_driver_and_refuses_an_unknown_shape(cuda_on_cpu
     assert runtime.signature == "ppppi"
     backend, _ = cuda_on_cpu(sphere(32), shape="steps/launch=64", local_size=128)
     assert backend.mode == "fast/swap/ls=128/steps/launch=64"
-    with pytest.raises(ClothbenchError, match=r"cuda has no kernel shape 'steps/launch=16' for this scene \(it has: block=256, "):
+    with pytest.raises(
+        ClothbenchError, match=r"cuda has no kernel shape 'steps/launch=16' for this scene \(it has: block=256, "
+    ):
         cuda_on_cpu(sphere(80), shape="steps/launch=16")  # 80 x 80 needs 150 KiB: not on every device
 
 

@@ -57,7 +57,18 @@ def test_crashes_and_hangs_are_rows_and_every_other_row_is_measured(tmp_path, fa
 
 def test_resume_keeps_crashed_rows_unless_retry_failed(tmp_path, faulty, monkeypatch, capsys):
     out = tmp_path / "s.csv"
-    args = ["sweep", "--backends", "fake-abort,fake-fine", "--grids", "8", *TINY, "--row-timeout", "20", "--out", str(out)]
+    args = [
+        "sweep",
+        "--backends",
+        "fake-abort,fake-fine",
+        "--grids",
+        "8",
+        *TINY,
+        "--row-timeout",
+        "20",
+        "--out",
+        str(out),
+    ]
     assert main(args) == 0
     assert [r["status"] for r in read_csv(out)] == ["crashed", "ok"]
     assert main([*args, "--resume"]) == 0  # nothing to measure: the crashed row stays as it is

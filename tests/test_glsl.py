@@ -236,6 +236,7 @@ def test_fast_mode_is_as_accurate_as_float32(backend):
 
 # --- normals (docs/normals.md) -------------------------------------------------------------
 
+
 def normals_of(backend: str, scene: Scene, pos: np.ndarray, strict: bool) -> np.ndarray:
     """Upload `pos` as both positions, step once, return the normals (of `pos`)."""
     with build(backend, scene, strict=strict, normals=True) as b:
@@ -429,8 +430,9 @@ def test_cli_saves_normals_when_asked(backend, tmp_path):
     assert cli.main([*args, "--save", str(path)]) == 0
     saved = np.load(path)
     assert saved["normals"].shape == (256, 4)
-    np.testing.assert_allclose(saved["normals"][:, :3], grid_normals(saved["prev"], 16, np.float64),
-                               rtol=0, atol=NORMAL_TOLERANCE)
+    np.testing.assert_allclose(
+        saved["normals"][:, :3], grid_normals(saved["prev"], 16, np.float64), rtol=0, atol=NORMAL_TOLERANCE
+    )
 
 
 # --- OSMesa, and no GL at all ------------------------------------------------------------

@@ -31,8 +31,6 @@ def grid_of(backend: str, scene_name: str) -> int:
     return 16 if (backend, scene_name) == ("glsl", "sweep") else N
 
 
-
-
 def two_meshes(n: int = 16):
     """A sheet falling onto a still icosphere and a turning box: two meshes in one buffer,
     the second read from the per-step rows."""
@@ -60,13 +58,17 @@ CASES = [
     ("glsl-compute", "torus", "accelerated", None),
     pytest.param("glsl-compute", "sweep", "naive", None, marks=FULL),  # 1000 steps: the paddle comes late
     pytest.param("glsl-compute", "sweep", "accelerated", None, marks=FULL),
-    pytest.param("glsl-compute", "sweep", "accelerated", "steps/dispatch=16", marks=FULL),  # K steps' rows in one launch
+    pytest.param(
+        "glsl-compute", "sweep", "accelerated", "steps/dispatch=16", marks=FULL
+    ),  # K steps' rows in one launch
     ("glsl-compute", "carried", None, None),
     pytest.param("glsl-compute", "carried", None, "steps/dispatch=64", marks=FULL),
     # the fragment path: exact while no value is subnormal (llvmpipe flushes them there,
     # docs/semantics.md), which none is in these runs
     pytest.param("glsl", "torus", "naive", None, marks=FULL),
-    pytest.param("glsl", "torus", "accelerated", None, marks=FULL),  # the fragment path's moving carried sheet stays quick
+    pytest.param(
+        "glsl", "torus", "accelerated", None, marks=FULL
+    ),  # the fragment path's moving carried sheet stays quick
     pytest.param("glsl", "sweep", "accelerated", None, marks=FULL),
     ("glsl", "carried", None, None),
 ]
@@ -120,7 +122,9 @@ def test_an_upload_restarts_the_bodies_clock_and_advances_add_up(backend):
 
 
 @pytest.mark.parametrize("scene_name", ["torus", pytest.param("sweep", marks=FULL), "carried"])
-@pytest.mark.parametrize("backend", ["glsl-compute", pytest.param("glsl", marks=FULL)])  # llvmpipe's fragment path: slow
+@pytest.mark.parametrize(
+    "backend", ["glsl-compute", pytest.param("glsl", marks=FULL)]
+)  # llvmpipe's fragment path: slow
 def test_fast_error_is_of_the_order_of_numpy_f32s_own(backend, scene_name):
     # Fast mode may use dot() and contract products: each an O(float32 epsilon) change per
     # operation, like the reference's own roundings. In contact those are amplified alike, so
@@ -133,7 +137,9 @@ def test_fast_error_is_of_the_order_of_numpy_f32s_own(backend, scene_name):
     _, f32_max = position_error(reference(scene, VERLET, steps, "f32")[0], ref64)
     pos, _ = simulate(backend, scene, VERLET, steps, BackendOptions())
     _, fast_max = position_error(pos, ref64)
-    assert fast_max <= 3 * max(f32_max, 1e-6), f"{backend} {scene_name}: fast {fast_max:.3g} m, numpy f32 {f32_max:.3g} m"
+    assert fast_max <= 3 * max(f32_max, 1e-6), (
+        f"{backend} {scene_name}: fast {fast_max:.3g} m, numpy f32 {f32_max:.3g} m"
+    )
 
 
 def sources(scene, **values) -> str:

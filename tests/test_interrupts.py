@@ -35,7 +35,9 @@ def _data_rows(path) -> int:
 def test_a_signal_mid_row_keeps_finished_rows_and_resume_completes(tmp_path, sig):
     out, started = tmp_path / "s.csv", tmp_path / "started"
     # the first row runs; the second hangs in its worker and says so: the signal comes mid-row
-    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started))
+    env = dict(
+        os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started)
+    )
     proc = subprocess.Popen(_clothbench(*ARGS, "--out", str(out)), env=env, stderr=subprocess.PIPE, text=True)
     wait_until(lambda: lines_in(started) >= 2 and _data_rows(out) >= 1, proc, "the second row to start")
     proc.send_signal(sig)
@@ -84,7 +86,9 @@ def test_a_signal_in_accuracy_or_stability_exits_130_and_writes_no_partial_row(t
     # accuracy rows never end, and each says when it started; stability is long anyway, and its
     # bisection's workers are running once the parent has children
     env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_READY=str(started))
-    proc = subprocess.Popen(_clothbench(*args, "--out", str(out)), env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        _clothbench(*args, "--out", str(out)), env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     if command == "accuracy":
         wait_until(lambda: lines_in(started) >= 1, proc, "a row to start")
     wait_until(lambda: bool(_children(proc.pid)), proc, "its rows' worker processes")
@@ -157,7 +161,9 @@ def test_an_interrupted_study_keeps_its_finished_rows_and_resume_completes_it(tm
     out, started = tmp_path / "part.csv", tmp_path / "started"
     # the first row to start runs, every later one hangs in its worker: the signal comes after one
     # finished row and before the study could end, however fast or slow the machine is
-    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started))
+    env = dict(
+        os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started)
+    )
     proc = subprocess.Popen(_clothbench(*STUDIES[command], "--out", str(out)), env=env,
                             stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
     wait_until(lambda: _data_rows(out) >= 1, proc, "a finished row")  # the header and a finished row

@@ -120,8 +120,16 @@ JUNK = bytes(range(256)) * 4
         ('shape = "box"\nposition = [0.0, nan, 0.0]', {}, "mesh position must be three finite numbers"),
         ('shape = "box"\nmargin = -0.1', {}, "mesh margin must be a finite number >= 0"),
         ('file = "a.obj"\nshape = "box"', {"a.obj": BOX_OBJ.encode()}, "exactly one of file or shape"),
-        ('file = "sheet.obj"', {"sheet.obj": b"v 0 0 0\nv 1 0 0\nv 0 0 1\nf 1 3 2\n"}, "open or not manifold.*margin > 0"),
-        ('file = "line.obj"', {"line.obj": b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n"}, "no triangle left after dropping degenerate"),
+        (
+            'file = "sheet.obj"',
+            {"sheet.obj": b"v 0 0 0\nv 1 0 0\nv 0 0 1\nf 1 3 2\n"},
+            "open or not manifold.*margin > 0",
+        ),
+        (
+            'file = "line.obj"',
+            {"line.obj": b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n"},
+            "no triangle left after dropping degenerate",
+        ),
         ('shape = "box"\nmotion = { velocity = [1, 0] }', {}, "motion velocity must be three finite numbers"),
     ],
 )
@@ -143,7 +151,9 @@ def test_backends_without_meshes_refuse_in_one_line_before_any_work():
     takers = [n for n, e in BACKENDS.items() if e.verlet and "verlet" in backend_class(n).capabilities.meshes]
     assert "numpy" in takers and "c" not in takers
     verb = "does" if len(takers) == 1 else "do"
-    assert refusal == f"c does not take mesh colliders yet (it takes: sphere, cylinder, plane; {', '.join(takers)} {verb})"
+    assert (
+        refusal == f"c does not take mesh colliders yet (it takes: sphere, cylinder, plane; {', '.join(takers)} {verb})"
+    )
     with pytest.raises(ClothbenchError, match="^c does not take mesh colliders yet"):
         backend_class("c")(scene, VERLET, BackendOptions())  # refused before its library is built
 
@@ -235,7 +245,9 @@ def probe_points(mesh, rng, count):
     k = min(count, len(corners))
     pick = corners[rng.choice(len(corners), k, replace=False)]
     on = np.concatenate([pick[:, 0], (pick[:, 0] + pick[:, 1]) / 2, pick.mean(1), pick.mean(1) * 0.97])
-    far = np.array([[1e4, 0, 0], [0, -3e3, 2e3], [0, 0, 0], [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2]])
+    far = np.array(
+        [[1e4, 0, 0], [0, -3e3, 2e3], [0, 0, 0], [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2]]
+    )
     return np.concatenate([around, on, far]).astype(np.float32).T
 
 

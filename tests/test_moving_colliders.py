@@ -88,14 +88,28 @@ def test_keyframes_interpolate_linearly_and_hold_outside():
     "text, message",
     [
         ('[pins]\nedge = "top"\nattach = "ghost"\n', "pins attach to 'ghost', which names no collider or frame"),
-        ('[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nname = "b"\n[pins]\nattach = "b"\n', "attach needs pinned particles"),
-        ('[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { keyframes = [[1.0, [0, 0, 0], [0, 0, 0]], [0.5, [0, 0, 0], [0, 0, 0]]] }\n',
-         "keyframe times must increase"),
-        ('[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { velocity = [1, 0, 0], keyframes = [] }\n', "not both"),
-        ('[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { speed = 2 }\n', "unknown key 'speed'"),
-        ('[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { velocity = [nan, 0, 0] }\n', "must be three finite numbers"),
-        ('[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nname = "a"\n[[frame]]\nname = "a"\n', "name 'a' is used more than once"),
-        ('[[frame]]\norigin = [0, 0, 0]\n', "\\[\\[frame\\]\\] needs a name"),
+        (
+            '[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nname = "b"\n[pins]\nattach = "b"\n',
+            "attach needs pinned particles",
+        ),
+        (
+            "[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { keyframes = [[1.0, [0, 0, 0], [0, 0, 0]], [0.5, [0, 0, 0], [0, 0, 0]]] }\n",
+            "keyframe times must increase",
+        ),
+        (
+            "[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { velocity = [1, 0, 0], keyframes = [] }\n",
+            "not both",
+        ),
+        ("[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { speed = 2 }\n", "unknown key 'speed'"),
+        (
+            "[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nmotion = { velocity = [nan, 0, 0] }\n",
+            "must be three finite numbers",
+        ),
+        (
+            '[[sphere]]\ncenter = [0, 0, 0]\nradius = 0.1\nname = "a"\n[[frame]]\nname = "a"\n',
+            "name 'a' is used more than once",
+        ),
+        ("[[frame]]\norigin = [0, 0, 0]\n", "\\[\\[frame\\]\\] needs a name"),
     ],
 )
 def test_bad_motion_and_attachments_are_refused(tmp_path, text, message):
@@ -111,7 +125,10 @@ def test_backends_without_motion_refuse_in_one_line():
     takers = [n for n, e in BACKENDS.items() if e.verlet and "verlet" in backend_class(n).capabilities.moving_colliders]
     assert "numpy" in takers and "c" not in takers
     verb = "does" if len(takers) == 1 else "do"
-    assert refusal == f"c does not take moving colliders yet (it takes: fixed colliders and fixed pins; {', '.join(takers)} {verb})"
+    assert (
+        refusal
+        == f"c does not take moving colliders yet (it takes: fixed colliders and fixed pins; {', '.join(takers)} {verb})"
+    )
     pinned = Scene(grid=4, pin_edge="top", pin_attach="f", frames=(Frame("f"),))
     assert "pins attached to a body" in backend_class("c").capabilities.scene_refusal("c", pinned)
 

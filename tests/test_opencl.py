@@ -270,8 +270,9 @@ def test_an_edit_to_collide_cl_reaches_the_compiler(monkeypatch):
     monkeypatch.setattr(kernel_source, "read_kernel", lambda name: edited.get(name) or real(name))
     with pytest.raises(ClothbenchError) as e:
         create_backend("opencl", sphere(8), VERLET, BackendOptions(strict=True, generic=True))
-    assert_names_the_place(str(e.value), "collide.cl", edited["collide.cl"], "no_such_type broken;",
-                           "unknown type name 'no_such_type'")
+    assert_names_the_place(
+        str(e.value), "collide.cl", edited["collide.cl"], "no_such_type broken;", "unknown type name 'no_such_type'"
+    )
 
 
 def assert_names_the_place(message: str, filename: str, text: str, broken: str, error: str) -> None:
@@ -309,7 +310,9 @@ def test_a_second_backend_of_the_same_key_builds_nothing(monkeypatch):
     assert len(built) == len({width, 1})
     assert second.programs == first.programs and second.key == first.key
     # generic: one program for every scene, whatever its grid or colliders
-    generic = [create_backend("opencl", s, VERLET, BackendOptions(strict=True, generic=True)) for s in (scene, sphere(31))]
+    generic = [
+        create_backend("opencl", s, VERLET, BackendOptions(strict=True, generic=True)) for s in (scene, sphere(31))
+    ]
     assert generic[0].programs == generic[1].programs and len(built) <= len({width, 1}) + 1
     for b in generic:
         b.close()
@@ -341,7 +344,9 @@ def test_specialised_step_writes_every_particle_once(n, strict):
     for ls in (None, 7):
         options = BackendOptions(strict=strict, local_size=ls)
         for shape in OpenCLBackend.kernel_shapes(scene, options):  # the rows kernels mask the edges instead
-            with create_backend("opencl", scene, VERLET, BackendOptions(strict=strict, local_size=ls, shape=shape)) as b:
+            with create_backend(
+                "opencl", scene, VERLET, BackendOptions(strict=strict, local_size=ls, shape=shape)
+            ) as b:
                 b.upload(pos, prev)
                 b.advance(1)
                 assert_bit_exact(b.read()[1], pos, f"prev after one step, n={n} ls={ls} shape={shape}")
@@ -374,8 +379,13 @@ def test_build_error_shows_the_compiler_log(monkeypatch):
         create_backend("opencl", sphere(8), VERLET, STRICT)
     message = str(e.value)
     assert "-DCLOTH_STRICT" in message, "the message names the build options"
-    assert_names_the_place(message, opencl.KERNEL_FILE, source, "float broken(void) { return no_such_value; }",
-                           "use of undeclared identifier 'no_such_value'")
+    assert_names_the_place(
+        message,
+        opencl.KERNEL_FILE,
+        source,
+        "float broken(void) { return no_such_value; }",
+        "use of undeclared identifier 'no_such_value'",
+    )
 
 
 @pytest.fixture

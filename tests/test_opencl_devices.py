@@ -382,9 +382,16 @@ def test_the_build_log_is_read_from_either_runtimes_exception(text):
 # includes sit inside conditionals (collide.cl, fast_math.cl, <mesh_colliders>) that a
 # build skips in part, and the lines after a skipped one must still be named right
 BROKEN_BUILDS = {
-    "verlet": ("verlet_cloth.cl", "fast_math.cl", lambda spec: (sphere(8), VERLET, BackendOptions(strict=True, device=spec))),
-    "verlet-generic": ("verlet_cloth.cl", "collide.cl",
-                       lambda spec: (sphere(8), VERLET, BackendOptions(strict=True, generic=True, device=spec))),
+    "verlet": (
+        "verlet_cloth.cl",
+        "fast_math.cl",
+        lambda spec: (sphere(8), VERLET, BackendOptions(strict=True, device=spec)),
+    ),
+    "verlet-generic": (
+        "verlet_cloth.cl",
+        "collide.cl",
+        lambda spec: (sphere(8), VERLET, BackendOptions(strict=True, generic=True, device=spec)),
+    ),
     "pbd": ("pbd_cloth.cl", "collide.cl", lambda spec: (*_pbd_curtain(), BackendOptions(strict=True, device=spec))),
 }
 

@@ -11,7 +11,9 @@ REPO_KERNELS = Path(__file__).resolve().parent.parent / "kernels"
 def test_installed_package_finds_every_kernel_and_scene(tmp_path):
     # -I: isolated mode, so clothbench comes from the installed distribution (the wheel in
     # CI), not from the checkout in the current directory
-    kernels = sorted(p.name for p in REPO_KERNELS.iterdir() if p.suffix in {".cl", ".cu", ".frag", ".vert", ".comp", ".glsl", ".h"})
+    kernels = sorted(
+        p.name for p in REPO_KERNELS.iterdir() if p.suffix in {".cl", ".cu", ".frag", ".vert", ".comp", ".glsl", ".h"}
+    )
     assert kernels, "kernels/ holds no kernel sources"
     code = (
         "import json, sys\n"
@@ -23,7 +25,10 @@ def test_installed_package_finds_every_kernel_and_scene(tmp_path):
     )
     out = subprocess.run(
         [sys.executable, "-I", "-c", code, json.dumps(kernels)],
-        cwd=tmp_path, capture_output=True, text=True, timeout=60,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert out.returncode == 0, out.stderr
     found = json.loads(out.stdout)

@@ -150,7 +150,9 @@ def test_glsl_compute_coloured_sweep_in_one_dispatch_is_exact_too(grid, monkeypa
         b.upload(*b.initial_state())
         assert list(b.profile_stages(1)) == expected_stages(scene, solver, nonempty=True)
     assert_bit_exact(
-        simulate("glsl-compute", scene, solver, 60, STRICT)[0], simulate("numpy", scene, solver, 60, F32)[0], f"n={grid}"
+        simulate("glsl-compute", scene, solver, 60, STRICT)[0],
+        simulate("numpy", scene, solver, 60, F32)[0],
+        f"n={grid}",
     )
 
 
@@ -335,7 +337,9 @@ def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized
     monkeypatch.setenv("PYOPENCL_CTX", default_device().spec)  # one device: --retune re-measures the pick
     timed: list[str] = []
     real = opencl_pbd.OpenCLPbdBackend._time_shape
-    monkeypatch.setattr(opencl_pbd.OpenCLPbdBackend, "_time_shape", lambda self, name: timed.append(name) or real(self, name))
+    monkeypatch.setattr(
+        opencl_pbd.OpenCLPbdBackend, "_time_shape", lambda self, name: timed.append(name) or real(self, name)
+    )
     ref_pos, _ = reference(scene, jacobi, 20, "f32")
     tuned = simulate("opencl", scene, jacobi, 20, BackendOptions(strict=True, retune=True))[0]
     assert sorted(timed) == sorted(shapes_of(scene, BackendOptions(strict=True), jacobi) * TUNING_ROUNDS), timed
@@ -409,8 +413,20 @@ def test_options_that_do_not_apply_are_refused_with_a_reason(backend, options, m
 def test_cli_glsl_compute_pbd_at_60hz_stays_finite_and_profiles(capsys):
     # the must-show, with --profile: every stage timed
     require("glsl-compute")
-    argv = ["run", "--backend", "glsl-compute", "--scene", "curtain", "--solver", "pbd",
-            "--dt", "0.0166", "--steps", "600", "--json"]
+    argv = [
+        "run",
+        "--backend",
+        "glsl-compute",
+        "--scene",
+        "curtain",
+        "--solver",
+        "pbd",
+        "--dt",
+        "0.0166",
+        "--steps",
+        "600",
+        "--json",
+    ]
     assert main(argv) == 0
     run = json.loads(capsys.readouterr().out)
     assert run["finite"] is True and run["solver"] == "pbd" and run["max_penetration"] < 1e-5

@@ -306,7 +306,9 @@ def _cut(tmp_path, where: str):
 @pytest.mark.parametrize("command", ["plot", "compare"])
 def test_a_csv_cut_before_any_whole_row_is_refused_as_truncated(command, where, tmp_path, capsys):
     path, _ = _cut(tmp_path, where)
-    argv = ["plot", str(path), "--out", str(tmp_path / "figs")] if command == "plot" else ["compare", str(path), str(path)]
+    argv = (
+        ["plot", str(path), "--out", str(tmp_path / "figs")] if command == "plot" else ["compare", str(path), str(path)]
+    )
     assert main(argv) == 2
     _one_line_error(capsys, str(path), f"truncated inside its {where}")
 

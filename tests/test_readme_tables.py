@@ -81,4 +81,7 @@ def test_limits_take_the_fastest_of_each_kind_per_grid():
     assert (line["grid"], line["best"], line["peer"]) == (256, "opencl fast", "numba fast")
     assert line["vs_c"] == pytest.approx(0.8) and line["peer_ratio"] == pytest.approx(5.0)
     assert line["bound_ms"] == 0.12 and line["fraction"] == 0.5 and line["fastest_any"] == "opencl fast"
-    assert "| 256×256 | 0.300 | opencl fast | 0.240 | 0.80× | numba fast | 1.200 | 5.0× | 0.120 (memory) | 50 % (opencl fast) |" in limits_markdown(rows)
+    assert (
+        "| 256×256 | 0.300 | opencl fast | 0.240 | 0.80× | numba fast | 1.200 | 5.0× | 0.120 (memory) | 50 % (opencl fast) |"
+        in limits_markdown(rows)
+    )

@@ -91,8 +91,7 @@ def test_the_gif_has_the_frames_asked_for(tmp_path):
     out = tmp_path / "cloth.gif"
     seen = []
     settings = RenderSettings(frames=5, every=40, size=SIZE)
-    report = render(small("sphere"), VERLET, "glsl", BackendOptions(), settings, str(out),
-                    on_frame=seen.append)
+    report = render(small("sphere"), VERLET, "glsl", BackendOptions(), settings, str(out), on_frame=seen.append)
     assert seen == [1, 2, 3, 4, 5]
     with Image.open(out) as gif:
         assert gif.n_frames == 5 and report.merged == 0

@@ -127,7 +127,9 @@ def test_machine_section_says_when_rows_come_from_different_machines(tmp_path):
 @pytest.mark.parametrize("cpu, differs", [("AMD EPYC", False), ("Apple M2", True)])
 def test_an_accuracy_run_that_names_its_cpu_is_compared_with_the_sweeps(cpu, differs, tmp_path):
     sweep = _write_rows(tmp_path / "sweep.csv", list(csv.DictReader(SWEEP.open()))[:21])
-    accuracy = _write_rows(tmp_path / "acc.csv", [{**r, "cpu": cpu} for r in list(csv.DictReader(ACCURACY.open()))[:15]])
+    accuracy = _write_rows(
+        tmp_path / "acc.csv", [{**r, "cpu": cpu} for r in list(csv.DictReader(ACCURACY.open()))[:15]]
+    )
     out = tmp_path / "r.html"
     assert main(["report", str(sweep), str(accuracy), "--out", str(out)]) == 0
     machine = top_section(out.read_text(encoding="utf-8"), "machine")

@@ -20,13 +20,7 @@ def test_spring_count_equals_neighbours_inside_the_grid():
     from clothbench.scene import OFFSETS
 
     n = 7
-    brute = sum(
-        1
-        for r in range(n)
-        for c in range(n)
-        for dr, dc in OFFSETS
-        if 0 <= r + dr < n and 0 <= c + dc < n
-    )
+    brute = sum(1 for r in range(n) for c in range(n) for dr, dc in OFFSETS if 0 <= r + dr < n and 0 <= c + dc < n)
     assert count_springs(n) == brute
 
 

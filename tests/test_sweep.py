@@ -149,7 +149,12 @@ def test_sweep_of_two_tiny_grids_writes_every_column_and_one_row_per_variant_and
     rows = read_csv(out)
     assert set(ISSUE_COLUMNS) <= set(COLUMNS)
     # numpy sweeps f32 and f64: 2 variants x 2 grids
-    assert sorted((r["grid"], r["precision"]) for r in rows) == [("12", "f32"), ("12", "f64"), ("8", "f32"), ("8", "f64")]
+    assert sorted((r["grid"], r["precision"]) for r in rows) == [
+        ("12", "f32"),
+        ("12", "f64"),
+        ("8", "f32"),
+        ("8", "f64"),
+    ]
     assert len({row_key(r) for r in rows}) == len(rows)
     for r in rows:
         n = int(r["grid"])
@@ -272,7 +277,9 @@ def test_resume_after_a_kill_measures_only_the_missing_rows_and_leaves_no_partia
     # the kill comes once that second row has said it started: exactly one finished row, every time
     cmd = [sys.executable, "-m", "clothbench", "sweep", "--backends", "numpy", "--grids", "8,10,12,14",
            *TINY, "--out", str(out)]  # fmt: skip
-    env = dict(os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started))
+    env = dict(
+        os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started)
+    )
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     try:
         wait_until(lambda: lines_in(started) >= 2 and lines_in(out) >= 2, proc, "the second row to start")
@@ -303,7 +310,23 @@ def test_resume_after_a_kill_measures_only_the_missing_rows_and_leaves_no_partia
 
 def test_generic_both_measures_each_kernel_and_reports_the_specialised_speedup(tmp_path, fake_backends):
     out = tmp_path / "g.csv"
-    assert main(["sweep", "--backends", "fake-generic,numpy", "--grids", "12", *TINY, "--generic", "both", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "sweep",
+                "--backends",
+                "fake-generic,numpy",
+                "--grids",
+                "12",
+                *TINY,
+                "--generic",
+                "both",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = read_csv(out)
     generic = [r for r in rows if r["backend"] == "fake-generic" and r["generic"] == "true"]
     special = [r for r in rows if r["backend"] == "fake-generic" and r["generic"] == "false"]
@@ -318,13 +341,36 @@ def test_generic_both_measures_each_kernel_and_reports_the_specialised_speedup(t
 
 def test_solvers_add_pbd_rows_where_a_backend_has_that_solver(tmp_path, capsys):
     out = tmp_path / "s.csv"
-    assert main(["sweep", "--backends", "numpy", "--grids", "8", *TINY, "--solvers", "verlet,pbd", "--scene", "curtain", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "sweep",
+                "--backends",
+                "numpy",
+                "--grids",
+                "8",
+                *TINY,
+                "--solvers",
+                "verlet,pbd",
+                "--scene",
+                "curtain",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = read_csv(out)
     assert {(r["solver"], r["precision"]) for r in rows} == {
-        ("verlet", "f32"), ("verlet", "f64"), ("pbd", "f32"), ("pbd", "f64"),
+        ("verlet", "f32"),
+        ("verlet", "f64"),
+        ("pbd", "f32"),
+        ("pbd", "f64"),
     }
     pbd = [r for r in rows if r["solver"] == "pbd"]
-    assert all(r["pbd_method"] == "jacobi" and r["iterations"] == str(Pbd().iterations) and r["status"] == "ok" for r in pbd)
+    assert all(
+        r["pbd_method"] == "jacobi" and r["iterations"] == str(Pbd().iterations) and r["status"] == "ok" for r in pbd
+    )
     assert len({row_key(r) for r in rows}) == len(rows)
 
 

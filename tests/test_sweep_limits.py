@@ -43,7 +43,9 @@ def test_then_the_chunks_but_never_below_the_minimum():
 
 def test_a_row_past_its_budget_runs_fewer_steps_and_says_so(tmp_path):
     out = tmp_path / "s.csv"
-    assert main(["sweep", "--backends", "numpy", "--grids", "16", *TINY, "--row-budget", "1e-9", "--out", str(out)]) == 0
+    assert (
+        main(["sweep", "--backends", "numpy", "--grids", "16", *TINY, "--row-budget", "1e-9", "--out", str(out)]) == 0
+    )
     rows = rows_of(out)
     assert len(rows) == 2
     for r in rows:
@@ -67,7 +69,9 @@ def test_a_budgeted_file_can_be_resumed_with_the_same_settings(tmp_path):
 
 
 def test_a_budget_that_is_not_positive_is_one_line_exit_2(tmp_path, capsys):
-    code = main(["sweep", "--backends", "numpy", "--grids", "16", "--row-budget", "0", "--out", str(tmp_path / "s.csv")])
+    code = main(
+        ["sweep", "--backends", "numpy", "--grids", "16", "--row-budget", "0", "--out", str(tmp_path / "s.csv")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "--row-budget" in err
     assert not (tmp_path / "s.csv").exists()
@@ -113,7 +117,9 @@ def test_rows_are_compared_with_the_c_row_of_the_same_grid_and_arithmetic(tmp_pa
         r for r in rows
         if r["backend"] == "c" and r["precision"] == "f32" and r["strict"] == numpy_f32["strict"]
     )  # fmt: skip
-    assert float(numpy_f32["vs_c"]) == pytest.approx(float(numpy_f32["ms_median"]) / float(c_same["ms_median"]), rel=1e-4)
+    assert float(numpy_f32["vs_c"]) == pytest.approx(
+        float(numpy_f32["ms_median"]) / float(c_same["ms_median"]), rel=1e-4
+    )
 
 
 def test_limits_that_cannot_be_measured_are_tried_once_and_the_rows_say_nothing(tmp_path, monkeypatch, capsys):

@@ -327,7 +327,12 @@ def test_the_tuning_listing_shows_status_when_load_and_closeness(tuning_on, mach
                         timer({"threads=2": [2e-3, 2.1e-3, 2e-3], "threads=1": [1e-3, 1.05e-3, 1.1e-3]})[0])  # fmt: skip
     assert main(["tuning", "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
-    assert (row["backend"], row["choice"], row["status"], row["next_best"]) == ("c", "threads=1", "provisional", "threads=2")
+    assert (row["backend"], row["choice"], row["status"], row["next_best"]) == (
+        "c",
+        "threads=1",
+        "provisional",
+        "threads=2",
+    )
     assert row["apart"] == pytest.approx(1.0) and row["noise"] == pytest.approx(0.05) and row["other_share"] > 0.5
     assert main(["tuning"]) == 0
     out = capsys.readouterr().out

@@ -174,7 +174,13 @@ def test_switching_backends_keeps_the_cloth_where_it_is_bit_for_bit(tmp_path, mo
         require(name)
     lines, saved = headless(tmp_path, monkeypatch, "--backend", "numpy", "--strict", "--keys", "4:F3,8:F2,12:F5",
                             frames=16)  # fmt: skip
-    assert [lines[i]["backend"] for i in (2, 3, 7, 11, 15)] == ["numpy", "opencl", "glsl", "glsl-compute", "glsl-compute"]
+    assert [lines[i]["backend"] for i in (2, 3, 7, 11, 15)] == [
+        "numpy",
+        "opencl",
+        "glsl",
+        "glsl-compute",
+        "glsl-compute",
+    ]
     assert "switched numpy -> opencl at step 30" in lines[3]["events"][0]
     assert [line["drawn_from"] for line in (lines[2], lines[3], lines[7], lines[11])] == [
         "readback", "readback", "device", "device"]  # fmt: skip

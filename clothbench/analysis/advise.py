@@ -163,7 +163,9 @@ def check_matches(run: AccuracyRun, setup: Setup) -> None:
     if not math.isclose(damping, scene.damping, rel_tol=1e-9, abs_tol=1e-15):
         raise ClothbenchError(f"{src} was run with damping {damping:g}; scene {scene.name} has {scene.damping:g}")
     if run.stiffness is not None and not math.isclose(run.stiffness, scene.stiffness, rel_tol=1e-9):
-        raise ClothbenchError(f"{src} was run with stiffness {run.stiffness:g}; scene {scene.name} has {scene.stiffness:g}")
+        raise ClothbenchError(
+            f"{src} was run with stiffness {run.stiffness:g}; scene {scene.name} has {scene.stiffness:g}"
+        )
     for row in run.rows:
         if row.backend not in BACKENDS:
             raise ClothbenchError(f"{src}: unknown backend {row.backend!r} (known: {', '.join(BACKENDS)})")

@@ -96,8 +96,9 @@ def solver_artefacts(
     note("verlet: settle and swing")
     v_strain, v_speed, v_energy, v_ms = _settle_and_swing(scene, verlet)
     rows = [
-        ArtefactRow(scene.name, scene.grid, "verlet", "verlet", "", None, verlet.dt, v_strain, 1.0,
-                    v_speed, v_energy, v_ms)
+        ArtefactRow(
+            scene.name, scene.grid, "verlet", "verlet", "", None, verlet.dt, v_strain, 1.0, v_speed, v_energy, v_ms
+        )
     ]
     for method in methods:
         runs = [(it, dts[0]) for it in iterations] + [(pbd.iterations, dt) for dt in dts[1:]]
@@ -106,8 +107,20 @@ def solver_artefacts(
             note(f"pbd-{method} {it} it, dt {dt:.3g}: settle and swing")
             strain, speed, energy, ms = _settle_and_swing(scene, s)
             rows.append(
-                ArtefactRow(scene.name, scene.grid, model_name(s), "pbd", method, it, dt, strain,
-                            strain / v_strain if v_strain > 0 else float("nan"), speed, energy, ms)
+                ArtefactRow(
+                    scene.name,
+                    scene.grid,
+                    model_name(s),
+                    "pbd",
+                    method,
+                    it,
+                    dt,
+                    strain,
+                    strain / v_strain if v_strain > 0 else float("nan"),
+                    speed,
+                    energy,
+                    ms,
+                )
             )
     return rows
 

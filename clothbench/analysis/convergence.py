@@ -265,11 +265,7 @@ def discretisation_dominates(row: AccuracyRow, ref: Reference) -> bool:
     DOMINANCE times its implementation error (rounding, which in float32 grows as dt shrinks)
     and times the reference's own uncertainty."""
     unc = ref.uncertainty if math.isfinite(ref.uncertainty) else 0.0
-    return (
-        row.status == "ok"
-        and row.disc_rms > DOMINANCE * row.impl_rms
-        and row.disc_max > DOMINANCE * unc
-    )
+    return row.status == "ok" and row.disc_rms > DOMINANCE * row.impl_rms and row.disc_max > DOMINANCE * unc
 
 
 def structural_strain(pos: np.ndarray, scene: Scene) -> float:
@@ -295,7 +291,11 @@ def model_difference(a_solver: Solver, a: Reference, b_solver: Solver, b: Refere
     rms, mx = position_error(a.pos, b.pos)
     unc = [u for u in (a.uncertainty, b.uncertainty) if math.isfinite(u)]
     return ModelDifference(
-        model_name(a_solver), model_name(b_solver), rms, mx, max(unc) if unc else float("nan"),
+        model_name(a_solver),
+        model_name(b_solver),
+        rms,
+        mx,
+        max(unc) if unc else float("nan"),
         a.converged and b.converged,
     )
 
@@ -312,9 +312,22 @@ def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float):
     `v` stepped to `time_s`, timed, against float64 at the same dt. (row, pos, prev)."""
     steps = steps_for(time_s, solver.dt)
     row = AccuracyRow(
-        scene.name, scene.grid, solver.start, scene.damping, time_s, v.backend, v.name, "?", "?",
-        solver.dt, steps, solver.name, **pbd_fields(solver), ref_model=model_name(solver),
-        stiffness=scene.stiffness, cpu=cpu_model(),
+        scene.name,
+        scene.grid,
+        solver.start,
+        scene.damping,
+        time_s,
+        v.backend,
+        v.name,
+        "?",
+        "?",
+        solver.dt,
+        steps,
+        solver.name,
+        **pbd_fields(solver),
+        ref_model=model_name(solver),
+        stiffness=scene.stiffness,
+        cpu=cpu_model(),
     )
     try:
         with create_backend(v.backend, scene, solver, v.options) as b:
@@ -351,9 +364,23 @@ def _measure_failed(v: Variant, scene: Scene, solver: Solver, time_s: float, why
     """The row of a run whose worker process crashed or timed out."""
     steps = steps_for(time_s, solver.dt)
     return AccuracyRow(
-        scene.name, scene.grid, solver.start, scene.damping, time_s, v.backend, v.name, "?", "?",
-        solver.dt, steps, solver.name, **pbd_fields(solver), ref_model=model_name(solver),
-        stiffness=scene.stiffness, cpu=cpu_model(), status=" ".join(why.split()),
+        scene.name,
+        scene.grid,
+        solver.start,
+        scene.damping,
+        time_s,
+        v.backend,
+        v.name,
+        "?",
+        "?",
+        solver.dt,
+        steps,
+        solver.name,
+        **pbd_fields(solver),
+        ref_model=model_name(solver),
+        stiffness=scene.stiffness,
+        cpu=cpu_model(),
+        status=" ".join(why.split()),
     )
 
 

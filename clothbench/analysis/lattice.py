@@ -108,7 +108,6 @@ def finite_grid_omega2(n: int, stretch: float = 1.0) -> float:
     return float(np.linalg.eigvalsh(K)[-1])
 
 
-
 __all__ = [
     "dynamical_matrix",
     "lattice_omega2",

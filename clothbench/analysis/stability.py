@@ -40,8 +40,12 @@ def stability_scene(kind: str, stiffness: float, grid: int = 24, damping: float 
         border = (0, 1, n - 2, n - 1)
         pins = tuple(i for i in range(n * n) if i // n in border or i % n in border)
     return Scene(
-        name=f"stability-{kind}", grid=grid, stiffness=stiffness, damping=damping,
-        gravity=(0.0, 0.0, 0.0), pin_indices=pins,
+        name=f"stability-{kind}",
+        grid=grid,
+        stiffness=stiffness,
+        damping=damping,
+        gravity=(0.0, 0.0, 0.0),
+        pin_indices=pins,
     )
 
 
@@ -262,9 +266,25 @@ def measure_stability_limit(
                 hi = mid
     pbd_fields = dict(pbd_method=solver.method, iterations=solver.iterations) if pbd else {}
     return StabilityRow(
-        kind, stiffness, damping, grid, steps, variant.backend, variant.name, lo, hi,
-        predicted_for(kind, scene) if not pbd else None, flat, gershgorin_dt_max(scene),
-        probes, last_problem, solver=solver.name, capped=capped, cap=cap, at_60hz=at_60hz, **pbd_fields,
+        kind,
+        stiffness,
+        damping,
+        grid,
+        steps,
+        variant.backend,
+        variant.name,
+        lo,
+        hi,
+        predicted_for(kind, scene) if not pbd else None,
+        flat,
+        gershgorin_dt_max(scene),
+        probes,
+        last_problem,
+        solver=solver.name,
+        capped=capped,
+        cap=cap,
+        at_60hz=at_60hz,
+        **pbd_fields,
     )
 
 

@@ -83,7 +83,9 @@ class Capabilities:
             from clothbench.backends import precision_backends
 
             runs = ", ".join(precision_backends(options.precision)) or "no backend"
-            return no("--precision", options.precision, f"{', '.join(self.precisions)}; {options.precision} runs on: {runs}")
+            return no(
+                "--precision", options.precision, f"{', '.join(self.precisions)}; {options.precision} runs on: {runs}"
+            )
         if options.transfer is not None and options.transfer not in self.transfers:
             return no("--transfer", options.transfer, ", ".join(self.transfers) or "no transfer modes")
         if options.local_size is not None:
@@ -106,7 +108,9 @@ class Capabilities:
         if options.retune and not self.shapes:
             return no("--retune", "", "one kernel shape: there is nothing to tune")
         if options.mesh_collision is not None and options.mesh_collision not in self.mesh_collisions:
-            return no("--mesh-collision", options.mesh_collision, ", ".join(self.mesh_collisions) or "no mesh colliders")
+            return no(
+                "--mesh-collision", options.mesh_collision, ", ".join(self.mesh_collisions) or "no mesh colliders"
+            )
         return None
 
     def scene_refusal(self, backend: str, scene: Scene, solver: str = "verlet") -> str | None:
@@ -116,7 +120,11 @@ class Capabilities:
         if scene.meshes and solver not in self.meshes:
             return f"{who} does not take mesh colliders yet (it takes: sphere, cylinder, plane; {_takers('meshes', solver)})"
         if scene.has_motion and solver not in self.moving_colliders:
-            what = "moving colliders" if any(c.motion for c in scene.colliders + scene.meshes) else "pins attached to a body"
+            what = (
+                "moving colliders"
+                if any(c.motion for c in scene.colliders + scene.meshes)
+                else "pins attached to a body"
+            )
             return f"{who} does not take {what} yet (it takes: fixed colliders and fixed pins; {_takers('moving_colliders', solver)})"
         return None
 
@@ -189,7 +197,9 @@ class Backend(ABC):
     capabilities: Capabilities = Capabilities()
 
     def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):
-        refusal = self.capabilities.refusal(self.name, options) or self.capabilities.scene_refusal(self.name, scene, solver.name)
+        refusal = self.capabilities.refusal(self.name, options) or self.capabilities.scene_refusal(
+            self.name, scene, solver.name
+        )
         if refusal:
             raise ClothbenchError(refusal)
         self.scene = scene
@@ -211,7 +221,12 @@ class Backend(ABC):
     def mode(self) -> str:
         """The settings that change speed or results, for tables and CSV rows."""
         shape = f"/{self.shape}" if self.shape else ""
-        return self.capabilities.mode(self.options, self.solver, self.effective_local_size) + shape + self.mesh_mode + self.mode_suffix
+        return (
+            self.capabilities.mode(self.options, self.solver, self.effective_local_size)
+            + shape
+            + self.mesh_mode
+            + self.mode_suffix
+        )
 
     @property
     def mesh_collision(self) -> str | None:

@@ -22,16 +22,15 @@ PBD_DT0_HZ = 60.0  # PBD's largest default dt is a 60 Hz frame: what it is used 
 
 
 def register(subparsers) -> None:
-    acc = subparsers.add_parser(
-        "accuracy", help="error against cost and the convergence order, per backend and mode"
-    )
+    acc = subparsers.add_parser("accuracy", help="error against cost and the convergence order, per backend and mode")
     acc.add_argument("--backends", default="all", help="comma-separated names, or all (default)")
     acc.add_argument("--scene", default="drape", help="drape, sphere or a .toml file (default drape)")
     acc.add_argument("--grid", type=int, default=ACCURACY_GRID, help=f"particles per side (default {ACCURACY_GRID})")
     acc.add_argument("--dts", help="comma-separated time steps (default: twice the scene's dt, halved 4 times)")
     acc.add_argument("--levels", type=int, default=DEFAULT_LEVELS, help="how many dts when --dts is not given")
     acc.add_argument(
-        "--time", type=float,
+        "--time",
+        type=float,
         help="simulated time of the comparison, s (default 0.1 without a collider, 0.2 with one)",
     )
     acc.add_argument("--start", choices=["rest", "second-order"], help="initial x_prev (default: the scene's)")
@@ -40,7 +39,8 @@ def register(subparsers) -> None:
         "--stiffness", type=float, help="override k (N/m); PBD's compliance is 1/k unless the scene sets it"
     )
     acc.add_argument(
-        "--solvers", default="verlet",
+        "--solvers",
+        default="verlet",
         help="comma-separated: verlet (mass-spring), pbd (XPBD, docs/pbd.md; --pbd-methods), pbd-jacobi, "
         "pbd-coloured (default verlet)",
     )
@@ -50,7 +50,8 @@ def register(subparsers) -> None:
         help=f"PBD's time steps (default 1/{PBD_DT0_HZ:g} s halved --levels - 1 times: where PBD is used)",
     )
     acc.add_argument(
-        "--artefacts", action="store_true",
+        "--artefacts",
+        action="store_true",
         help="with pbd: also measure PBD's softness (strain at rest) and damping (energy lost "
         "undamped) against Verlet for 3/10/30/100 iterations and dt 1/60..1/240 (numpy f64); "
         "writes <out>-artefacts.csv",
@@ -66,13 +67,15 @@ def register(subparsers) -> None:
 def add_pbd_args(p) -> None:
     """--pbd-methods and --pbd-iterations: which PBD lines --solvers pbd stands for."""
     p.add_argument(
-        "--pbd-methods", default="jacobi,coloured",
+        "--pbd-methods",
+        default="jacobi,coloured",
         help="PBD formulations to run (default both: they meet on a sheet nearly at rest or with substeps, "
         "1.7e-5 m RMS after 20 steps of 4 substeps, and part as it swings within a step, 2e-4 m with one "
-        "substep: docs/pbd.md, \"What Jacobi and Gauss-Seidel converge to\")",
+        'substep: docs/pbd.md, "What Jacobi and Gauss-Seidel converge to")',
     )
     p.add_argument(
-        "--pbd-iterations", type=int_list("--pbd-iterations", 1),
+        "--pbd-iterations",
+        type=int_list("--pbd-iterations", 1),
         help="comma-separated PBD iteration counts (default: the scene's, 10), one line each",
     )
 
@@ -110,7 +113,9 @@ def solvers_from_args(args, base, pbd) -> list:
         if kind == "verlet":
             solvers.append(solver_for_spec("verlet", base, pbd))
         else:
-            solvers += [solver_for_spec(f"pbd-{m}", base, pbd).replace(iterations=it) for m in methods for it in iterations]
+            solvers += [
+                solver_for_spec(f"pbd-{m}", base, pbd).replace(iterations=it) for m in methods for it in iterations
+            ]
     return solvers
 
 
@@ -301,7 +306,9 @@ def _print_accuracy(result, scene, start, time_s) -> None:
         if math.isfinite(order):
             print(f"fitted convergence order: {label}: {order:.2f} (over {points} dts)")
         else:
-            print(f"fitted convergence order: {label}: n/a (rounding dominates at {len(result.rows) and sum(1 for r in result.rows if r.label == label) - points} of its dts)")
+            print(
+                f"fitted convergence order: {label}: n/a (rounding dominates at {len(result.rows) and sum(1 for r in result.rows if r.label == label) - points} of its dts)"
+            )
     if pbd:
         _print_cost_at_error(result.rows)
 
@@ -322,8 +329,5 @@ def _print_cost_at_error(rows) -> None:
         for solver, error in (("verlet", "disc_rms"), ("pbd", "disc_rms"), ("pbd", "vs_verlet_rms")):
             best = cheapest_at([r for r in rows if r.solver == solver], target, error)
             name = solver if error == "disc_rms" else "pbd vs Verlet's answer"
-            cells.append(
-                f"{name} {best.ms_per_sim_s:.3g} ({best.label}, {best.dt:.3g} s)" if best else f"{name} -"
-            )
+            cells.append(f"{name} {best.ms_per_sim_s:.3g} ({best.label}, {best.dt:.3g} s)" if best else f"{name} -")
         print(f"  <= {target:.0e} m: " + " | ".join(cells))
-

@@ -34,7 +34,9 @@ def register(subparsers) -> None:
     p.add_argument("--scene", default="drape", help="drape, sphere or a .toml file (default drape)")
     p.add_argument("--max-error", type=float, required=True, metavar="E", help="the error bound E, in metres")
     p.add_argument(
-        "--metric", choices=tuple(METRICS), default=DEFAULT_METRIC,
+        "--metric",
+        choices=tuple(METRICS),
+        default=DEFAULT_METRIC,
         help="max (default: every particle within E) or rms per-particle distance to the converged "
         "float64 answer (the CSV's disc_max / disc_rms)",
     )
@@ -42,7 +44,8 @@ def register(subparsers) -> None:
     p.add_argument("--csv", help="an accuracy run's CSV (default results/accuracy-<scene>.csv)")
     p.add_argument("--backends", default="all", help="comma-separated names to choose among (default all)")
     p.add_argument(
-        "--run", action="store_true",
+        "--run",
+        action="store_true",
         help="measure here instead of reading a CSV: the run `clothbench accuracy` makes (about 2 minutes "
         "on a 2-core CPU at the default grid, every backend, Verlet and PBD)",
     )
@@ -239,14 +242,18 @@ def print_advice(advice, scene_arg: str, stiffness: float) -> None:
         _print_none(advice, scene_arg)
     else:
         r = c.row
-        print(f"choice: {c.config.label}{_renamed(c)}, {solver_text(r)}, dt {fmt_dt(r.dt)} ({r.steps} steps to t = {r.time_s:g} s)")
+        print(
+            f"choice: {c.config.label}{_renamed(c)}, {solver_text(r)}, dt {fmt_dt(r.dt)} ({r.steps} steps to t = {r.time_s:g} s)"
+        )
         print(f"  cost: {c.cost:.4g} ms of compute per simulated second ({r.ms_per_step:.4g} ms a step) on {r.device}")
         print(
             f"  error at t = {r.time_s:g} s: max {r.disc_max:.2e} m, RMS {r.disc_rms:.2e} m "
             f"(reference uncertainty {c.uncertainty:.2g} m)"
         )
         if r.solver == "pbd" and math.isfinite(r.vs_verlet_max):
-            print(f"  against the mass-spring (Verlet) answer: max {r.vs_verlet_max:.2e} m, RMS {r.vs_verlet_rms:.2e} m")
+            print(
+                f"  against the mass-spring (Verlet) answer: max {r.vs_verlet_max:.2e} m, RMS {r.vs_verlet_rms:.2e} m"
+            )
         print(f"  run it: {' '.join(c.config.run_args(scene_arg))}")
         if advice.runners_up:
             print("runners-up, the next cheapest under E (x: cost against the choice's):")
@@ -297,7 +304,9 @@ def _print_none(advice, scene_arg: str) -> None:
             f"from its order {row.order:.2f} (not measured) to reach E, at ~{p.cost:.4g} ms/s"
         )
         if row.solver == "pbd" and math.isfinite(row.vs_verlet_max):
-            print(f"      (E against its own model; at its finest dt it was {row.vs_verlet_max:.2e} m from the mass-spring answer)")
+            print(
+                f"      (E against its own model; at its finest dt it was {row.vs_verlet_max:.2e} m from the mass-spring answer)"
+            )
         print(
             f"      measure it: clothbench accuracy --scene {scene_arg} --grid {run.grid} --time {run.time_s:g} "
             f"--backends {row.backend} --solvers {spec} {dts} {p.dt!r}"

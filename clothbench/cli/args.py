@@ -25,7 +25,9 @@ class Parser(argparse.ArgumentParser):
         raise ClothbenchError(f"{where}: {message}" if where else message)
 
 
-def add_scene_args(p: argparse.ArgumentParser, default: str = "sphere", run_length: bool = True, solver: bool = True) -> None:
+def add_scene_args(
+    p: argparse.ArgumentParser, default: str = "sphere", run_length: bool = True, solver: bool = True
+) -> None:
     """--scene and what overrides the scene file: --grid, --dt, and (where the command takes
     them) --steps and the solver settings."""
     p.add_argument("--scene", default=default, help=f"built-in scene name or a .toml file (default {default})")
@@ -57,7 +59,9 @@ def setup_from_args(args):
         given = [o for o in ("pbd_method", "iterations", "substeps") if getattr(args, o, None) is not None]
         if given:
             option = "--" + given[0].replace("_", "-")
-            raise ClothbenchError(f"{option} applies to the pbd solver only, and this run's is {setup.solver.name}: add --solver pbd")
+            raise ClothbenchError(
+                f"{option} applies to the pbd solver only, and this run's is {setup.solver.name}: add --solver pbd"
+            )
     if getattr(args, "precision", "f32") == "f32":
         from clothbench.harness.preflight import check_float32_motion
 

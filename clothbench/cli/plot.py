@@ -74,7 +74,9 @@ def cmd_plot(args) -> int:
     if args.kind == "mesh":
         out = Path(args.out) if args.out else csv_path.with_suffix(".png")
         if out.suffix.lower() != ".png":
-            raise ClothbenchError(f"--kind mesh writes one PNG (and an SVG beside it): --out must end in .png, got {out}")
+            raise ClothbenchError(
+                f"--kind mesh writes one PNG (and an SVG beside it): --out must end in .png, got {out}"
+            )
         report = plot_mesh(csv_path, out)
         for note in report.notes:
             print(note)

@@ -51,7 +51,11 @@ def register(subparsers) -> None:
     )
     p.add_argument("--frames", type=int, default=d.frames, help=f"frames to draw (default {d.frames})")
     p.add_argument(
-        "--every", "--steps-per-frame", dest="every", type=int, default=d.every,
+        "--every",
+        "--steps-per-frame",
+        dest="every",
+        type=int,
+        default=d.every,
         help=f"steps between frames (default {d.every})",
     )
     p.add_argument("--out", default="cloth.gif", help="cloth.png, cloth.gif or frames/ (default cloth.gif)")

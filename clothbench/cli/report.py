@@ -19,7 +19,9 @@ def register(subparsers) -> None:
         "and its tables, with the machine and drivers the rows were measured on. Nothing in the page is "
         "fetched from elsewhere: it opens offline and can be mailed or published as it is.",
     )
-    p.add_argument("results", nargs="+", metavar="RESULTS", help="CSV files written by clothbench sweep, accuracy or stability")
+    p.add_argument(
+        "results", nargs="+", metavar="RESULTS", help="CSV files written by clothbench sweep, accuracy or stability"
+    )
     p.add_argument("--out", default="report.html", help="the HTML file to write (default report.html)")
     p.add_argument("--title", default="clothbench report", help="the page's title")
     p.set_defaults(func=cmd_report)

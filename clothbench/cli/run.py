@@ -25,7 +25,8 @@ def register(subparsers) -> None:
     add_scene_args(p)
     add_backend_args(p)
     p.add_argument(
-        "--save", metavar="FILE.npz",
+        "--save",
+        metavar="FILE.npz",
         help="write pos, prev (and normals) to this .npz file, in a folder that exists, and say where "
         "(a folder or another suffix is refused)",
     )
@@ -127,7 +128,9 @@ def check_strict(backend: str, solver: str, options) -> None:
 
     if options.strict and not capabilities(backend, solver).strict:
         why = "it is the reference --strict matches" if backend == "numpy" else "it has one mode, no fast one"
-        raise ClothbenchError(f"{backend} does not take --strict ({why}; --strict applies to backends with a fast mode)")
+        raise ClothbenchError(
+            f"{backend} does not take --strict ({why}; --strict applies to backends with a fast mode)"
+        )
 
 
 def device_clock_line(summary: dict) -> str:

@@ -25,20 +25,24 @@ def register(subparsers) -> None:
     st.add_argument("--backends", default="all", help="comma-separated names, or all (default)")
     st.add_argument("--stiffness", default="1000,10000,100000", help="comma-separated k values (N/m)")
     st.add_argument(
-        "--scenes", default="flat,stretched,crumpled",
+        "--scenes",
+        default="flat,stretched,crumpled",
         help="flat (the bound's own case), stretched (x1.5, border held), crumpled (squeezed, buckled)",
     )
     st.add_argument("--grid", type=int, default=STABILITY_GRID, help=f"particles per side (default {STABILITY_GRID})")
     st.add_argument("--steps", type=int, default=2000, help="steps a dt must survive (default 2000)")
     st.add_argument("--damping", type=float, default=0.002, help="b (N s/m), default the scenes' 0.002")
     st.add_argument(
-        "--solvers", default="verlet",
+        "--solvers",
+        default="verlet",
         help="comma-separated: verlet, pbd (--pbd-methods), pbd-jacobi, pbd-coloured (default verlet); "
         "with PBD, every row also says whether dt = 1/60 s is stable",
     )
     add_pbd_args(st)
     st.add_argument(
-        "--cap", type=float, default=None,
+        "--cap",
+        type=float,
+        default=None,
         help="largest dt the PBD bisection tries, s (default 0.1): stable there reads 'stable up to the cap'",
     )
     st.add_argument(
@@ -93,9 +97,10 @@ def cmd_stability(args) -> int:
         todo = [c for c in cases if stability_key(*c) not in have]
         measured = {}
         try:
-            with LazyProgress(len(todo), "stability") as progress, executor_for(
-                args.scheduler, args.jobs, args.row_timeout
-            ) as executor:
+            with (
+                LazyProgress(len(todo), "stability") as progress,
+                executor_for(args.scheduler, args.jobs, args.row_timeout) as executor,
+            ):
                 futures = [
                     executor.submit(
                         measure_stability_limit, v, kind, k, args.steps, args.grid, args.damping,

@@ -225,8 +225,15 @@ def cmd_sweep(args) -> int:
         executor = executor_for(args.scheduler, timeout=args.row_timeout)
     try:
         progress = run_sweep(
-            names, settings, args.out, args.resume or args.retry_failed, on_start, on_step, lambda row: write_json(),
-            args.retry_failed, executor,
+            names,
+            settings,
+            args.out,
+            args.resume or args.retry_failed,
+            on_start,
+            on_step,
+            lambda row: write_json(),
+            args.retry_failed,
+            executor,
         )
     except KeyboardInterrupt:
         if bar is not None:
@@ -284,7 +291,9 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
         console = Console(width=160)  # a log file or a pipe: no reason to wrap at 80
     local = any(r["local_size"] for r in rows)
     # the scene's mesh size and motion, where a row has them (sweep --mesh-triangles, --motion)
-    shape = {c: head for c, head in (("mesh_triangles", "triangles"), ("motion", "motion")) if any(r.get(c) for r in rows)}
+    shape = {
+        c: head for c, head in (("mesh_triangles", "triangles"), ("motion", "motion")) if any(r.get(c) for r in rows)
+    }
     table = Table(title=title)
     heads = ("backend", "mode") + (("local",) if local else ()) + tuple(shape.values())
     for col in heads + ("n", "ms/step", "min-max", "RMS err (m)", "status"):

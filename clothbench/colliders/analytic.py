@@ -57,8 +57,14 @@ class Cylinder:
         """A fixed unit vector perpendicular to the axis, for a particle exactly on it."""
         u = self.axis
         # cross the axis with the world axis it is least aligned with
-        helper = min(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), key=lambda e: abs(sum(a * b for a, b in zip(u, e))))
-        c = (u[1] * helper[2] - u[2] * helper[1], u[2] * helper[0] - u[0] * helper[2], u[0] * helper[1] - u[1] * helper[0])
+        helper = min(
+            ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), key=lambda e: abs(sum(a * b for a, b in zip(u, e)))
+        )
+        c = (
+            u[1] * helper[2] - u[2] * helper[1],
+            u[2] * helper[0] - u[0] * helper[2],
+            u[0] * helper[1] - u[1] * helper[0],
+        )
         norm = math.sqrt(sum(x * x for x in c))
         return tuple(x / norm for x in c)
 

@@ -81,7 +81,11 @@ class Mesh:
             raise SceneError("a mesh needs exactly one of file or shape")
         if self.shape is not None and self.shape not in SHAPES:
             raise SceneError(f"unknown mesh shape {self.shape!r} (known: {', '.join(SHAPES)})")
-        if not isinstance(self.subdivisions, int) or isinstance(self.subdivisions, bool) or not 0 <= self.subdivisions <= 6:
+        if (
+            not isinstance(self.subdivisions, int)
+            or isinstance(self.subdivisions, bool)
+            or not 0 <= self.subdivisions <= 6
+        ):
             raise SceneError(f"mesh subdivisions must be an integer 0 .. 6, got {self.subdivisions!r}")
         for what, v in (("position", self.position), ("rotation", self.rotation), ("scale", self.scale)):
             if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
@@ -136,7 +140,9 @@ def _file_triangles(file: str) -> tuple[np.ndarray, np.ndarray]:
             f"(its text fallback wanted the missing package {e.name})"
         ) from None
     except Exception as e:  # any parser's failure is the file's problem, said in one line
-        raise SceneError(f"cannot read mesh file {file} as a triangle mesh: {type(e).__name__}: {e}".splitlines()[0]) from None
+        raise SceneError(
+            f"cannot read mesh file {file} as a triangle mesh: {type(e).__name__}: {e}".splitlines()[0]
+        ) from None
     if f.ndim != 2 or len(f) == 0 or f.shape[1] != 3:
         raise SceneError(f"mesh file {file} has no triangles")
     if not np.isfinite(v).all():

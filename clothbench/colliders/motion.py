@@ -109,7 +109,9 @@ def motion_from_toml(value, what: str) -> Motion:
         raise SceneError(f"{what} motion must be a table, e.g. {{ velocity = [0.1, 0, 0] }}")
     unknown = set(value) - _MOTION_KEYS
     if unknown:
-        raise SceneError(f"{what} motion: unknown key {sorted(unknown)[0]!r} (allowed: {', '.join(sorted(_MOTION_KEYS))})")
+        raise SceneError(
+            f"{what} motion: unknown key {sorted(unknown)[0]!r} (allowed: {', '.join(sorted(_MOTION_KEYS))})"
+        )
     if "keyframes" in value:
         if set(value) & {"velocity", "angular_velocity"}:
             raise SceneError(f"{what} motion: give keyframes or velocities, not both")
@@ -118,9 +120,21 @@ def motion_from_toml(value, what: str) -> Motion:
             raise SceneError(f"{what} motion: keyframes must be a non-empty list of [t, [dx, dy, dz], [rx, ry, rz]]")
         frames = []
         for k in raw:
-            if not isinstance(k, list) or len(k) != 3 or not isinstance(k[0], (int, float)) or isinstance(k[0], bool) or not math.isfinite(k[0]):
+            if (
+                not isinstance(k, list)
+                or len(k) != 3
+                or not isinstance(k[0], (int, float))
+                or isinstance(k[0], bool)
+                or not math.isfinite(k[0])
+            ):
                 raise SceneError(f"{what} motion: each keyframe is [t, [dx, dy, dz], [rx, ry, rz]], got {k!r}")
-            frames.append((float(k[0]), _finite3(k[1], f"{what} keyframe displacement"), _finite3(k[2], f"{what} keyframe rotation")))
+            frames.append(
+                (
+                    float(k[0]),
+                    _finite3(k[1], f"{what} keyframe displacement"),
+                    _finite3(k[2], f"{what} keyframe rotation"),
+                )
+            )
         times = [f[0] for f in frames]
         if any(b <= a for a, b in zip(times, times[1:])):
             raise SceneError(f"{what} motion: keyframe times must increase, got {times}")
@@ -147,12 +161,16 @@ def frames_from_toml(raw, where: str) -> tuple[Frame, ...]:
     for table in array_of_tables(raw, "frame", "kinematic frames", where):
         unknown = set(table) - _FRAME_KEYS
         if unknown:
-            raise SceneError(f"{where}: unknown key {sorted(unknown)[0]!r} in [[frame]] (allowed: {', '.join(sorted(_FRAME_KEYS))})")
+            raise SceneError(
+                f"{where}: unknown key {sorted(unknown)[0]!r} in [[frame]] (allowed: {', '.join(sorted(_FRAME_KEYS))})"
+            )
         if not isinstance(table.get("name"), str) or not table["name"]:
             raise SceneError(f"{where}: [[frame]] needs a name (pins attach to it by name)")
-        out.append(Frame(
-            name=table["name"],
-            origin=_finite3(table.get("origin", [0, 0, 0]), "frame origin"),
-            motion=motion_from_toml(table["motion"], f"frame {table['name']!r}") if "motion" in table else None,
-        ))
+        out.append(
+            Frame(
+                name=table["name"],
+                origin=_finite3(table.get("origin", [0, 0, 0]), "frame origin"),
+                motion=motion_from_toml(table["motion"], f"frame {table['name']!r}") if "motion" in table else None,
+            )
+        )
     return tuple(out)

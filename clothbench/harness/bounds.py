@@ -41,6 +41,7 @@ ARITH_SECONDS = 0.004  # one timed run of an arithmetic test, per thread
 ARITH_REPEATS = 3
 CHILD_TIMEOUT_S = 120.0
 
+
 @dataclass(frozen=True)
 class Rates:
     """Operations per second on all the measured threads, of one precision."""

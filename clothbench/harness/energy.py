@@ -86,9 +86,7 @@ def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float) -> 
     return Energy(kinetic, spring, gravity)
 
 
-def energy_scale(
-    scene: Scene, solver: Solver, pos: np.ndarray | None = None, prev: np.ndarray | None = None
-) -> float:
+def energy_scale(scene: Scene, solver: Solver, pos: np.ndarray | None = None, prev: np.ndarray | None = None) -> float:
     """What a stable run of `scene` can plausibly move around (J): the energy of lifting the
     free particles by the size of the sheet, plus the kinetic and elastic energy at the start,
     plus the cloth moving at FLOOR_SPEED."""

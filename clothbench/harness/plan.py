@@ -108,7 +108,9 @@ def plan_variants(
             try:
                 caps = backend_class(name, solver.name).capabilities
             except Exception as e:  # a half-written backend module is reported, not fatal
-                skipped.append((f"{name} ({solver.name})", f"cannot load its {solver.name} class: {type(e).__name__}: {e}"))
+                skipped.append(
+                    (f"{name} ({solver.name})", f"cannot load its {solver.name} class: {type(e).__name__}: {e}")
+                )
                 continue
             who = name if solver.name == "verlet" else f"{name} ({solver.name})"
             refusal = caps.scene_refusal(name, scene, solver.name) if scene is not None else None

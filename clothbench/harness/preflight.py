@@ -129,7 +129,10 @@ def _gib(n: float) -> str:
 
 
 def check_memory(
-    grids: Iterable[int], precisions: Iterable[str] = ("f32",), jobs: int = 1, available: int | None = None,
+    grids: Iterable[int],
+    precisions: Iterable[str] = ("f32",),
+    jobs: int = 1,
+    available: int | None = None,
     reference: bool = True,
 ) -> None:
     """Refuse, in one line, a grid whose rows (`jobs` of them at once) need more memory than

@@ -188,7 +188,12 @@ def measure_row(
             faults.inject(row.backend)
             watch = machine_load.LoadSampler().start()  # a row far off its tuning counts only if quiet
             result = run_timed(
-                backend, total, chunk=steps, on_progress=on_progress, raise_on_blowup=False, build_s=build_s,
+                backend,
+                total,
+                chunk=steps,
+                on_progress=on_progress,
+                raise_on_blowup=False,
+                build_s=build_s,
                 budget_s=budget_s,
             )
             quiet = watch.stop().busy is False

@@ -188,8 +188,7 @@ class SweepFile:
             raise ClothbenchError(f"--out {self.path} is a directory: name a CSV file")
         if not resume and self.path.exists() and self.path.stat().st_size > 0:
             raise ClothbenchError(
-                f"{self.path} already exists: pass --resume to measure only the rows it lacks, "
-                "or choose another --out"
+                f"{self.path} already exists: pass --resume to measure only the rows it lacks, or choose another --out"
             )
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -283,9 +282,12 @@ class SweepFile:
             raise ClothbenchError(f"{self.path} is not a clothbench {self.what} CSV: choose another --out")
         missing = [c for c in columns if c not in header]
         extra = [c for c in header if c not in columns]
-        detail = "; ".join(
-            ([f"lacks {', '.join(missing)}"] if missing else []) + ([f"has {', '.join(extra)}"] if extra else [])
-        ) or "has them in another order"
+        detail = (
+            "; ".join(
+                ([f"lacks {', '.join(missing)}"] if missing else []) + ([f"has {', '.join(extra)}"] if extra else [])
+            )
+            or "has them in another order"
+        )
         raise ClothbenchError(
             f"{self.path} has other columns than this clothbench writes ({detail}): "
             f"resume it with the version that wrote it, or write the {self.what} into a new --out"
@@ -352,7 +354,9 @@ def read_sweep(path: str | os.PathLike, required: Iterable[str] = ()) -> list[di
     if truncated:
         if text.count("\n") == 1:  # the header alone is whole
             raise ClothbenchError(f"{path} is truncated inside its first row {why}: no whole row to read")
-        print(f"clothbench: warning: {path} is truncated: its last line, cut mid-row, was dropped {why}", file=sys.stderr)
+        print(
+            f"clothbench: warning: {path} is truncated: its last line, cut mid-row, was dropped {why}", file=sys.stderr
+        )
     missing = [c for c in required if c not in header]
     if missing:
         raise ClothbenchError(

@@ -165,7 +165,9 @@ class JaxBackend(Backend):
             self._device = jax.devices(options.device)[0] if options.device else jax.devices()[0]
         except Exception as e:
             why = (str(e).strip().splitlines() or [""])[0]
-            raise ClothbenchError(f"jax has no device {options.device!r} here ({type(e).__name__}: {why}); try cpu") from None
+            raise ClothbenchError(
+                f"jax has no device {options.device!r} here ({type(e).__name__}: {why}); try cpu"
+            ) from None
         # XLA's CPU runtime flushes subnormal results to zero on its threads (measured: 6
         # values of the weightless scene after 300 steps; --xla_cpu_ftz=false does not stop
         # it), so a strict run says where it parts from NumPy (harness/strict_watch.py)

@@ -142,8 +142,10 @@ def collider_tensors(scene: Scene, tensor) -> list[tuple[str, dict]]:
         out.append(("sphere", {"c": vec(s), "r": tensor(s[3]), "top": vec(top)}))
     for a, u, radial_r in rows["cylinders"].reshape(-1, 3, 4):  # (start, length), (axis, r), (radial_r, 0)
         out.append(
-            ("cylinder", {"a": vec(a), "u": vec(u), "length": tensor(a[3]), "r": tensor(u[3]),
-                          "radial_r": vec(radial_r)})
+            (
+                "cylinder",
+                {"a": vec(a), "u": vec(u), "length": tensor(a[3]), "r": tensor(u[3]), "radial_r": vec(radial_r)},
+            )
         )
     for p, nrm in rows["planes"].reshape(-1, 2, 4):
         out.append(("plane", {"p0": vec(p), "nrm": vec(nrm)}))

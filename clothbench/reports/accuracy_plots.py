@@ -94,7 +94,8 @@ def speed_vs_error_chart(result) -> Chart:
     solvers = " and ".join(dict.fromkeys(r.solver for r in result.rows))
     fig, body, axes = _accuracy_figure(
         f"Speed against error: {r0.scene} {r0.grid}×{r0.grid}, {solvers}; dt halved along each line",
-        len(panels), overview,
+        len(panels),
+        overview,
     )
     body.supxlabel(f"RMS position error at t = {r0.time_s:g} s against the converged float64 answer of its own "
                    "model (m)", fontsize=9)  # fmt: skip
@@ -204,7 +205,9 @@ def convergence_chart(result) -> Chart:
         solvers = ", ".join(sorted({r.solver for r in result.rows if r.status.startswith("unstable")}))
         notes.append(f"unstable (not drawn) at dt >= {unstable[0]:.3g} s on {solvers}")
     fig, body, axes = _accuracy_figure(
-        f"Convergence: {r0.scene} {r0.grid}×{r0.grid}, start={r0.start}, b={r0.damping:g}", len(panels), False,
+        f"Convergence: {r0.scene} {r0.grid}×{r0.grid}, start={r0.start}, b={r0.damping:g}",
+        len(panels),
+        False,
         "\n".join(notes),
     )
     body.supxlabel("dt (s)", fontsize=9)
@@ -291,8 +294,17 @@ def _stability_points(ax, rows) -> list[str]:
         modes = len({r.label for r in pts})
         label = f"Verlet, {'peers' if platform == PEERS else platform} ({modes} mode{'s' * (modes > 1)})"
         color = platform_color(platform)
-        ax.loglog([r.stiffness * shift for r in pts], [r.dt_stable for r in pts], "o", color=color, fillstyle="none",
-                  markersize=6, alpha=0.8, label=label, linestyle="none")
+        ax.loglog(
+            [r.stiffness * shift for r in pts],
+            [r.dt_stable for r in pts],
+            "o",
+            color=color,
+            fillstyle="none",
+            markersize=6,
+            alpha=0.8,
+            label=label,
+            linestyle="none",
+        )
         drawn.append(label)
     pbd = [r for r in rows if r.solver == "pbd"]
     for method, marker, color in (("jacobi", "P", "tab:purple"), ("coloured", "X", "tab:brown")):

@@ -150,7 +150,9 @@ class Section:
 
     def toc(self) -> Html:
         inner = "".join(c.toc() for c in self.children)
-        return Html(f'<li><a href="#{self.id}">{esc(self.title)}</a>' + (f"<ol>{inner}</ol>" if inner else "") + "</li>")
+        return Html(
+            f'<li><a href="#{self.id}">{esc(self.title)}</a>' + (f"<ol>{inner}</ol>" if inner else "") + "</li>"
+        )
 
 
 # What makes a matplotlib SVG a document of its own, and what it names
@@ -337,7 +339,7 @@ def machine_section(files: list[ResultsFile]) -> Section:
     for i, packages in enumerate(dict.fromkeys(m[3] for m in machines), start=1):
         whose = f" (machine #{i})" if len({m[3] for m in machines}) > 1 else ""
         items = "".join(f"<li><code>{esc(p)}</code></li>" for p in packages.split())
-        sec.body.append(Html(f"<p>Packages that can change a result{whose}:</p><ul class=\"packages\">{items}</ul>"))
+        sec.body.append(Html(f'<p>Packages that can change a result{whose}:</p><ul class="packages">{items}</ul>'))
     devices: dict[tuple[str, str], list[str]] = {}
     for f in files:
         for r in f.rows:
@@ -638,4 +640,17 @@ def build_report(files: list, title: str = "clothbench report") -> tuple[str, in
         return page(title, intro, sections), figures.count
 
 
-__all__ = ["Html", "Exact", "esc", "num", "table", "paragraph", "notice", "Section", "Figures", "page", "study", "build_report"]
+__all__ = [
+    "Html",
+    "Exact",
+    "esc",
+    "num",
+    "table",
+    "paragraph",
+    "notice",
+    "Section",
+    "Figures",
+    "page",
+    "study",
+    "build_report",
+]

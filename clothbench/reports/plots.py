@@ -59,8 +59,9 @@ class PlotReport:
     charts: dict[str, Chart] = field(default_factory=dict)  # figure name -> the drawn figure and its panels
 
 
-def _sweep_figure(title: str, rows: list[Row], panels: int, xlabel: str, ylabel: str, panel_height: float = 4.3,
-                  key: bool = False):
+def _sweep_figure(
+    title: str, rows: list[Row], panels: int, xlabel: str, ylabel: str, panel_height: float = 4.3, key: bool = False
+):
     """(figure, axes, key axes): `panels` panels sharing axes (three to a row; one panel:
     wide), the title, the axes' labels, and a footer saying on what and how the rows were
     measured; with key, an axes for a legend every panel shares (figures_common.panel_axes)."""
@@ -400,8 +401,10 @@ def plot_mesh_triangles(rows: list[Row], report: PlotReport) -> None:
     for s in series:
         algorithm, motion, grid = extra(s.rows[0])
         s.rows.sort(key=_mesh_triangles)
-        s.label += f", {algorithm}" + (f", motion {motion}" if len(motions) > 1 else "") + (
-            f", n={grid}" if len(grids) > 1 else ""
+        s.label += (
+            f", {algorithm}"
+            + (f", motion {motion}" if len(motions) > 1 else "")
+            + (f", n={grid}" if len(grids) > 1 else "")
         )
     # each backend variant (less its algorithm) keeps one colour; accelerated is dashed
     variants = list(dict.fromkeys(s.key[:-3] + s.key[-2:] for s in series))
@@ -414,12 +417,14 @@ def plot_mesh_triangles(rows: list[Row], report: PlotReport) -> None:
         kind, at = crossover(pairs["naive"], pairs["accelerated"])
         name = members["naive"].label.replace(", naive", "", 1)
         top = max(t for t, _ in pairs["accelerated"])
-        notes.append({
-            "between": f"{name}: accelerated faster from about {at:,.0f} triangles" if at else "",
-            "always": f"{name}: accelerated faster at every count measured",
-            "never": f"{name}: accelerated not faster up to {top:,} triangles",
-            "none": f"{name}: no triangle count measured with both algorithms",
-        }[kind])
+        notes.append(
+            {
+                "between": f"{name}: accelerated faster from about {at:,.0f} triangles" if at else "",
+                "always": f"{name}: accelerated faster at every count measured",
+                "never": f"{name}: accelerated not faster up to {top:,} triangles",
+                "none": f"{name}: no triangle count measured with both algorithms",
+            }[kind]
+        )
     if not notes:
         notes.append("no backend measured with both algorithms: no crossover (numpy has the naive loop only)")
     report.notes += [f"mesh_triangles: {n}" for n in notes]
@@ -463,8 +468,10 @@ def plot_mesh(path, out) -> PlotReport:
     report = PlotReport()
     plot_mesh_triangles(ok, report)
     if MESH_FILE not in report.charts:
-        why = report.notes[-1].removeprefix("mesh_triangles: ") if report.notes else (
-            "no row has a mesh (sweep a scene with [[mesh]] colliders, with --mesh-triangles)"
+        why = (
+            report.notes[-1].removeprefix("mesh_triangles: ")
+            if report.notes
+            else ("no row has a mesh (sweep a scene with [[mesh]] colliders, with --mesh-triangles)")
         )
         raise ClothbenchError(f"{path}: {why}")
     report.files += save_figure(report.charts[MESH_FILE].figure, Path(out), dpi=150)

@@ -148,7 +148,9 @@ def runtimes_markdown(sweeps: dict[str, list[dict]]) -> str:
 
 def main(argv: list[str]) -> int:
     if not argv or argv[0].startswith("-"):
-        print("usage: python -m clothbench.reports.readme_tables SWEEP.csv [NAME=RUNTIME_SWEEP.csv ...]", file=sys.stderr)
+        print(
+            "usage: python -m clothbench.reports.readme_tables SWEEP.csv [NAME=RUNTIME_SWEEP.csv ...]", file=sys.stderr
+        )
         return 2
     rows = list(csv.DictReader(open(argv[0], newline="")))
     print(limits_markdown(rows), end="\n\n")

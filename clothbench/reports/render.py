@@ -440,8 +440,6 @@ def write_gif(images: list[np.ndarray], out: Path, fps: float) -> int:
     palette = Image.fromarray(np.concatenate(sample, axis=1)).quantize(255, method=Image.Quantize.MEDIANCUT)
     dither = Image.Dither.FLOYDSTEINBERG
     frames = [Image.fromarray(im).quantize(palette=palette, dither=dither) for im in images]
-    frames[0].save(
-        out, save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0, optimize=False
-    )
+    frames[0].save(out, save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0, optimize=False)
     with Image.open(out) as written:
         return len(images) - written.n_frames

@@ -129,9 +129,7 @@ def analysis_rows(result: ResultsFile) -> list:
     fields = [f for f in dataclasses.fields(cls) if f.init]
     out = []
     for lineno, r in enumerate(result.rows, start=2):
-        values = {
-            f.name: _convert(r[f.name], str(f.type), result.path, lineno, f.name) for f in fields if f.name in r
-        }
+        values = {f.name: _convert(r[f.name], str(f.type), result.path, lineno, f.name) for f in fields if f.name in r}
         out.append(cls(**values))
     return out
 

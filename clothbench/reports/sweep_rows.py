@@ -209,6 +209,7 @@ def footer(rows: list[Row]) -> str:
         return sorted({r.raw.get(col, "") for r in rows} - {""})
 
     dts = ", ".join(f"{float(v) * 1e3:g}" for v in values("dt"))
+
     def budget_cut(r: Row) -> bool:
         return r.raw.get("note", "").startswith(BUDGET_NOTE)
 

@@ -24,7 +24,9 @@ def print_run(s: dict) -> None:
         ("ms/step", spread + " median of timed chunks"),
     ]
     if "device_ms_per_step" in s:
-        rows.append(("device ms/step", f"{s['device_ms_per_step']:.3f} ({s.get('device_timer') or 'profiling events'})"))
+        rows.append(
+            ("device ms/step", f"{s['device_ms_per_step']:.3f} ({s.get('device_timer') or 'profiling events'})")
+        )
     rows += [
         ("warm-up", f"{s['warmup_s']:.2f} s (build + first steps, not timed)"),
         ("finite", "yes" if s["finite"] else "NO"),

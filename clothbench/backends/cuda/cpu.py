@@ -71,7 +71,9 @@ def build(strict: bool, defines: tuple[str, ...]) -> ctypes.CDLL:
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
             if done.returncode != 0 or done.stderr.strip():
                 lines = done.stderr.strip().splitlines()
-                first = next((line for line in lines if "error" in line or "warning" in line), lines[0] if lines else "?")
+                first = next(
+                    (line for line in lines if "error" in line or "warning" in line), lines[0] if lines else "?"
+                )
                 raise ClothbenchError(f"g++ could not build the CUDA shim cleanly: {first}")
             fd, partial = tempfile.mkstemp(dir=library.parent, suffix=".so.partial")
             os.close(fd)
@@ -91,7 +93,13 @@ class ShimRuntime:
         self.lib = lib
         self.kernel = kernel
         self._launch = getattr(lib, f"{kernel}_launch")
-        self._launch.argtypes = [ctypes.c_uint, ctypes.c_uint, ctypes.c_uint, ctypes.POINTER(ctypes.c_void_p), ctypes.c_int]
+        self._launch.argtypes = [
+            ctypes.c_uint,
+            ctypes.c_uint,
+            ctypes.c_uint,
+            ctypes.POINTER(ctypes.c_void_p),
+            ctypes.c_int,
+        ]
         self._launch.restype = ctypes.c_int
         signature = getattr(lib, f"{kernel}_signature")
         signature.restype = ctypes.c_char_p

@@ -117,4 +117,3 @@ def driver_note(cupy, major: int | None) -> str:
     extra = EXTRAS.get(driver // 1000)
     fix = f": use cupy-cuda{driver // 1000}x (pip install 'clothbench[{extra}]')" if extra else ""
     return f"; the NVIDIA driver supports CUDA {version_string(driver)}{fix}"
-

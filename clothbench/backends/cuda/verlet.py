@@ -135,8 +135,6 @@ def cupy_build(cupy) -> str:
         return build
 
 
-
-
 def probe() -> Availability:
     """Whether CUDA runs here; the reason names the CuPy build and its CUDA runtime, and the
     compiler found (for a usable backend too: what it will compile and run with)."""
@@ -170,9 +168,7 @@ def _nvcc_escaped(option: str) -> str:
 
 
 @lru_cache(maxsize=64)
-def compile_kernel(
-    strict: bool, arch: str, using: str, code: str = "cubin", defines: tuple[str, ...] = ()
-) -> bytes:
+def compile_kernel(strict: bool, arch: str, using: str, code: str = "cubin", defines: tuple[str, ...] = ()) -> bytes:
     """verlet_cloth.cu compiled for compute capability `arch` (e.g. "80") with NVRTC or nvcc.
 
     `code` is "cubin" (for one device) or "ptx"; `defines` are kernel_defines(...), so the
@@ -251,7 +247,6 @@ class _CupyRuntime:
             self.kernel((grid,), (block,), args, shared_mem=shared_bytes)
 
 
-
 def shared_memory_limit(device: str | None) -> int:
     """The dynamic shared memory one block of CUDA device `device` (an index) may opt into;
     where no device answers (no cupy, no GPU), the least of any sm_80+ device."""
@@ -275,7 +270,9 @@ class CudaBackend(Backend):
         device=True,  # --device: a CUDA device index
         shapes=True,  # block=N, steps/launch=K (launch.py)
         # meshes (kernels/collide_mesh.cuh) and per-step poses (launch.py: MotionTable), both kernels
-        meshes=("verlet",), moving_colliders=("verlet",), mesh_collisions=("accelerated", "naive"),
+        meshes=("verlet",),
+        moving_colliders=("verlet",),
+        mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "copy"}),
     )
 
@@ -306,7 +303,9 @@ class CudaBackend(Backend):
         self.defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision)
         module = self._load_module(options.strict, self._device.compute_capability, self.defines)
         # which CuPy (CUDA 12 or 13) and which compiler built the module: part of the tuning key
-        self._driver = f"CUDA driver {version_string(rt.driverGetVersion())}, {cupy_build(cupy)}, {self._compiler}, {self._name}"
+        self._driver = (
+            f"CUDA driver {version_string(rt.driverGetVersion())}, {cupy_build(cupy)}, {self._compiler}, {self._name}"
+        )
         self._kernels = {name: module.get_function(name) for name in (launch.STEP_KERNEL, launch.STEPS_KERNEL)}
         limit = self._kernels[launch.STEP_KERNEL].max_threads_per_block
         if options.local_size is not None and options.local_size > limit:  # the base refused < 1

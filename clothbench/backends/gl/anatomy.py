@@ -75,7 +75,9 @@ def compute_rows(n: int, reps: int) -> list[tuple[str, float, float]]:
     from clothbench.backends.gl.compute import GLSLComputeBackend, PASS_INTERIOR
 
     setup = load_setup("sphere")
-    backend = GLSLComputeBackend(load_scene("sphere").replace(grid=n), setup.solver, BackendOptions(strict=True, shape="wg=64"))
+    backend = GLSLComputeBackend(
+        load_scene("sphere").replace(grid=n), setup.solver, BackendOptions(strict=True, shape="wg=64")
+    )
     rows = []
     with backend, backend.gl:
         backend.upload(*backend.initial_state())
@@ -125,7 +127,9 @@ def fragment_rows(n: int, reps: int) -> list[tuple[str, float, float]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m clothbench.backends.gl.anatomy", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m clothbench.backends.gl.anatomy", description=__doc__.split("\n")[0]
+    )
     parser.add_argument("--grid", type=int, default=256)
     parser.add_argument("--reps", type=int, default=40, help="calls per timed round")
     args = parser.parse_args(argv)

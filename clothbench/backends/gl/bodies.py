@@ -29,8 +29,7 @@ def collider_kinds(scene: Scene, generic: bool) -> tuple[str, ...]:
 # how collide() reads one collider of each kind from the per-step rows (MOTION_ROW: the
 # scene moves), at the offsets body_defines gives (spheres first, at 0)
 _MOVING_CALLS = {
-    "sphere": "    for (int i = 0; i < SPHERE_COUNT; ++i)\n"
-    "        x = collide_sphere(x, MOTION_ROW(i));\n",
+    "sphere": "    for (int i = 0; i < SPHERE_COUNT; ++i)\n        x = collide_sphere(x, MOTION_ROW(i));\n",
     "cylinder": "    for (int i = 0; i < CYLINDER_COUNT; ++i)\n"
     "        x = collide_cylinder(x, MOTION_ROW(MOTION_CYLINDERS + 3 * i), MOTION_ROW(MOTION_CYLINDERS + 3 * i + 1),\n"
     "                             MOTION_ROW(MOTION_CYLINDERS + 3 * i + 2).xyz);\n",

@@ -227,9 +227,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
     def drawable_state(self) -> gl_context.DrawableState:
         """x(t) (read()[1]) and its normals as this backend's own storage buffers, for drawing."""
         if not self.has_normals:
-            raise ClothbenchError(
-                "glsl-compute: no normals to draw; create the backend with normals=True and step"
-            )
+            raise ClothbenchError("glsl-compute: no normals to draw; create the backend with normals=True and step")
         return gl_context.DrawableState(self.gl, self.pairs[self.current][1], self.normals)
 
     def close(self) -> None:

@@ -58,8 +58,11 @@ def jacobi_parts(n: int) -> list[tuple[str, int]]:
 class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
     name = "glsl-compute"
     capabilities = Capabilities(
-        local_size=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}),
-        meshes=("pbd",), moving_colliders=("pbd",),
+        local_size=True,
+        gl=True,
+        sweep_variants=({"strict": True}, {"strict": False}),
+        meshes=("pbd",),
+        moving_colliders=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # compute.py's default, the same bits
     )
 

@@ -229,8 +229,14 @@ class GLDevice:
     def bind_image_read(self, unit: int, texture: int) -> None:
         """Bind a buffer texture to image unit `unit` for imageLoad (imageBuffer, rgba32f)."""
         self._fn(
-            "glBindImageTexture", ctypes.c_uint, ctypes.c_uint, ctypes.c_int, ctypes.c_ubyte,
-            ctypes.c_int, ctypes.c_uint, ctypes.c_uint,
+            "glBindImageTexture",
+            ctypes.c_uint,
+            ctypes.c_uint,
+            ctypes.c_int,
+            ctypes.c_ubyte,
+            ctypes.c_int,
+            ctypes.c_uint,
+            ctypes.c_uint,
         )(unit, texture, 0, 0, 0, _GL_READ_ONLY, _GL_RGBA32F)
 
     def delete_textures(self, names: list[int]) -> None:
@@ -348,9 +354,7 @@ def get_device(gl: str = "egl") -> GLDevice:
             return device
     if gl == "osmesa":
         raise GLUnavailable(f"no OSMesa context: {_failures['osmesa']} ({INSTALL_HINT})")
-    raise GLUnavailable(
-        f"no EGL display ({_failures['egl']}) and no OSMesa ({_failures['osmesa']}) ({INSTALL_HINT})"
-    )
+    raise GLUnavailable(f"no EGL display ({_failures['egl']}) and no OSMesa ({_failures['osmesa']}) ({INSTALL_HINT})")
 
 
 def probe(min_version: int = 330) -> Availability:
@@ -481,14 +485,23 @@ def _create_osmesa() -> GLDevice:
     lib.OSMesaCreateContextAttribs.restype = ctypes.c_void_p
     lib.OSMesaCreateContextAttribs.argtypes = [ctypes.POINTER(ctypes.c_int), ctypes.c_void_p]
     lib.OSMesaMakeCurrent.restype = ctypes.c_ubyte
-    lib.OSMesaMakeCurrent.argtypes = [
-        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_int
-    ]
+    lib.OSMesaMakeCurrent.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_int]
     lib.OSMesaGetProcAddress.restype = ctypes.c_void_p
     lib.OSMesaGetProcAddress.argtypes = [ctypes.c_char_p]
     # a core-profile 4.5 context: compute shaders need 4.3, and the default OSMesa context is 2.1
-    attribs = [_OSMESA_FORMAT, _OSMESA_RGBA, _OSMESA_DEPTH_BITS, 0, _OSMESA_PROFILE,
-               _OSMESA_CORE_PROFILE, _OSMESA_MAJOR, 4, _OSMESA_MINOR, 5, 0]
+    attribs = [
+        _OSMESA_FORMAT,
+        _OSMESA_RGBA,
+        _OSMESA_DEPTH_BITS,
+        0,
+        _OSMESA_PROFILE,
+        _OSMESA_CORE_PROFILE,
+        _OSMESA_MAJOR,
+        4,
+        _OSMESA_MINOR,
+        5,
+        0,
+    ]
     handle = lib.OSMesaCreateContextAttribs((ctypes.c_int * len(attribs))(*attribs), None)
     if not handle:
         raise RuntimeError("OSMesaCreateContextAttribs refused a core 4.5 context")

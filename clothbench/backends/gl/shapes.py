@@ -101,7 +101,9 @@ def parse(name: str, scene: Scene, max_invocations: int) -> ComputeShape:
     if "x" in size:
         w, h = (int(v) for v in size.split("x"))
         if w * h > max_invocations:
-            raise ClothbenchError(f"glsl-compute: {name} is more invocations than the driver allows ({max_invocations})")
+            raise ClothbenchError(
+                f"glsl-compute: {name} is more invocations than the driver allows ({max_invocations})"
+            )
         return ComputeShape(name, w * h, tile=(w, h))
     return ComputeShape(name, int(size))
 

@@ -190,7 +190,9 @@ def to_world(y, rot, trans):
     return np.stack([((rot[i, 0] * y[0] + rot[i, 1] * y[1]) + rot[i, 2] * y[2]) + trans[i] for i in range(3)])
 
 
-def collide_mesh(x: np.ndarray, free: np.ndarray, mesh: MeshConstants, rot, trans, closest=closest_triangle_naive) -> None:
+def collide_mesh(
+    x: np.ndarray, free: np.ndarray, mesh: MeshConstants, rot, trans, closest=closest_triangle_naive
+) -> None:
     """docs/semantics.md, "Triangle mesh": x (3, n, n) world positions, changed in place."""
     g = mesh.geometry
     flat = x.reshape(3, -1)

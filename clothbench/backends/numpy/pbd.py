@@ -43,8 +43,7 @@ class NumpyPbdBackend(GridPlanes, Backend):
         self.omega = c.omega
         self.gh = np.array(c.gh, dtype=t).reshape(3, 1, 1)
         self.stencil = [
-            (*neighbour_regions(n, dr, dc), c.rest[kind], c.at[kind])
-            for (dr, dc), kind in zip(OFFSETS, OFFSET_KIND)
+            (*neighbour_regions(n, dr, dc), c.rest[kind], c.at[kind]) for (dr, dc), kind in zip(OFFSETS, OFFSET_KIND)
         ]
         counts = np.zeros((n, n), dtype=t)
         for i, _, _, _ in self.stencil:

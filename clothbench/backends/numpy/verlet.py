@@ -63,8 +63,11 @@ class NumpyBackend(GridPlanes, Backend):
     device_timer = ""  # host code: the wall clock is its only clock
     # one mode, no --strict: it is what --strict is measured against
     capabilities = Capabilities(
-        precisions=("f32", "f64"), strict=False, sweep_variants=({"precision": "f32"}, {"precision": "f64"}),
-        meshes=("verlet",), moving_colliders=("verlet",),  # pbd.py adds "pbd" to its copy
+        precisions=("f32", "f64"),
+        strict=False,
+        sweep_variants=({"precision": "f32"}, {"precision": "f64"}),
+        meshes=("verlet",),
+        moving_colliders=("verlet",),  # pbd.py adds "pbd" to its copy
         mesh_collisions=("naive",),  # its chunked loop gives the naive loop's bits (collide_mesh.py)
     )
 
@@ -75,9 +78,7 @@ class NumpyBackend(GridPlanes, Backend):
         c = VerletConstants.of(scene, solver, t)  # the f64 reference takes them in float64
         self.dt, self.dt2, self.k, self.b = c.dt, c.dt2, c.k, c.b
         self.gravity = np.array(c.g, dtype=t).reshape(3, 1, 1)
-        self.springs = [
-            (*neighbour_regions(n, dr, dc), c.rest[kind]) for (dr, dc), kind in zip(OFFSETS, OFFSET_KIND)
-        ]
+        self.springs = [(*neighbour_regions(n, dr, dc), c.rest[kind]) for (dr, dc), kind in zip(OFFSETS, OFFSET_KIND)]
         self.colliders = collider_constants(scene, t)
         # meshes, moving colliders, attached pins (collide_mesh.py); None: the scene has none
         self.bodies = Bodies(scene, solver.dt, t, collider_constants, COLLIDE) if Bodies.needed(scene) else None

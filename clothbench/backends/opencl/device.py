@@ -81,17 +81,13 @@ def _platforms() -> list:
     except cl.Error:  # the ICD loader reports "no platform" as PLATFORM_NOT_FOUND_KHR
         platforms = []
     if not platforms:
-        raise ClothbenchError(
-            f"no OpenCL platform found ({NO_PLATFORM_HINT})"
-        )
+        raise ClothbenchError(f"no OpenCL platform found ({NO_PLATFORM_HINT})")
     return platforms
 
 
 def _devices_listing() -> str:
     return ", ".join(
-        f"{p}:{d} {dev.name}"
-        for p, platform in enumerate(_platforms())
-        for d, dev in enumerate(platform.get_devices())
+        f"{p}:{d} {dev.name}" for p, platform in enumerate(_platforms()) for d, dev in enumerate(platform.get_devices())
     )
 
 
@@ -125,7 +121,9 @@ def _probe_listed(source: str) -> dict:
     known = kept.setdefault(json.dumps({"cpu": cpu_identity(), "probe": source}), {})
     todo = [spec for spec, (_, name) in listed.items() if name not in known]
     if todo:
-        for spec, answer in in_child_per_device("clothbench.backends.opencl.isolated:probe_devices", todo, source).items():
+        for spec, answer in in_child_per_device(
+            "clothbench.backends.opencl.isolated:probe_devices", todo, source
+        ).items():
             known[listed[spec][1]] = answer if isinstance(answer, (str, type(None))) else str(answer)
         try:
             path.write_text(json.dumps(kept, indent=1, sort_keys=True))

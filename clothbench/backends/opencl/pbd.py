@@ -75,6 +75,8 @@ def band_scratch_bytes(particles: int, chebyshev: bool) -> tuple[int, int]:
     Chebyshev), in bytes."""
     plane = planar_plane(particles)
     return 2 * 16 * plane, (2 if chebyshev else 1) * 12 * 4 * plane
+
+
 # Substeps per launch of pbd_substeps: bounds how long one launch holds the device.
 SUBSTEPS_PER_LAUNCH = 32
 # the argument index of the substep count (the first substep's index next) of pbd_substeps and
@@ -89,8 +91,12 @@ VECTOR_SHAPES = ("one-launch-vectors",)
 class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     name = "opencl"
     capabilities = Capabilities(
-        local_size=True, device=True, shapes=True, sweep_variants=({"strict": True}, {"strict": False}),
-        meshes=("pbd",), moving_colliders=("pbd",),
+        local_size=True,
+        device=True,
+        shapes=True,
+        sweep_variants=({"strict": True}, {"strict": False}),
+        meshes=("pbd",),
+        moving_colliders=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # verlet.py's default, for the same reason
     )
 
@@ -146,7 +152,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             return shapes
         per_band = sum(band_scratch_bytes(scene.particles, solver is not None and solver.chebyshev_rho > 0))
         return shapes + tuple(
-            f"bands-{rows}" for rows in BAND_ROWS
+            f"bands-{rows}"
+            for rows in BAND_ROWS
             if scene.grid > rows and -(-scene.grid // rows) * per_band <= BANDS_SCRATCH_LIMIT
         )
 
@@ -154,13 +161,14 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.one_launch = name in SUBSTEPS_ARG
         if self.one_launch:
             if name not in self.substeps_kernels:
-                self.substeps_kernels[name] = (self._vectors_kernel() if name in VECTOR_SHAPES
-                                               else self._substeps_kernel())
+                self.substeps_kernels[name] = (
+                    self._vectors_kernel() if name in VECTOR_SHAPES else self._substeps_kernel()
+                )
             self.substeps_kernel, self.substeps_arg = self.substeps_kernels[name], SUBSTEPS_ARG[name]
         self.effective_local_size = self.substeps_local_size if self.one_launch else self.local_size
         self.launches, self.stage_launches = self._per_stage, None
         if name.startswith("bands-"):
-            self.launches, self.stage_launches = self._band_launches(int(name[len("bands-"):])), self._per_stage
+            self.launches, self.stage_launches = self._band_launches(int(name[len("bands-") :])), self._per_stage
             self.effective_local_size = self.substeps_local_size
 
     def _band_launches(self, rows: int) -> list:
@@ -169,17 +177,31 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         bands = -(-self.n // rows)
         if self.band_scratch is None:  # once, for the most bands any offered shape has (within the limit)
             offered = [s for s in self.kernel_shapes(self.scene, self.options, self.solver) if s.startswith("bands-")]
-            most = max([-(-self.n // int(s[len("bands-"):])) for s in offered] + [bands])
+            most = max([-(-self.n // int(s[len("bands-") :])) for s in offered] + [bands])
             mf = self._cl.mem_flags
             grids, multipliers = band_scratch_bytes(self.n2, self.chebyshev)
             margins = 2 * 4 * PLANAR_MARGIN_FLOATS  # before and after the grids, 4 bytes a float
-            self.band_scratch = (self._cl.Buffer(self._context, mf.READ_WRITE, most * grids + margins),
-                                 self._cl.Buffer(self._context, mf.READ_WRITE, most * multipliers))
+            self.band_scratch = (
+                self._cl.Buffer(self._context, mf.READ_WRITE, most * grids + margins),
+                self._cl.Buffer(self._context, mf.READ_WRITE, most * multipliers),
+            )
         self.substeps_local_size = self._default_substeps_local_size()
         c, f32, i32 = self.constants, np.float32, np.int32
         make4, float4 = self._cl.cltypes.make_float4, self._cl.cltypes.float4
-        args = (self.x, self.v, self.xs[0], *self.band_scratch, self.omega_buffer, c.h, make4(*c.gh, 0.0),
-                make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax, i32(self.solver.iterations), i32(rows))
+        args = (
+            self.x,
+            self.v,
+            self.xs[0],
+            *self.band_scratch,
+            self.omega_buffer,
+            c.h,
+            make4(*c.gh, 0.0),
+            make4(*c.rest, 0.0),
+            make4(*c.at, 0.0),
+            c.relax,
+            i32(self.solver.iterations),
+            i32(rows),
+        )
         dtypes = [None] * 6 + [f32, float4, float4, float4, f32, i32, i32]
         pins = self._body_args(0)[: self._per_step] + ((self._pin_slot, self._pin_target) if self._attached else ())
         k = self._kernel(("bands", rows), "pbd_jacobi_bands", dtypes, args, pins, self._planar_program())
@@ -251,9 +273,26 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         count = len(self.border_particles) if self.jacobi else 0
         ij = unused if self.ij is None else self.ij
         offsets = unused if self.offsets is None else self.offsets
-        args = (self.x, self.v, *self.xs, *self.lams, self.omega_buffer, border, i32(count), ij, offsets,
-                c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0), make4(*c.at, 0.0), c.relax, c.damp, self.colliders,
-                i32(self.solver.iterations), i32(1))  # the last: substeps, set per launch
+        args = (
+            self.x,
+            self.v,
+            *self.xs,
+            *self.lams,
+            self.omega_buffer,
+            border,
+            i32(count),
+            ij,
+            offsets,
+            c.h,
+            make4(*c.gh, 0.0),
+            make4(*c.rest, 0.0),
+            make4(*c.at, 0.0),
+            c.relax,
+            c.damp,
+            self.colliders,
+            i32(self.solver.iterations),
+            i32(1),
+        )  # the last: substeps, set per launch
         dtypes = [None] * 8 + [i32, None, None, f32, float4, float4, float4, f32, f32, None, i32, i32]
         return self._whole_substeps_kernel(self.program, "pbd_substeps", dtypes, args)
 
@@ -274,8 +313,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         bands' and the vector sweep's program, built when first asked for."""
         if self.planar_program is None:
             layout = (f"-DCLOTH_PLANAR_MARGIN={PLANAR_MARGIN_FLOATS}", f"-DCLOTH_PLANE_PAD={PLANE_PAD_FLOATS}")
-            self.planar_program = build_program(self._context, self._source,
-                                                (*self.build_options(), "-DCLOTH_PLANAR", *layout))
+            self.planar_program = build_program(
+                self._context, self._source, (*self.build_options(), "-DCLOTH_PLANAR", *layout)
+            )
         return self.planar_program
 
     def _vectors_kernel(self):
@@ -285,10 +325,23 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         cl, c, f32, i32 = self._cl, self.constants, np.float32, np.int32
         make4, float4 = cl.cltypes.make_float4, cl.cltypes.float4
         plane = planar_plane(self.n2)
-        self.vector_scratch = (cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 16 * plane),
-                               cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 48 * plane))
-        args = (self.x, self.v, *self.vector_scratch, c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0),
-                make4(*c.at, 0.0), c.damp, self.colliders, i32(self.solver.iterations), i32(1))
+        self.vector_scratch = (
+            cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 16 * plane),
+            cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 48 * plane),
+        )
+        args = (
+            self.x,
+            self.v,
+            *self.vector_scratch,
+            c.h,
+            make4(*c.gh, 0.0),
+            make4(*c.rest, 0.0),
+            make4(*c.at, 0.0),
+            c.damp,
+            self.colliders,
+            i32(self.solver.iterations),
+            i32(1),
+        )
         dtypes = [None] * 4 + [f32, float4, float4, float4, f32, None, i32, i32]
         return self._whole_substeps_kernel(self._planar_program(), "pbd_coloured_vectors", dtypes, args)
 
@@ -317,35 +370,71 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         if kind == "predict":
             # the substep index where the scene moves, and the attached pins' buffers (no meshes)
             pins = self._body_args(0)[: self._per_step] + ((self._pin_slot, self._pin_target) if self._attached else ())
-            k = self._kernel(kind, "pbd_predict", [None] * 3 + [f32, float4],
-                             (self.x, self.v, self.xs[0], c.h, make4(*c.gh, 0.0)), pins)
+            k = self._kernel(
+                kind,
+                "pbd_predict",
+                [None] * 3 + [f32, float4],
+                (self.x, self.v, self.xs[0], c.h, make4(*c.gh, 0.0)),
+                pins,
+            )
             kernels = [(k, self.n2)]
         elif kind == "jacobi":
             _, it, src, dst = step
             lam_in, lam_out = self.lams[it % 2], self.lams[1 - it % 2]
-            args = (self.xs[src], self.xs[dst], lam_in, lam_out, i32(it), make4(*c.rest, 0.0), make4(*c.at, 0.0),
-                    c.relax, c.omega[it])
+            args = (
+                self.xs[src],
+                self.xs[dst],
+                lam_in,
+                lam_out,
+                i32(it),
+                make4(*c.rest, 0.0),
+                make4(*c.at, 0.0),
+                c.relax,
+                c.omega[it],
+            )
             dtypes = [None] * 4 + [i32, float4, float4, f32, f32]
             border = len(self.border_particles)
-            kernels = [(self._kernel((kind, "border", it), "pbd_jacobi_border", dtypes + [None, i32],
-                                     args + (self.border, i32(border))), border)]
+            kernels = [
+                (
+                    self._kernel(
+                        (kind, "border", it),
+                        "pbd_jacobi_border",
+                        dtypes + [None, i32],
+                        args + (self.border, i32(border)),
+                    ),
+                    border,
+                )
+            ]
             if self.interior_vectors:
                 interior = self._kernel((kind, "interior", it), "pbd_jacobi_interior", dtypes, args)
                 kernels.insert(0, (interior, self.interior_vectors))
         elif kind == "coloured":
             _, it, b = step
             batch, first = self.batches[b], i32(it == 0)
-            k = self._kernel((kind, b, first), "pbd_coloured", [None] * 3 + [i32, i32, i32, f32, f32],
-                             (self.xs[0], self.ij, self.lam, i32(self.batch_offsets[b]), i32(len(batch.i)), first,
-                              c.rest[batch.kind], c.at[batch.kind]))
+            k = self._kernel(
+                (kind, b, first),
+                "pbd_coloured",
+                [None] * 3 + [i32, i32, i32, f32, f32],
+                (
+                    self.xs[0],
+                    self.ij,
+                    self.lam,
+                    i32(self.batch_offsets[b]),
+                    i32(len(batch.i)),
+                    first,
+                    c.rest[batch.kind],
+                    c.at[batch.kind],
+                ),
+            )
             kernels = [(k, len(batch.i))]
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)
             kernels = [(k, self.n2)]
         else:
-            k = self._kernel((kind, step[1]), "pbd_update", [None] * 3 + [f32, f32],
-                             (self.x, self.v, self.xs[step[1]], c.h, c.damp))
+            k = self._kernel(
+                (kind, step[1]), "pbd_update", [None] * 3 + [f32, f32], (self.x, self.v, self.xs[step[1]], c.h, c.damp)
+            )
             kernels = [(k, self.n2)]
         return [(k, *self._launch_size(items)) for k, items in kernels]
 
@@ -375,9 +464,20 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
 
     def _buffers(self) -> tuple:
         once = dict.fromkeys(self.lams)  # without Chebyshev both entries are one buffer
-        return (self.x, self.v, *self.xs, *once, self.ij, self.border, self.offsets,
-                self.omega_buffer, getattr(self, "_unused", None), *(self.band_scratch or ()),
-                *(self.vector_scratch or ()), *self._body_buffers())
+        return (
+            self.x,
+            self.v,
+            *self.xs,
+            *once,
+            self.ij,
+            self.border,
+            self.offsets,
+            self.omega_buffer,
+            getattr(self, "_unused", None),
+            *(self.band_scratch or ()),
+            *(self.vector_scratch or ()),
+            *self._body_buffers(),
+        )
 
     # --- Backend interface -----------------------------------------------------------------
     def _motion_block(self) -> int:

@@ -150,7 +150,7 @@ class Viewer:
             else None
         )
         window.mouse_drag_event_func = lambda x, y, dx, dy: self.trackball.drag(x, y, dx, dy)
-        window.mouse_scroll_event_func = lambda dx, dy: self.trackball.zoom(WHEEL_ZOOM ** dy)
+        window.mouse_scroll_event_func = lambda dx, dy: self.trackball.zoom(WHEEL_ZOOM**dy)
         window.resize_func = lambda w, h: setattr(self, "_resized", True)
         window.close_func = lambda: setattr(self, "quit", True)
 
@@ -221,7 +221,9 @@ class Viewer:
                     self.renderer.draw_arrays(prev, normals)
             with profile.stage("overlay"):
                 self.overlay.draw(self.window.fbo, panels(self, profile))
-            if self.settings.record or (self.settings.screenshot and (last or self.quit or self.settings.frames is None)):
+            if self.settings.record or (
+                self.settings.screenshot and (last or self.quit or self.settings.frames is None)
+            ):
                 with profile.stage("capture"):
                     image = self._capture()
                     if self.settings.record:
