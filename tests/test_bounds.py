@@ -19,6 +19,8 @@ from clothbench.scene import Cylinder, Plane, Sphere
 from clothbench.solver import Pbd, Verlet
 from tests.conftest import sphere
 
+pytestmark = pytest.mark.serial  # measures the machine's limits: one xdist worker
+
 RATES = bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, rsqrt=2e10)
 
 

@@ -26,6 +26,8 @@ from clothbench.harness import reference
 
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, sphere
 
+pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
+
 SCENES = {"sphere": sphere, "all-kinds": every_collider_scene}
 
 

@@ -27,6 +27,8 @@ from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
 from conftest import VERLET, assert_bit_exact, bent_state, every_collider_scene, require, sphere
 
+pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
+
 GL_BACKENDS = ["glsl", "glsl-compute"]
 
 # Fast mode is float32 in another order (dot(), inversesqrt, no `precise`), so it is held to

@@ -18,6 +18,8 @@ from clothbench.scene import load_scene
 
 from conftest import VERLET, assert_bit_exact, require
 
+pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
+
 N = 32
 # 500 steps, after contact: the torus is reached after about 200, the carried sheet moves at
 # once; the swinging curtain reaches the paddle only after about 900 (at 700 it has not)

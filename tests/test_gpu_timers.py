@@ -25,6 +25,8 @@ from clothbench.scene import load_setup
 from conftest import VERLET, require, sphere
 from test_sweep import read_csv, register_fake_backends
 
+pytestmark = pytest.mark.serial  # holds a GL context and reads its timers: one xdist worker
+
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 PBD = load_setup("curtain").solver_for("pbd-jacobi")
 # (backend, solver) of every GL backend: the fragment step, the compute step, the PBD solver

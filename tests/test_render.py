@@ -25,6 +25,8 @@ from clothbench.solver import Pbd
 
 from conftest import VERLET, require
 
+pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
+
 SIZE = (160, 120)
 # Strict GL and numpy f32 states are the same bits, so the two ways to the vertex shader
 # draw the same triangles: at most a few edge pixels may differ (measured: none).

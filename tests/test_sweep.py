@@ -28,6 +28,8 @@ from clothbench.solver import Pbd
 
 from conftest import VERLET, lines_in, wait_until
 
+pytestmark = pytest.mark.serial  # times sweep rows: one xdist worker
+
 # Columns the issue asks every row to have (the file has more).
 ISSUE_COLUMNS = (
     "backend", "peer", "mode", "strict", "transfer", "local_size", "precision", "device", "scene", "grid",

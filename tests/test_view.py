@@ -36,6 +36,8 @@ from clothbench.scene import load_setup
 
 from conftest import assert_bit_exact, require
 
+pytestmark = pytest.mark.serial  # holds a GL context (a window): one xdist worker
+
 pytest.importorskip("moderngl_window", reason="moderngl-window not installed (pip install moderngl-window)")
 
 SPF = 10  # steps per frame in every run here
