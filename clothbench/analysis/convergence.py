@@ -311,24 +311,7 @@ def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float):
     """The part of a row that needs no converged reference (so it can run beside them):
     `v` stepped to `time_s`, timed, against float64 at the same dt. (row, pos, prev)."""
     steps = steps_for(time_s, solver.dt)
-    row = AccuracyRow(
-        scene.name,
-        scene.grid,
-        solver.start,
-        scene.damping,
-        time_s,
-        v.backend,
-        v.name,
-        "?",
-        "?",
-        solver.dt,
-        steps,
-        solver.name,
-        **pbd_fields(solver),
-        ref_model=model_name(solver),
-        stiffness=scene.stiffness,
-        cpu=cpu_model(),
-    )
+    row = _unmeasured_row(v, scene, solver, time_s)
     try:
         with create_backend(v.backend, scene, solver, v.options) as b:
             faults.inject(v.backend)
@@ -362,6 +345,11 @@ def _against(row: AccuracyRow, pos, prev, scene: Scene, solver: Solver, ref: Ref
 
 def _measure_failed(v: Variant, scene: Scene, solver: Solver, time_s: float, why: str) -> AccuracyRow:
     """The row of a run whose worker process crashed or timed out."""
+    return _unmeasured_row(v, scene, solver, time_s, status=" ".join(why.split()))
+
+
+def _unmeasured_row(v: Variant, scene: Scene, solver: Solver, time_s: float, **fields) -> AccuracyRow:
+    """A row naming the run (scene, variant, dt, steps), its mode and device not yet known."""
     steps = steps_for(time_s, solver.dt)
     return AccuracyRow(
         scene.name,
@@ -380,7 +368,7 @@ def _measure_failed(v: Variant, scene: Scene, solver: Solver, time_s: float, why
         ref_model=model_name(solver),
         stiffness=scene.stiffness,
         cpu=cpu_model(),
-        status=" ".join(why.split()),
+        **fields,
     )
 
 
