@@ -26,13 +26,6 @@ N = 32
 STEPS = {"torus": 500, "sweep": 1000, "carried": 500}
 
 
-def grid_of(backend: str, scene_name: str) -> int:
-    """N, but 16 for the fragment backend on the sweep: on llvmpipe its moving-mesh step was
-    the slowest test in CI (3 minutes a test at 32^2, 2026-12-02). The sheet is the same size,
-    so the paddle still reaches it within the 1000 steps (the strict test checks that it did)."""
-    return 16 if (backend, scene_name) == ("glsl", "sweep") else N
-
-
 def two_meshes(n: int = 16):
     """A sheet falling onto a still icosphere and a turning box: two meshes in one buffer,
     the second read from the per-step rows."""
@@ -79,7 +72,7 @@ CASES = [
 @pytest.mark.parametrize("backend, scene_name, algorithm, shape", CASES)
 def test_strict_matches_numpy_f32_bit_for_bit_after_contact(backend, scene_name, algorithm, shape):
     require(backend)
-    scene = load_scene(scene_name).replace(grid=grid_of(backend, scene_name))
+    scene = load_scene(scene_name).replace(grid=N)
     options = BackendOptions(strict=True, mesh_collision=algorithm, shape=shape)
     steps = STEPS[scene_name]
     pos, prev = simulate(backend, scene, VERLET, steps, options)
@@ -134,7 +127,7 @@ def test_fast_error_is_of_the_order_of_numpy_f32s_own(backend, scene_name):
     # 1 um floor is the contract's bound (tests/contract/test_verlet_contract.py). Measured
     # here on llvmpipe (glsl-compute): 1.0x (torus), 0.6x (sweep), 1.2x (carried).
     require(backend)
-    scene, steps = load_scene(scene_name).replace(grid=grid_of(backend, scene_name)), STEPS[scene_name]
+    scene, steps = load_scene(scene_name).replace(grid=N), STEPS[scene_name]
     ref64, _ = reference(scene, VERLET, steps, "f64")
     _, f32_max = position_error(reference(scene, VERLET, steps, "f32")[0], ref64)
     pos, _ = simulate(backend, scene, VERLET, steps, BackendOptions())
