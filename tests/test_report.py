@@ -28,6 +28,13 @@ CHROMIUM_FLAGS = (
 )  # fmt: skip
 
 
+def every_csv(test):
+    """A test of `study`, the report of every committed CSV (minutes to make): full tier, and one
+    xdist worker for them all (an xdist_group), so that the module fixture is made once, not in
+    each worker."""
+    return pytest.mark.full(pytest.mark.xdist_group("report-of-every-committed-csv")(test))
+
+
 @pytest.fixture(scope="module")
 def study(tmp_path_factory) -> tuple[Path, str]:
     """The report of every committed results CSV (the issue's `clothbench report results/*.csv`)."""
@@ -47,7 +54,7 @@ def section_id(kind: str, path: Path) -> str:
     return re.sub(r"[^a-z0-9]+", "-", f"{kind} {path}".lower()).strip("-")
 
 
-@pytest.mark.full  # the report of every committed CSV: minutes
+@every_csv
 def test_committed_results_are_each_recognised(study):
     _, page = study
     for path, what in ((SWEEP, "a sweep"), (PBD_SWEEP, "a sweep"), (ACCURACY, "an accuracy run"),
@@ -55,7 +62,7 @@ def test_committed_results_are_each_recognised(study):
         assert re.search(rf"{re.escape(str(path))}</a></td><td>{what}", page), path
 
 
-@pytest.mark.full  # the report of every committed CSV
+@every_csv
 def test_page_holds_a_figure_for_each_input_kind(study):
     _, page = study
     for kind, path, at_least in (("sweep", SWEEP, 4), ("sweep", PBD_SWEEP, 3), ("accuracy", ACCURACY, 2),
@@ -65,7 +72,7 @@ def test_page_holds_a_figure_for_each_input_kind(study):
     assert 'aria-label="Stability against the bound"' in top_section(page, section_id("stability", STABILITY))
 
 
-@pytest.mark.full  # the report of every committed CSV
+@every_csv
 def test_sweep_has_speed_against_error_with_its_pareto_front(study):
     _, page = study
     part = top_section(page, section_id("sweep", SWEEP))
@@ -76,7 +83,7 @@ def test_sweep_has_speed_against_error_with_its_pareto_front(study):
     assert "opencl fast/resident/ls=auto" in front.split("</table>")[0]  # the README's fastest at 256x256
 
 
-@pytest.mark.full  # the report of every committed CSV
+@every_csv
 def test_the_readme_tables_are_on_the_page(study):
     _, page = study
     part = top_section(page, section_id("sweep", SWEEP))
@@ -91,7 +98,7 @@ def test_the_readme_tables_are_on_the_page(study):
     assert ">Verlet against PBD<" not in part  # one solver only
 
 
-@pytest.mark.full  # the report of every committed CSV
+@every_csv
 def test_page_is_self_contained_with_ids_of_its_own(study):
     _, page = study
     links = re.findall(r'(?:href|src)="([^"]*)"', page)
@@ -222,7 +229,7 @@ return Array.from(document.querySelectorAll('svg, img')).map(e => {
 """
 
 
-@pytest.mark.full  # the report of every committed CSV, in Chromium
+@every_csv
 def test_report_renders_in_headless_chromium(study, tmp_path):
     from PIL import Image
 
