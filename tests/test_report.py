@@ -29,13 +29,14 @@ CHROMIUM_FLAGS = (
 
 
 def every_csv(test):
-    """A test of `study`, the report of every committed CSV (minutes to make): full tier, and one
-    xdist worker for them all (an xdist_group), so that the module fixture is made once, not in
-    each worker."""
+    """A test of `study`, the report of every committed CSV (a minute or more to make): full
+    tier, and one xdist worker for them all (an xdist_group), so that the fixture is made once,
+    not in each worker; session-scoped, as a module fixture is made again each time that worker
+    comes back to this module from another."""
     return pytest.mark.full(pytest.mark.xdist_group("report-of-every-committed-csv")(test))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def study(tmp_path_factory) -> tuple[Path, str]:
     """The report of every committed results CSV (the issue's `clothbench report results/*.csv`)."""
     out = tmp_path_factory.mktemp("report") / "r.html"
