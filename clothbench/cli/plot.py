@@ -52,17 +52,24 @@ def register(subparsers) -> None:
         f"{CONFIDENCE:.0%} confidence interval: a seeded bootstrap ({RESAMPLES} resamples) of the ratio "
         "of medians over the two rows' timed chunks (the chunk_ms column). A change is flagged only "
         "where the interval excludes 1. Rows without chunk_ms (sweeps written before that column) or "
-        f"with fewer than {MIN_CHUNKS} chunks are compared as before and marked untested. The interval "
-        "sees the noise between chunks of one run, not between runs (load, clocks): --fail-above's "
-        "margin is for that.",
+        f"with fewer than {MIN_CHUNKS} chunks are compared as before and marked untested. A row the "
+        "machine was busy for, or whose chunks spread wide (a robust standard deviation over 10 %% of "
+        "the median), in A or B is inconclusive: listed with why, neither a pass nor a fail of the gate "
+        "(--strict-gate fails it). With one run a side the interval sees the noise between chunks of "
+        "one run; give several runs a side (A1.csv,A2.csv) for the spread between runs too.",
     )
-    c.add_argument("a", help="the baseline sweep CSV")
-    c.add_argument("b", help="the sweep to compare with it")
+    c.add_argument("a", help="the baseline sweep CSV, or several runs of it comma-separated (A1.csv,A2.csv)")
+    c.add_argument("b", help="the sweep to compare with it, or several runs comma-separated")
     c.add_argument(
         "--fail-above",
         type=float,
         metavar="RATIO",
         help="exit 1 when a significant slowdown has B/A above RATIO (e.g. 1.10): a CI gate",
+    )
+    c.add_argument(
+        "--strict-gate",
+        action="store_true",
+        help="with --fail-above: an inconclusive row (busy or unstable in A or B) fails the gate too",
     )
     c.set_defaults(func=cmd_compare)
 
@@ -99,36 +106,73 @@ def cmd_plot(args) -> int:
     return 0
 
 
-def compare_rows(a_rows: list[dict], b_rows: list[dict]) -> tuple[list[dict], int, int]:
+def compare_rows(a_runs: list[list[dict]], b_runs: list[list[dict]]) -> tuple[list[dict], int, int]:
     """(matched rows with ratio B/A where both are ok, and its interval where both have
-    enough chunks; rows only in A; rows only in B)."""
+    enough chunks; rows only in A; rows only in B). Each side is one or more runs (files) of
+    the same sweep: the ratio is that of the runs' median ms_median, and the interval resamples
+    the runs as well as their chunks, so that it holds the spread between runs too. A change
+    between rows that are busy or unstable in any run (harness/noise.py) is 'inconclusive'."""
+    from clothbench.harness.noise import row_doubts
     from clothbench.harness.sweep_csv import row_key
 
-    a = {row_key(r): r for r in a_rows}
-    b = {row_key(r): r for r in b_rows}
+    a = _by_key(a_runs, row_key)
+    b = _by_key(b_runs, row_key)
     matched = []
-    for key, ra in a.items():
-        rb = b.get(key)
-        if rb is None:
+    for key, ras in a.items():
+        rbs = b.get(key)
+        if rbs is None:
             continue
-        m = {"a": ra, "b": rb, "ratio": None, "interval": None, "change": "n/a"}
-        if ra["status"] == "ok" and rb["status"] == "ok":
-            try:
-                m["ratio"] = float(rb["ms_median"]) / float(ra["ms_median"])
-            except (ValueError, ZeroDivisionError):
-                raise ClothbenchError(
-                    f"ms_median {ra['ms_median']!r} / {rb['ms_median']!r} of {ra['backend']} n={ra['grid']} "
-                    "is not a positive number: a row with status ok must have one"
-                ) from None
-            chunks = _chunks(ra), _chunks(rb)
-            if min(map(len, chunks)) >= MIN_CHUNKS and min(map(min, chunks)) > 0:
-                m["interval"] = ratio_interval(*chunks, seed=zlib.crc32("|".join(key).encode()))
+        m = {"a": ras[0], "b": rbs[0], "a_ms": None, "b_ms": None, "ratio": None, "interval": None,
+             "change": "n/a", "doubts": []}  # fmt: skip
+        if all(r["status"] == "ok" for r in ras + rbs):
+            m["a_ms"], m["b_ms"] = _median_ms(ras), _median_ms(rbs)
+            m["ratio"] = m["b_ms"] / m["a_ms"]
+            chunks_a, chunks_b = [_chunks(r) for r in ras], [_chunks(r) for r in rbs]
+            every = chunks_a + chunks_b
+            if min(map(len, every)) >= MIN_CHUNKS and min(map(min, every)) > 0:
+                seed = zlib.crc32("|".join(key).encode())
+                if len(ras) == len(rbs) == 1:
+                    m["interval"] = ratio_interval(chunks_a[0], chunks_b[0], seed=seed)
+                else:
+                    m["interval"] = runs_ratio_interval(chunks_a, chunks_b, seed=seed)
                 lo, hi = m["interval"]
                 m["change"] = "slower" if lo > 1 else "faster" if hi < 1 else "same"
+                side_doubts = [(side, d) for side, rows, chunks in (("A", ras, chunks_a), ("B", rbs, chunks_b))
+                               for r, c in zip(rows, chunks) for d in row_doubts(r, c)]  # fmt: skip
+                m["doubts"] = list(dict.fromkeys(f"{side} {d}" for side, d in side_doubts))
+                if m["doubts"]:
+                    m["change"] = "inconclusive"
             else:
                 m["change"] = "untested"
         matched.append(m)
     return matched, len(set(a) - set(b)), len(set(b) - set(a))
+
+
+def _by_key(runs: list[list[dict]], row_key) -> dict[tuple, list[dict]]:
+    """key -> the key's row in each run that has it (in run order)."""
+    out: dict[tuple, list[dict]] = {}
+    for rows in runs:
+        for r in {row_key(r): r for r in rows}.values():
+            out.setdefault(row_key(r), []).append(r)
+    return out
+
+
+def _median_ms(rows: list[dict]) -> float:
+    import statistics
+
+    values = []
+    for r in rows:
+        try:
+            v = float(r["ms_median"])
+        except ValueError:
+            v = math.nan
+        if not (v > 0 and math.isfinite(v)):
+            raise ClothbenchError(
+                f"ms_median {r['ms_median']!r} of {r['backend']} n={r['grid']} is not a positive number: "
+                "a row with status ok must have one"
+            )
+        values.append(v)
+    return statistics.median(values)
 
 
 def _chunks(row: dict) -> list[float]:
@@ -155,11 +199,34 @@ def ratio_interval(a: list[float], b: list[float], seed: int) -> tuple[float, fl
     return float(lo), float(hi)
 
 
+def runs_ratio_interval(a_runs: list[list[float]], b_runs: list[list[float]], seed: int) -> tuple[float, float]:
+    """The CONFIDENCE interval of median(B) / median(A) where each side is several runs of
+    chunks: every resample draws that side's runs with replacement, then each drawn run's
+    chunks with replacement, and takes the median of them pooled (a two-level bootstrap, as
+    asv's and Google Benchmark's repetitions call for): the spread between runs is in it."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+
+    def medians(runs: list[list[float]]) -> np.ndarray:
+        arrays = [np.asarray(r) for r in runs]
+        out = np.empty(RESAMPLES)
+        for i in range(RESAMPLES):
+            drawn = rng.integers(len(arrays), size=len(arrays))
+            out[i] = np.median(np.concatenate([rng.choice(arrays[j], size=len(arrays[j])) for j in drawn]))
+        return out
+
+    tail = (1 - CONFIDENCE) / 2
+    lo, hi = np.quantile(medians(b_runs) / medians(a_runs), [tail, 1 - tail])
+    return float(lo), float(hi)
+
+
 def geometric_mean(values: list[float]) -> float:
     return math.exp(sum(math.log(v) for v in values) / len(values))
 
 
-CHANGE_STYLE = {"slower": "red", "faster": "green", "same": "default", "untested": "yellow", "n/a": "yellow"}
+CHANGE_STYLE = {"slower": "red", "faster": "green", "same": "default", "untested": "yellow", "n/a": "yellow",
+                "inconclusive": "yellow"}  # fmt: skip
 
 
 def cmd_compare(args) -> int:
@@ -171,13 +238,17 @@ def cmd_compare(args) -> int:
 
     if args.fail_above is not None and not (math.isfinite(args.fail_above) and args.fail_above >= 1):
         raise ClothbenchError(f"--fail-above must be a ratio >= 1 (e.g. 1.10), got {args.fail_above}")
-    a_rows = read_sweep(args.a, COMPARE_REQUIRED)
-    b_rows = read_sweep(args.b, COMPARE_REQUIRED)
-    matched, only_a, only_b = compare_rows(a_rows, b_rows)
+    if args.strict_gate and args.fail_above is None:
+        raise ClothbenchError("--strict-gate applies to the gate: give --fail-above RATIO with it")
+    a_files, b_files = _side(args.a), _side(args.b)
+    a_runs = [read_sweep(path, COMPARE_REQUIRED) for path in a_files]
+    b_runs = [read_sweep(path, COMPARE_REQUIRED) for path in b_files]
+    matched, only_a, only_b = compare_rows(a_runs, b_runs)
     if not matched:
         raise ClothbenchError(
             f"{args.a} and {args.b} have no row in common (same backend, mode options, scene, grid, local size)"
         )
+    a_rows, b_rows = [r for rows in a_runs for r in rows], [r for rows in b_runs for r in rows]
     console = Console()
     if not console.is_terminal:
         console = Console(width=160)  # a CI log or a pipe: no reason to wrap at 80
@@ -198,7 +269,8 @@ def cmd_compare(args) -> int:
         interval = f"{m['interval'][0]:.2f}-{m['interval'][1]:.2f}" if m["interval"] else ""
         lead = [ra["backend"], escape(rb["mode"])] + ([ra["local_size"] or "auto"] if local else []) + [ra["grid"]]
         change = f"[{style}]{m['change']}[/{style}]"
-        table.add_row(*lead, _ms(ra), _ms(rb), f"[{style}]{shown}[/{style}]", interval, change)
+        a_ms, b_ms = (_ms(r) if ms is None else f"{ms:.3f}" for r, ms in ((ra, m["a_ms"]), (rb, m["b_ms"])))
+        table.add_row(*lead, a_ms, b_ms, f"[{style}]{shown}[/{style}]", interval, change)
     console.print(table)
     for backend, ratios in per_backend.items():
         console.print(f"{backend}: geometric mean B/A {geometric_mean(ratios):.2f} over {len(ratios)} rows")
@@ -206,6 +278,11 @@ def cmd_compare(args) -> int:
     if everything:
         console.print(f"all: geometric mean B/A {geometric_mean(everything):.2f} over {len(everything)} rows")
     _print_notes(console, matched, only_a, only_b)
+    for m in matched:
+        if m["change"] == "inconclusive":
+            console.print(
+                f"inconclusive: {_row_name(m['a'])}: B/A {m['ratio']:.2f}: {'; '.join(m['doubts'])}", highlight=False
+            )
     gate = math.inf if args.fail_above is None else args.fail_above
     failing = [m for m in matched if m["change"] == "slower" and m["ratio"] > gate]
     for m in failing:
@@ -215,7 +292,18 @@ def cmd_compare(args) -> int:
             f"B/A {m['ratio']:.2f} (interval {lo:.2f}-{hi:.2f})",
             highlight=False,
         )
-    return 1 if failing else 0
+    doubtful = [m for m in matched if m["change"] == "inconclusive"] if args.strict_gate else []
+    for m in doubtful:
+        console.print(f"[red]inconclusive under --strict-gate[/red]: {_row_name(m['a'])}", highlight=False)
+    return 1 if failing or doubtful else 0
+
+
+def _side(spec: str) -> list[str]:
+    """The files of one side of compare: one CSV, or several runs comma-separated."""
+    files = [f.strip() for f in spec.split(",")]
+    if not all(files):
+        raise ClothbenchError(f"compare: {spec!r} names an empty file (runs are comma-separated: A1.csv,A2.csv)")
+    return files
 
 
 def _print_notes(console, matched: list[dict], only_a: int, only_b: int) -> None:
@@ -226,6 +314,15 @@ def _print_notes(console, matched: list[dict], only_a: int, only_b: int) -> None
         + (", ".join(f"{n} {c}" for c, n in significant.items()) or "none")
         + f" (of {sum(m['interval'] is not None for m in matched)} rows tested)"
     )
+    inconclusive = [m for m in matched if m["change"] == "inconclusive"]
+    if inconclusive:
+        why = {k: sum(any(k in d for d in m["doubts"]) for m in inconclusive) for k in ("busy", "unstable")}
+        console.print(
+            f"{len(inconclusive)} rows inconclusive ("
+            + ", ".join(f"{k}: {n}" for k, n in why.items() if n)
+            + "): the machine was busy or the chunks spread too wide in A or B; neither a pass nor a fail "
+            "(--strict-gate fails them), measure again on a quiet machine (clothbench machine)"
+        )
     untested = changes.count("untested")
     if untested:
         console.print(

@@ -1,0 +1,54 @@
+"""When a timed row's figure means little: the machine was `busy` while it ran, or its chunks
+were `unstable` (spread too wide for its median to stand for the step). `compare` calls a change
+between two such rows inconclusive rather than a regression or a gain.
+
+`unstable` is pyperf's rule of thumb (a standard deviation over 10 % of the mean) made robust:
+the standard deviation is estimated from the chunks' interquartile range (IQR / 1.349, exact for
+normal noise) and set against their median, the figure a row reports. One chunk the machine
+stalled (a page fault, a timer tick on a busy core) moves neither the median nor the IQR, so it
+does not make a row unstable; a spread through the middle half of the chunks does.
+"""
+
+from __future__ import annotations
+
+import math
+
+UNSTABLE_SPREAD = 0.10  # a robust standard deviation over this share of the median: unstable
+IQR_PER_SIGMA = 1.349  # the interquartile range of a normal distribution, in standard deviations
+MIN_CHUNKS_FOR_SPREAD = 4  # fewer chunks have no quartiles worth the name: spread unknown
+
+
+def robust_spread(chunks: list[float]) -> float | None:
+    """(IQR / 1.349) / median of `chunks`: a relative standard deviation that one outlier cannot
+    move. None with fewer than MIN_CHUNKS_FOR_SPREAD chunks or a median that is not positive."""
+    if len(chunks) < MIN_CHUNKS_FOR_SPREAD:
+        return None
+    xs = sorted(chunks)
+    median = _quantile(xs, 0.5)
+    if not median > 0 or not math.isfinite(median):
+        return None
+    return (_quantile(xs, 0.75) - _quantile(xs, 0.25)) / IQR_PER_SIGMA / median
+
+
+def _quantile(xs: list[float], q: float) -> float:
+    """numpy's default (linear) quantile of sorted `xs`."""
+    at = q * (len(xs) - 1)
+    lo = math.floor(at)
+    hi = min(lo + 1, len(xs) - 1)
+    return xs[lo] + (xs[hi] - xs[lo]) * (at - lo)
+
+
+def row_doubts(row: dict, chunks: list[float]) -> list[str]:
+    """Why a row's median is not to be trusted as a measure of the step, one phrase each:
+    'busy (...)' where the row says the machine was (its `busy` column, and why in
+    `load`), 'unstable (spread N %)' where its chunks say so. [] for a row with neither."""
+    doubts = []
+    if row.get("busy", "").lower() == "true":
+        doubts.append(f"busy ({row['load']})" if row.get("load") else "busy")
+    spread = robust_spread(chunks)
+    if spread is not None and spread > UNSTABLE_SPREAD:
+        doubts.append(f"unstable (spread {spread:.0%} of the median)")
+    return doubts
+
+
+__all__ = ["UNSTABLE_SPREAD", "robust_spread", "row_doubts"]
