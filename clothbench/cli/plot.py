@@ -53,7 +53,7 @@ def register(subparsers) -> None:
         "of medians over the two rows' timed chunks (the chunk_ms column). A change is flagged only "
         "where the interval excludes 1. Rows without chunk_ms (sweeps written before that column) or "
         f"with fewer than {MIN_CHUNKS} chunks are compared as before and marked untested. A row the "
-        "machine was busy for, or whose chunks spread wide (a robust standard deviation over 10 %% of "
+        "machine was busy for, or whose chunks spread wide (a robust standard deviation over 10 % of "
         "the median), in A or B is inconclusive: listed with why, neither a pass nor a fail of the gate "
         "(--strict-gate fails it). With one run a side the interval sees the noise between chunks of "
         "one run; give several runs a side (A1.csv,A2.csv) for the spread between runs too.",
