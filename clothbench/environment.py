@@ -3,6 +3,10 @@
 Recorded with every sweep row, so a CSV read months later (or next to one from another
 machine) still says what produced it. Nothing here raises: an unknown is written as
 "unknown".
+
+hatch_build.py loads this file on its own at build time, in the build's environment, to record
+the commit a wheel is built from (checkout_commit): imports at the top stay the standard
+library's; clothbench's own are made inside the functions that need them.
 """
 
 from __future__ import annotations
@@ -138,11 +142,15 @@ def python_version() -> str:
 
 
 def package_versions() -> str:
-    """'name=version' for every installed distribution in PACKAGES, space-separated."""
+    """'name=version' for every installed distribution in PACKAGES, space-separated; clothbench's
+    is the running code's (__version__), which a checkout on PYTHONPATH has without being installed
+    and which an installed distribution of another checkout would misstate."""
+    from clothbench import __version__
+
     found = []
     for name in PACKAGES:
         try:
-            found.append(f"{name}={metadata.version(name)}")
+            found.append(f"{name}={__version__ if name == 'clothbench' else metadata.version(name)}")
         except metadata.PackageNotFoundError:
             continue
     return " ".join(found)
@@ -155,11 +163,15 @@ def driver_env() -> str:
     return " ".join(f"{k}={shlex.quote(os.environ[k])}" for k in names)
 
 
-def git_commit() -> str:
-    """Short commit of the clothbench checkout, '+dirty' if tracked files changed; else 'unknown'."""
-    root = Path(__file__).resolve().parents[1]  # clothbench/environment.py -> the checkout
+# Where clothbench runs from: a checkout's root (git can say its commit), or site-packages.
+CHECKOUT = Path(__file__).resolve().parents[1]  # clothbench/environment.py -> the folder above
+
+
+def checkout_commit(root: Path) -> str | None:
+    """Short commit of the git checkout at `root`, '+dirty' if tracked files changed; None where
+    `root` is no checkout (its own .git: not a repository further up) or git cannot say."""
     if not (root / ".git").exists():
-        return "unknown"
+        return None
     env = dict(os.environ, GIT_OPTIONAL_LOCKS="0")  # never take the index lock from under a user
 
     def git(*args: str) -> str:
@@ -172,8 +184,24 @@ def git_commit() -> str:
         commit = git("rev-parse", "--short=12", "HEAD")
         dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, RuntimeError, subprocess.SubprocessError):
-        return "unknown"
+        return None
     return commit + ("+dirty" if dirty else "")
+
+
+def git_commit() -> str:
+    """The clothbench commit that is running. A checkout's is git's, live ('unknown' where git
+    cannot say). An installed copy has no repository to ask: its commit is the one its wheel was
+    built from (clothbench/_build_info.py, written by hatch_build.py), with its version, as in
+    'abc123456789 (version 0.1.0)'; 'unknown (version 0.1.0)' where it was built from no checkout."""
+    if (CHECKOUT / ".git").exists():
+        return checkout_commit(CHECKOUT) or "unknown"
+    from clothbench import __version__
+
+    try:
+        from clothbench._build_info import COMMIT as built_from
+    except ImportError:
+        built_from = "unknown"
+    return f"{built_from} (version {__version__})"
 
 
 def timestamp() -> str:

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from clothbench.cli import main
-from clothbench.reports.html import Exact, num
+from clothbench.reports.html import Exact, machine_section, num
+from clothbench.reports.results_files import ResultsFile
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 COMMITTED = sorted(RESULTS.glob("*.csv"))
@@ -129,6 +130,15 @@ def test_machine_section_says_when_rows_come_from_different_machines(tmp_path):
     machine = top_section(out.read_text(encoding="utf-8"), "machine")
     assert "come from at least 2 different machines" in machine and "differ in cpu, env" in machine
     assert "OMP_NUM_THREADS=4" in machine
+
+
+def test_the_dirty_note_is_there_only_when_a_row_is_dirty():
+    rows = list(csv.DictReader(SWEEP.open()))[:21]
+    assert not any("+dirty" in r["git_commit"] for r in rows)
+    note = "'+dirty': the commit had changes not yet committed."
+    assert note not in machine_section([ResultsFile(SWEEP, "sweep", rows)]).render()
+    rows[3] = {**rows[3], "git_commit": f"{rows[3]['git_commit']}+dirty (version 0.1.0)"}  # an installed copy's
+    assert note in machine_section([ResultsFile(SWEEP, "sweep", rows)]).render()
 
 
 @pytest.mark.full  # a report of a whole sweep, twice

@@ -112,7 +112,8 @@ COLUMN_DOCS: dict[str, str] = {
     "env": "environment variables set when measured that change how a library or driver runs "
     "(threads, device choice, JIT settings: OMP_*, NUMBA_*, LP_*, POCL_*, CUDA_VISIBLE_DEVICES, ...), "
     "NAME=value in name order, values shell-quoted",
-    "git_commit": "clothbench commit, '+dirty' if tracked files had changes",
+    "git_commit": "clothbench commit, '+dirty' if tracked files had changes; an installed copy's is the commit "
+    "its wheel was built from, with its version: 'abc123456789 (version 0.1.0)'",
     "timestamp": "when the row was measured (UTC, ISO 8601)",
 }
 COLUMNS: tuple[str, ...] = tuple(COLUMN_DOCS)

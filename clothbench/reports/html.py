@@ -359,7 +359,9 @@ def machine_section(files: list[ResultsFile]) -> Section:
             runs.append(f"<li>{esc(f.name)}: {esc(when)}clothbench commit{'s' * (len(commits) > 1)} "
                         f"{esc(', '.join(commits) or 'not recorded')}</li>")  # fmt: skip
     if runs:
-        sec.body.append(Html(f"<ul>{''.join(runs)}</ul><p>'+dirty': the commit had changes not yet committed.</p>"))
+        sec.body.append(Html(f"<ul>{''.join(runs)}</ul>"))
+    if any("+dirty" in c for f in files for c in _values(f.rows, "git_commit")):
+        sec.body.append(Html("<p>'+dirty': the commit had changes not yet committed.</p>"))
     silent = [f.name for f in files if f not in full and f not in partial]
     if silent:
         sec.body.append(paragraph(
