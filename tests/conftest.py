@@ -121,6 +121,13 @@ def lines_in(path) -> int:
         return 0
 
 
+def drawn_text(fig) -> str:
+    """Every text a matplotlib figure draws (titles, labels, footers in its subfigures), a line each."""
+    from matplotlib.text import Text
+
+    return "\n".join(t.get_text() for t in fig.findobj(Text))
+
+
 def assert_bit_exact(actual: np.ndarray, expected: np.ndarray, what: str = "") -> None:
     """np.array_equal, with a readable count of differing values when it fails."""
     assert actual.dtype == expected.dtype, f"{what}: dtype {actual.dtype} != {expected.dtype}"

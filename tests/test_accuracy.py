@@ -4,6 +4,7 @@ import argparse
 import csv
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from clothbench.analysis.stability import (
     stability_scene,
     stability_state,
 )
+from clothbench import environment
 from clothbench.backends import BackendOptions
 from clothbench.cli import main
 from clothbench.harness import simulate
@@ -118,6 +120,15 @@ def test_energy_of_free_fall_is_constant_and_a_blow_up_is_caught():
     assert "total energy grew" in energy_problem(pos, prev, scene, VERLET, 300)
 
 
+def _assert_measured_here(rows: list[dict], since: str) -> None:
+    """Every row of a study's CSV records this machine and commit, as a sweep row does, and
+    when: between `since` (a timestamp before the study) and now."""
+    here = environment.machine()
+    for column in ("cpu", "cores", "python", "packages", "env", "git_commit"):
+        assert {r[column] for r in rows} == {here[column]}, column
+    assert all(since <= r["timestamp"] <= environment.timestamp() for r in rows)
+
+
 def test_numpy_variants_are_f32_and_f64():
     variants, _ = plan_variants(["numpy"])
     assert [v.options.precision for v in variants] == ["f64", "f32"]  # the float64 reference first
@@ -126,12 +137,14 @@ def test_numpy_variants_are_f32_and_f64():
 def test_accuracy_cli_writes_a_csv_and_both_plots(tmp_path, capsys):
     out = tmp_path / "acc.csv"
     argv = ["accuracy", "--backends", "numpy", "--grid", "8", "--time", "0.02", "--levels", "3", "--out", str(out)]
+    since = environment.timestamp()
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "fitted convergence order: numpy f64: 1.0" in text  # start = rest: first order
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 2 * 3 and {r["label"] for r in rows} == {"numpy f32", "numpy f64"}
     assert all(float(r["disc_rms"]) > 0 and float(r["ms_per_sim_s"]) > 0 for r in rows)
+    _assert_measured_here(rows, since)
     for png in ("acc-speed.png", "acc-convergence.png"):
         assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -153,11 +166,13 @@ def test_stability_cli_prints_measured_beside_predicted(tmp_path, capsys):
         "--out",
         str(out),
     ]
+    since = environment.timestamp()
     assert main(argv) == 0
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 2
     for r in rows:
         assert abs(float(r["ratio"]) - 1) < 0.1
+    _assert_measured_here(rows, since)
     assert (tmp_path / "stab.png").exists()
     assert "numpy f64" in capsys.readouterr().out
 
@@ -178,6 +193,24 @@ def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "committed, argv, lacks",
+    [
+        ("accuracy-drape.csv", ["accuracy", "--backends", "numpy", "--grid", "8"], "lacks cores, python"),
+        ("stability.csv", ["stability", "--backends", "numpy", "--grid", "8"], "lacks cpu, cores"),
+    ],
+)
+def test_resuming_a_study_csv_older_than_the_machine_columns_says_which_it_lacks(
+    committed, argv, lacks, tmp_path, capsys
+):
+    old = tmp_path / committed
+    old.write_bytes((Path(__file__).resolve().parents[1] / "results" / committed).read_bytes())
+    assert main([*argv, "--out", str(old), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "has other columns than this clothbench writes" in err and lacks in err and err.count("\n") == 1
+    assert old.read_bytes() == (Path(__file__).resolve().parents[1] / "results" / committed).read_bytes()
 
 
 # --- the solver dimension: Verlet against PBD (docs/accuracy.md, "Verlet or PBD") --------
@@ -447,3 +480,117 @@ def test_stability_map_has_a_panel_per_scene_with_pbd_as_its_worst_backend(tmp_p
     assert list(pbd.get_ydata()) == [0.05, 0.05]  # the worst backend, not the best
     plot_stability_map(rows, tmp_path / "stab.png")
     assert (tmp_path / "stab.png").exists() and (tmp_path / "stab.svg").exists()
+
+
+# --- the machine under the accuracy and stability figures ------------------------------------
+
+# environment.collect()'s columns of a row measured on a test machine
+MACHINE_A = dict(cpu="Test CPU A", cores="4", python="CPython 3.11", packages="numpy=2.0", env="",
+                 git_commit="abc123def456", timestamp="2026-03-04T10:00:00+00:00")  # fmt: skip
+MACHINE_B = {**MACHINE_A, "cpu": "Test CPU B", "cores": "8", "git_commit": "fedcba654321",
+             "timestamp": "2026-03-06T09:00:00+00:00"}  # fmt: skip
+LINE_A = "Test CPU A · 4 cores · commit abc123def456 · 2026-03-04"
+
+
+def _small_accuracy(*machines: dict) -> list:
+    """Two lines of three dts each, row i measured on machines[i % len(machines)] (none: a file
+    older than the machine columns)."""
+    from clothbench.analysis.convergence import AccuracyRow
+
+    rows = []
+    for label in ("numpy f64", "numpy f32"):
+        for dt in (2e-3, 1e-3, 5e-4):
+            machine = machines[len(rows) % len(machines)] if machines else {}
+            rows.append(AccuracyRow(
+                scene="drape", grid=8, start="rest", damping=0.002, time_s=0.1, backend="numpy", label=label,
+                mode=label.split()[1], device="cpu", dt=dt, steps=round(0.1 / dt), ms_per_sim_s=1e-3 / dt,
+                disc_rms=dt, impl_rms=1e-7, order=1.0, **machine,
+            ))  # fmt: skip
+    return rows
+
+
+def _small_stability(*machines: dict) -> list:
+    from clothbench.analysis.stability import StabilityRow
+
+    rows = []
+    for k in (1000.0, 10000.0, 100000.0):
+        machine = machines[len(rows) % len(machines)] if machines else {}
+        rows.append(StabilityRow("flat", k, 0.002, 10, 300, "numpy", "numpy f32", 0.06 / math.sqrt(k),
+                                 0.061 / math.sqrt(k), 0.06 / math.sqrt(k), 0.06 / math.sqrt(k), 0.04 / math.sqrt(k),
+                                 10, **machine))  # fmt: skip
+    return rows
+
+
+def _chart(figure: str, rows):
+    from types import SimpleNamespace
+
+    from clothbench.reports.accuracy_plots import convergence_chart, speed_vs_error_chart, stability_map_chart
+
+    if figure == "stability":
+        return stability_map_chart(rows)
+    draw = speed_vs_error_chart if figure == "speed" else convergence_chart
+    return draw(SimpleNamespace(rows=rows, differences=[]))
+
+
+FIGURES = {"speed": _small_accuracy, "convergence": _small_accuracy, "stability": _small_stability}
+
+
+@pytest.mark.parametrize("figure", FIGURES)
+def test_accuracy_and_stability_figures_name_the_machine_commit_and_day_of_their_rows(figure):
+    from conftest import drawn_text
+
+    assert LINE_A in drawn_text(_chart(figure, FIGURES[figure](MACHINE_A)).figure)
+
+
+@pytest.mark.parametrize("figure", FIGURES)
+def test_figures_of_rows_from_two_machines_name_both_and_the_days_between(figure):
+    from conftest import drawn_text
+
+    text = drawn_text(_chart(figure, FIGURES[figure](MACHINE_A, MACHINE_B)).figure)
+    assert "2 machines: Test CPU A (4 cores), Test CPU B (8 cores)" in text
+    assert "commit abc123def456, fedcba654321" in text and "2026-03-04..2026-03-06" in text
+
+
+@pytest.mark.parametrize("figure", FIGURES)
+def test_figures_of_rows_older_than_the_machine_columns_draw_without_the_line(figure):
+    from conftest import drawn_text
+
+    chart = _chart(figure, FIGURES[figure]())
+    text = drawn_text(chart.figure)
+    assert "cores" not in text and "commit" not in text and "machines" not in text
+    if figure != "convergence":  # its footer holds its line-style notes still
+        assert not chart.figure.subfigs  # no footer at all
+
+
+def test_a_study_csv_round_trip_keeps_the_machine_for_its_figure(tmp_path):
+    """As `clothbench report` draws them: the rows read back from the CSVs the studies write."""
+    from clothbench.harness.study_csv import cells
+    from clothbench.reports.results_files import analysis_rows, read_results
+    from conftest import drawn_text
+
+    for figure, make in (("stability", _small_stability), ("speed", _small_accuracy)):
+        rows = [cells(r.as_dict()) for r in make(MACHINE_A)]
+        path = tmp_path / f"{figure}.csv"
+        with path.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        assert LINE_A in drawn_text(_chart(figure, analysis_rows(read_results(path))).figure), figure
+
+
+def test_a_committed_accuracy_csv_with_only_a_cpu_column_names_the_cpu_alone(tmp_path):
+    from clothbench.reports.results_files import analysis_rows, read_results
+    from conftest import drawn_text
+
+    committed = Path(__file__).resolve().parents[1] / "results" / "accuracy-drape.csv"
+    with committed.open(newline="") as f:
+        reader = csv.DictReader(f)
+        header, rows = reader.fieldnames, list(reader)[:10]  # two lines of five dts: small, and quick to draw
+    assert "cpu" in header and "timestamp" not in header  # written before the other machine columns
+    path = tmp_path / "acc.csv"
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=header)
+        w.writeheader()
+        w.writerows(rows)
+    text = drawn_text(_chart("speed", analysis_rows(read_results(path))).figure)
+    assert rows[0]["cpu"] in text.splitlines() and "commit" not in text

@@ -204,6 +204,21 @@ def test_speed_vs_error_labels_exactly_the_front_of_each_grid(tmp_path):
     assert {"OpenCL", "Taichi (peer)", "CPU (numpy) f64"} <= texts and "GLSL" not in texts
 
 
+def test_sweep_figures_name_the_machine_commit_and_day_and_every_machine_of_a_mixed_file(tmp_path):
+    from conftest import drawn_text
+
+    one = [row(grid=n) for n in (16, 32)]
+    texts = drawn_text(draw_sweep(write_csv(tmp_path / "one.csv", one)).charts["time_vs_grid"].figure)
+    assert "Test CPU · 2 cores · commit abc123 · 2026-01-01" in texts
+    other = dict(cpu="Other CPU", cores="64", git_commit="def456", timestamp="2026-01-03T00:00:00+00:00")
+    mixed = one + [row(grid=n, **other) for n in (16, 32)]
+    report = draw_sweep(write_csv(tmp_path / "mixed.csv", mixed))
+    for name, chart in report.charts.items():
+        text = drawn_text(chart.figure)
+        assert "2 machines: Other CPU (64 cores), Test CPU (2 cores)" in text, name
+        assert "commit abc123, def456" in text and "2026-01-01..2026-01-03" in text, name
+
+
 @pytest.mark.full  # two whole committed sweeps plotted
 @pytest.mark.parametrize("with_bound", [True, False])
 def test_the_machine_bound_is_drawn_only_where_the_csv_has_it(tmp_path, with_bound):

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from clothbench.backends import BackendOptions, create_backend
-from clothbench.environment import cpu_model
+from clothbench import environment
 from clothbench.errors import ClothbenchError
 from clothbench.harness.energy import total_energy
 from clothbench.harness import faults
@@ -185,7 +185,14 @@ class AccuracyRow:
     order_points: int = 0  # how many of its dts the fit used (discretisation_dominates)
     in_fit: bool = False  # whether this row is one of them
     stiffness: float = float("nan")  # k of the scene (N/m): the model a row's cost and error are of
-    cpu: str = ""  # the machine the cost was measured on
+    # where and when the cost was measured: environment.collect()'s columns, as a sweep row has them
+    cpu: str = ""
+    cores: str = ""
+    python: str = ""
+    packages: str = ""
+    env: str = ""
+    git_commit: str = ""
+    timestamp: str = ""
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -367,7 +374,7 @@ def _unmeasured_row(v: Variant, scene: Scene, solver: Solver, time_s: float, **f
         **pbd_fields(solver),
         ref_model=model_name(solver),
         stiffness=scene.stiffness,
-        cpu=cpu_model(),
+        **environment.collect(),
         **fields,
     )
 

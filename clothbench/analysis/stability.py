@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clothbench import environment
 from clothbench.analysis.lattice import gershgorin_dt_max, predicted_dt_max
 from clothbench.backends import create_backend
 from clothbench.errors import ClothbenchError
@@ -176,6 +177,14 @@ class StabilityRow:
     capped: bool = False  # stable at the cap: the true limit is at least dt_stable
     cap: float | None = None  # the largest dt tried (PBD); None: no cap
     at_60hz: str = ""  # "stable" or "unstable (step <= N: ...)" at dt = 1/60 s, same steps
+    # where and when it was measured: environment.collect()'s columns, as a sweep row has them
+    cpu: str = ""
+    cores: str = ""
+    python: str = ""
+    packages: str = ""
+    env: str = ""
+    git_commit: str = ""
+    timestamp: str = ""
 
     @property
     def ratio(self) -> float | None:
@@ -285,6 +294,7 @@ def measure_stability_limit(
         cap=cap,
         at_60hz=at_60hz,
         **pbd_fields,
+        **environment.collect(),
     )
 
 

@@ -82,6 +82,10 @@ class StudyFile(SweepFile):
                         f"{value!r}: resume with the settings that wrote it, or write into a new --out"
                     )
 
+    def _of_this_kind(self, header: tuple[str, ...]) -> bool:
+        """A study's file, of any version, has its key columns (no other kind has them all)."""
+        return set(self.key_columns) <= set(header)
+
     def key(self, row: dict[str, str]) -> tuple[str, ...]:
         return tuple(row.get(c, "") for c in self.key_columns)
 

@@ -278,8 +278,7 @@ class SweepFile:
         columns = self.columns
         if header == columns:
             return
-        marker = "ms_median" if columns == COLUMNS else columns[-1]  # a column only this kind of file has
-        if "backend" not in header or marker not in header:
+        if not self._of_this_kind(header):
             raise ClothbenchError(f"{self.path} is not a clothbench {self.what} CSV: choose another --out")
         missing = [c for c in columns if c not in header]
         extra = [c for c in header if c not in columns]
@@ -293,6 +292,10 @@ class SweepFile:
             f"{self.path} has other columns than this clothbench writes ({detail}): "
             f"resume it with the version that wrote it, or write the {self.what} into a new --out"
         )
+
+    def _of_this_kind(self, header: tuple[str, ...]) -> bool:
+        """Whether a header is this kind of file's, if perhaps of another version: a sweep's."""
+        return "backend" in header and "ms_median" in header
 
     def _read_all(self) -> bytes:
         chunks, offset = [], 0

@@ -14,12 +14,14 @@ MAX_SERIES series, peers dashed and hollow, the Pareto front, PNG and SVG).
 
 Verlet lines are solid, PBD dash-dotted with square (Jacobi) or diamond (coloured) markers,
 peers dashed with hollow markers. The *_chart functions return the drawn Chart; the plot_*
-functions write it as PNG at the path given and SVG beside it.
+functions write it as PNG at the path given and SVG beside it. Under each figure, the machine,
+commit and date its rows were measured on, as under the sweep's (figures_common.machine_line).
 """
 
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 from matplotlib.lines import Line2D
@@ -27,14 +29,15 @@ from matplotlib.lines import Line2D
 from clothbench.analysis.lattice import damping_rate, dt_limit, gershgorin_omega, omega_max
 from clothbench.analysis.stability import DT_60HZ, STRETCH
 from clothbench.reports.figures_common import (
-    FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, PEERS, Chart, draw_front, fit_labels, is_peer, panel_axes,
-    panel_legend, pareto_front, platform_color, platform_of, platform_rank, save_figure, series_style,
+    FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, PEERS, Chart, draw_front, fit_labels, is_peer, machine_line,
+    panel_axes, panel_legend, pareto_front, platform_color, platform_of, platform_rank, save_figure, series_style,
     small_multiples, titled_figure,
 )  # fmt: skip
 from clothbench.scene import Scene
 
 DPI = 110
 SOLVER_MARKERS = {"verlet": "o", "jacobi": "s", "coloured": "D"}
+FOOTER_WIDTH = 130  # characters of a machine line (6.5 pt) to a line: what fits the narrowest figure, 7 in wide
 
 
 def _model(r) -> str:
@@ -70,6 +73,13 @@ def _platform_panels(rows) -> list[tuple[str, list[tuple[str, list]]]]:
     return small_multiples(_lines(rows), lambda line: platform_of(line[1][0].backend), lambda line: _model(line[1][0]))
 
 
+def _footer(notes: list[str], rows) -> str:
+    """The figure's notes and, last, where and when its rows were measured (wrapped: several
+    machines make it long; nothing for rows from files older than the machine columns)."""
+    machine = textwrap.fill(machine_line(vars(r) for r in rows), FOOTER_WIDTH)
+    return "\n".join([*notes, machine] if machine else notes)
+
+
 def _accuracy_figure(title: str, panels: int, overview: bool, footer: str = ""):
     cols = 1 if panels == 1 else 3 if overview or panels > 4 else 2
     cells = panels + (1 if overview else 0)  # axes; the overview spans two columns
@@ -96,6 +106,7 @@ def speed_vs_error_chart(result) -> Chart:
         f"Speed against error: {r0.scene} {r0.grid}×{r0.grid}, {solvers}; dt halved along each line",
         len(panels),
         overview,
+        _footer([], rows),
     )
     body.supxlabel(f"RMS position error at t = {r0.time_s:g} s against the converged float64 answer of its own "
                    "model (m)", fontsize=9)  # fmt: skip
@@ -208,7 +219,7 @@ def convergence_chart(result) -> Chart:
         f"Convergence: {r0.scene} {r0.grid}×{r0.grid}, start={r0.start}, b={r0.damping:g}",
         len(panels),
         False,
-        "\n".join(notes),
+        _footer(notes, rows),
     )
     body.supxlabel("dt (s)", fontsize=9)
     body.supylabel(f"RMS position error at t = {r0.time_s:g} s (m)", fontsize=9)
@@ -245,7 +256,7 @@ def stability_map_chart(rows) -> Chart:
     r0 = rows[0]
     kinds = list(dict.fromkeys(r.kind for r in rows))
     fig, body = titled_figure(f"Stability map: {r0.grid}×{r0.grid}, {r0.steps} steps, b = {r0.damping:g}",
-                              max(7.0, 5.0 * len(kinds)), 6.2)  # fmt: skip
+                              max(7.0, 5.0 * len(kinds)), 6.2, _footer([], rows))  # fmt: skip
     body.supxlabel("spring stiffness k (N/m), m = 0.01 kg", fontsize=9)
     body.supylabel("largest stable dt (s)", fontsize=9)
     axes, _ = panel_axes(body, len(kinds), cols=3)

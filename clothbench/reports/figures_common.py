@@ -2,7 +2,8 @@
 accuracy_plots.py the accuracy and stability runs'): small multiples of at most MAX_SERIES
 series a panel, split by platform; peers drawn apart from clothbench's own backends (dashed
 lines, hollow markers, "(peer)" in the legend); the Pareto front of cost against error,
-drawn and labelled; log axes labelled in plain numbers; every figure written as PNG and SVG.
+drawn and labelled; log axes labelled in plain numbers; the machine, commit and date under
+every figure whose rows record them; every figure written as PNG and SVG.
 
 Figures are matplotlib Figures on the Agg canvas, never pyplot: nothing global, no display.
 """
@@ -14,7 +15,7 @@ import math
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, TypeVar
+from typing import Callable, Iterable, Mapping, TypeVar
 
 from matplotlib import rc_context
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -273,6 +274,33 @@ def new_figure(width: float, height: float) -> Figure:
     fig = Figure(figsize=(width, height), layout="constrained")
     FigureCanvasAgg(fig)
     return fig
+
+
+def machine_line(records: Iterable[Mapping]) -> str:
+    """Where and when the rows' costs were measured, from their cpu, cores, git_commit and
+    timestamp columns (environment.collect()'s): 'Intel Xeon · 2 cores · commit abc123 ·
+    2026-12-01'. Rows from several machines say so and name each ('2 machines: A (2 cores),
+    B (64 cores)'), from several commits name each, from several days the first and last. A
+    column no row has is left out: rows older than the columns give less, or ''."""
+    records = list(records)
+
+    def values(col: str) -> list[str]:
+        return sorted({str(r.get(col) or "") for r in records} - {""})
+
+    machines = sorted({(str(r.get("cpu") or ""), str(r.get("cores") or "")) for r in records} - {("", "")})
+    parts = []
+    if len(machines) == 1:
+        cpu, cores = machines[0]
+        parts += [cpu, f"{cores} cores" if cores else ""]
+    elif machines:
+        named = [f"{cpu or 'unknown CPU'}" + (f" ({cores} cores)" if cores else "") for cpu, cores in machines]
+        parts.append(f"{len(machines)} machines: {', '.join(named)}")
+    if values("git_commit"):
+        parts.append(f"commit {', '.join(values('git_commit'))}")
+    days = sorted({stamp[:10] for stamp in values("timestamp")})
+    if days:
+        parts.append(days[0] if len(days) == 1 else f"{days[0]}..{days[-1]}")
+    return " · ".join(p for p in parts if p)
 
 
 def titled_figure(title: str, width: float, body_height: float, footer: str = ""):

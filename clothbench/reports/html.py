@@ -366,7 +366,8 @@ def machine_section(files: list[ResultsFile]) -> Section:
     if silent:
         sec.body.append(paragraph(
             f"{', '.join(silent)} record{'s' * (len(silent) == 1)} no machine (cpu, cores, python, packages, "
-            "environment, commit): only sweep CSVs record all of it."
+            "environment, commit): sweep CSVs record all of it, as do accuracy and stability CSVs written since "
+            "they took the same columns."
         ))  # fmt: skip
     return sec
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BUDGET_NOTE, read_sweep
-from clothbench.reports.figures_common import display_name, platform_of, series_style
+from clothbench.reports.figures_common import display_name, machine_line, platform_of, series_style
 
 # Columns the figures need; a CSV without them is refused with their names.
 REQUIRED = (
@@ -223,13 +223,5 @@ def footer(rows: list[Row]) -> str:
         f"scene {', '.join(values('scene'))}, dt {dts} ms; {chunks} timed after warm-up; "
         "median of chunks, bars min-max; upload and readback not timed (except per-step transfer modes)"
     ]
-    machine = [", ".join(values("cpu"))]
-    if values("cores"):
-        machine.append(f"{', '.join(values('cores'))} cores")
-    if values("git_commit"):
-        machine.append(f"commit {', '.join(values('git_commit'))}")
-    stamps = values("timestamp")
-    if stamps:
-        machine.append(stamps[0][:10] if stamps[0][:10] == stamps[-1][:10] else f"{stamps[0][:10]}..{stamps[-1][:10]}")
-    parts.append(" · ".join(m for m in machine if m))
+    parts.append(machine_line(r.raw for r in rows))
     return "\n".join(textwrap.fill(p, 170) for p in parts)
