@@ -28,7 +28,7 @@ from clothbench.harness.energy import energy_problem, total_energy
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.scene import Scene, load_scene
 from clothbench.solver import Pbd
-from conftest import VERLET, setup
+from conftest import VERLET, require, setup
 
 F64 = Variant("numpy", BackendOptions(precision="f64"), VERLET, "f64")
 # ten passes in one substep: the setting these checks were measured with (not the default)
@@ -147,6 +147,27 @@ def test_accuracy_cli_writes_a_csv_and_both_plots(tmp_path, capsys):
     _assert_measured_here(rows, since)
     for png in ("acc-speed.png", "acc-convergence.png"):
         assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_accuracy_rows_name_the_driver_that_ran_them_and_an_older_file_still_reads(tmp_path, capsys):
+    from clothbench.backends import availability
+    from clothbench.reports.results_files import analysis_rows, read_results
+
+    require("c")
+    out = tmp_path / "acc.csv"
+    argv = ["accuracy", "--backends", "c", "--grid", "8", "--time", "0.02", "--levels", "3", "--out", str(out)]
+    assert main(argv) == 0
+    rows = list(csv.DictReader(open(out)))
+    assert {r["driver"] for r in rows} == {availability("c").driver} != {""}  # the compiler that built each
+    # the same file without the column (written before it was): read, its driver empty
+    older = tmp_path / "older.csv"
+    with older.open("w", newline="") as f:
+        columns = [c for c in rows[0] if c != "driver"]
+        writer = csv.DictWriter(f, columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    read = analysis_rows(read_results(older))
+    assert [r.driver for r in read] == [""] * len(rows) and [r.label for r in read] == [r["label"] for r in rows]
 
 
 def test_stability_cli_prints_measured_beside_predicted(tmp_path, capsys):

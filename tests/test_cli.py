@@ -9,9 +9,12 @@ import pytest
 
 from clothbench.cli import main
 
+from conftest import require
+
 RUN_KEYS = {
     "backend",
     "device",
+    "driver",
     "grid",
     "particles",
     "springs",
@@ -75,6 +78,25 @@ def test_backends_lists_every_platform_with_a_reason(capsys):
     assert rows["numpy"]["usable"]
     for r in rows.values():
         assert r["usable"] or r["reason"], f"{r['backend']} is unusable without a reason"
+
+
+@pytest.mark.parametrize("backend", ["c", "opencl", "glsl", "glsl-compute", "cuda"])
+def test_backends_lists_the_driver_run_prints(backend, capsys):
+    # one fact, said twice: what `backends` lists (the probe's) is what `run` names as the
+    # driver of a run with no --device, and it is the run's own (Backend.driver)
+    from clothbench.backends import availability
+    from clothbench.reports.tables import print_backends
+
+    require(backend)
+    assert main(["run", "--backend", backend, "--grid", "8", "--steps", "2", "--json"]) == 0
+    ran = json.loads(capsys.readouterr().out)
+    probe = availability(backend)
+    assert ran["driver"] and ran["driver"] == probe.driver, (ran["driver"], probe.driver)
+    row = {"backend": backend, "kind": "clothbench", "usable": True, "device": probe.device, "driver": probe.driver}
+    print_backends([row])
+    listed = "".join(line.split("│")[4].strip() + " " for line in capsys.readouterr().out.splitlines()
+                     if line.count("│") == 5)  # fmt: skip
+    assert " ".join(f"driver: {probe.driver}".split()) in " ".join(listed.split()), listed
 
 
 @pytest.mark.parametrize(

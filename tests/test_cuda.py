@@ -933,6 +933,8 @@ def test_a_usable_probe_names_the_compiler_it_found(cupy_of, monkeypatch, tmp_pa
     a = cuda.probe()
     assert a.usable and a.device == "NVIDIA H200"
     assert a.reason == f"cupy-cuda13x 14.2.0, CUDA 13.2 runtime, nvcc {release} ({nvcc})"
+    # what `backends` lists as its driver, made as CudaBackend.driver makes a run's
+    assert a.driver == f"CUDA driver 13.0, cupy-cuda13x 14.2.0, CUDA 13.2 runtime, nvcc {release} ({nvcc}), NVIDIA H200"
 
 
 def test_nvrtc_refuses_a_device_older_than_its_cuda_in_one_line(monkeypatch):

@@ -173,6 +173,8 @@ def test_listing_names_every_device_pyopencl_sees_with_its_driver_version(capsys
     default = next(d for d in row["devices"] if d["default"])
     assert default["compiles"] and default["name"] == row["device"]
     assert row["default_device"].startswith(f"default: {default['device']} {default['name']} (")
+    # the opencl row names the default's runtime too: its device name is the CPU's under Intel's
+    assert row["driver"] == f"{default['platform']}: {default['platform_version']}; driver {default['driver_version']}"
 
     assert main(["backends"]) == 0
     out = capsys.readouterr().out
@@ -334,6 +336,45 @@ def test_driver_names_the_platform_and_its_versions(runtime):
         platform = b._device.platform
         assert b.driver.startswith(f"{platform.name}: {' '.join(platform.version.split())}")
         assert b.driver.endswith(f"driver {b._device.driver_version}")
+
+
+def _pyopencl_driver(spec: str) -> tuple[str, str, str]:
+    """(platform name, platform version, device driver version) of the device `spec` names,
+    as pyopencl itself answers: what a run on that context must print."""
+    p, d = map(int, spec.split(":"))
+    platform = device.import_pyopencl().get_platforms()[p]
+    return platform.name, " ".join(platform.version.split()), platform.get_devices()[d].driver_version
+
+
+@pytest.mark.parametrize("runtime", RUNTIMES)
+def test_run_prints_the_opencl_platform_and_driver_version_of_its_context(runtime, monkeypatch, capsys):
+    # every runtime's device here is "... Intel(R) Xeon(R) Processor": the driver line says which ran
+    spec = _device_of(runtime)
+    monkeypatch.setenv("PYOPENCL_CTX", spec)
+    monkeypatch.setenv("COLUMNS", "400")  # rich wraps a captured table at 80 otherwise
+    assert main(["run", "--backend", "opencl", "--grid", "8", "--steps", "2"]) == 0
+    printed = {cells[1].strip(): cells[2].strip() for line in capsys.readouterr().out.splitlines()
+               if len(cells := line.split("│")) == 4}  # fmt: skip
+    name, version, driver = _pyopencl_driver(spec)
+    assert printed["driver"] == f"{name}: {version}; driver {driver}", printed
+
+
+def test_run_names_two_opencl_runtimes_apart_by_their_drivers(capsys):
+    require("opencl")
+    first = {}  # runtime -> the first device of it that compiles
+    for spec, dev, kind in device.ordered_devices():
+        if device.compile_error(dev) is None:
+            first.setdefault(kind, spec)
+    if len(first) < 2:
+        pytest.skip(f"one OpenCL runtime here compiles ({', '.join(first) or 'none'}): nothing to tell apart")
+    drivers = []
+    for spec in list(first.values())[:2]:
+        assert main(["run", "--backend", "opencl", "--device", spec, "--grid", "8", "--steps", "2", "--json"]) == 0
+        ran = json.loads(capsys.readouterr().out)
+        name, version, driver = _pyopencl_driver(spec)
+        assert ran["driver"] == f"{name}: {version}; driver {driver}", (spec, ran["driver"])
+        drivers.append(ran["driver"])
+    assert drivers[0] != drivers[1], f"{list(first)[:2]} both say {drivers[0]!r}"
 
 
 # --- a build error names the file, the line and the compiler's error on every runtime ------

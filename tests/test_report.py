@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from clothbench.cli import main
-from clothbench.reports.html import Exact, machine_section, num
+from clothbench.reports.html import Exact, esc, machine_section, num
 from clothbench.reports.results_files import ResultsFile
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
@@ -139,6 +139,35 @@ def test_the_dirty_note_is_there_only_when_a_row_is_dirty():
     assert note not in machine_section([ResultsFile(SWEEP, "sweep", rows)]).render()
     rows[3] = {**rows[3], "git_commit": f"{rows[3]['git_commit']}+dirty (version 0.1.0)"}  # an installed copy's
     assert note in machine_section([ResultsFile(SWEEP, "sweep", rows)]).render()
+
+
+def _device_rows(machine: str) -> list[tuple[str, ...]]:
+    """(backend, device, driver, in) of each row of the machine section's device table."""
+    body = re.search(r"<th>device, as its driver names it</th><th>driver</th><th>in</th></tr></thead><tbody>(.*?)"
+                     r"</tbody>", machine, re.S)  # fmt: skip
+    assert body, "the device table has a driver column"
+    return [tuple(re.findall(r"<td[^>]*>(.*?)</td>", tr)) for tr in re.findall(r"<tr[^>]*>(.*?)</tr>", body.group(1))]
+
+
+def test_the_device_table_names_each_rows_driver_and_says_when_a_file_has_none(tmp_path):
+    # one CPU is "Intel(R) Xeon(R) Processor" under Intel's OpenCL runtime and the CPU
+    # backends alike: the driver column says which runtime ran a row; a file older than the
+    # column still reports, its driver "not recorded"
+    rows = [r for r in csv.DictReader(SWEEP.open()) if r["grid"] == "32" and r["backend"] in ("numpy", "opencl")]
+    assert "driver" not in rows[0]
+    device = {r["backend"]: r["device"] for r in rows}
+    drivers = {"opencl": "Intel(R) OpenCL: OpenCL 3.1 LINUX; driver 2026.22", "numpy": ""}
+    recorded = _write_rows(tmp_path / "recorded.csv", [{**r, "driver": drivers.get(r["backend"], "x 1")} for r in rows])
+    older = _write_rows(tmp_path / "older.csv", rows)
+    out = tmp_path / "r.html"
+    assert main(["report", str(recorded), str(older), "--out", str(out)]) == 0
+    table = _device_rows(top_section(out.read_text(encoding="utf-8"), "machine"))
+    named = {(b, d, v): n for b, d, v, n in table}
+    for backend in ("opencl", "numpy"):
+        key = (backend, esc(device[backend]))
+        assert named[(*key, esc(drivers[backend]))] == str(recorded), table
+        assert named[(*key, "not recorded")] == str(older), table
+    assert len(named) == 4, table
 
 
 @pytest.mark.full  # a report of a whole sweep, twice

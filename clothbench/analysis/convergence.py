@@ -185,6 +185,7 @@ class AccuracyRow:
     order_points: int = 0  # how many of its dts the fit used (discretisation_dominates)
     in_fit: bool = False  # whether this row is one of them
     stiffness: float = float("nan")  # k of the scene (N/m): the model a row's cost and error are of
+    driver: str = ""  # the runtime that ran it (Backend.driver); '' where none, or in files older than the column
     # where and when the cost was measured: environment.collect()'s columns, as a sweep row has them
     cpu: str = ""
     cores: str = ""
@@ -326,7 +327,7 @@ def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float):
     except Exception as e:  # a broken backend is a row saying so, not a dead command
         row.status = f"error: {type(e).__name__}: {e}"
         return row, None, None
-    row.mode, row.device = result.mode, result.device
+    row.mode, row.device, row.driver = result.mode, result.device, result.driver
     row.ms_per_step = result.ms_per_step
     row.ms_per_sim_s = result.ms_per_step / solver.dt
     if result.blowup is not None:

@@ -58,6 +58,7 @@ class PbdStudyRow:
     ms_opencl: float = float("nan")
     ms_newton: float = float("nan")  # method "newton" only: the peer's own run, which the error is of
     device_opencl: str = ""
+    driver_opencl: str = ""  # which OpenCL runtime timed ms_opencl ('' in files older than the column)
     cpu: str = ""
 
     def as_dict(self) -> dict:
@@ -69,14 +70,15 @@ def study_reference(scene: Scene, time_s: float, on_level: Callable[[int, float]
     return converged_reference(scene, Verlet(dt=REFERENCE_DT), time_s, REFERENCE_DT, on_level=on_level)
 
 
-def _time(backend: str, scene: Scene, solver: Pbd, steps: int) -> tuple[float, str]:
-    """(median ms per step, device) of `backend` in float32, or (nan, why) where it cannot run."""
+def _time(backend: str, scene: Scene, solver: Pbd, steps: int) -> tuple[float, str, str]:
+    """(median ms per step, device, driver) of `backend` in float32, or (nan, why, '') where it
+    cannot run."""
     try:
         with create_backend(backend, scene, solver, BackendOptions()) as b:
             result = run_timed(b, steps, raise_on_blowup=False)
-            return result.ms_per_step, result.device
+            return result.ms_per_step, result.device, result.driver
     except Exception as e:  # a backend that cannot run this pair is a row saying so, not a dead study
-        return float("nan"), f"not run: {type(e).__name__}: {e}"
+        return float("nan"), f"not run: {type(e).__name__}: {e}", ""
 
 
 def measure_pair(
@@ -102,10 +104,10 @@ def measure_pair(
         row.rms, row.max = position_error(pos, ref.pos)
         row.strain = structural_strain(pos, scene)
     for backend in cost_backends:
-        ms, device = _time(backend, scene, solver, steps)
+        ms, device, driver = _time(backend, scene, solver, steps)
         setattr(row, f"ms_{backend}", ms)
         if backend == "opencl":
-            row.device_opencl = device
+            row.device_opencl, row.driver_opencl = device, driver
     return row
 
 

@@ -188,6 +188,10 @@ class Availability:
     usable: bool
     reason: str = ""
     device: str = ""
+    # the driver (runtime, GL renderer, compiler) and its version that will run the work, as
+    # Backend.driver says it: "Intel(R) Xeon(R) Processor" alone does not say which of three
+    # OpenCL runtimes it is; '' where the backend names none
+    driver: str = ""
 
 
 class Backend(ABC):

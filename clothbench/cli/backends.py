@@ -26,6 +26,7 @@ def cmd_backends(args) -> int:
                 "kind": "peer" if entry.peer else "clothbench",
                 "usable": a.usable,
                 "device": a.device,
+                "driver": a.driver,
                 "reason": a.reason,
             }
         )

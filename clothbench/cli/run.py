@@ -83,6 +83,7 @@ def cmd_run(args) -> int:
     summary = {
         "backend": result.backend,
         "device": result.device,
+        "driver": result.driver,
         "mode": result.mode,
         "scene": scene.name,
         "solver": solver.name,

@@ -145,10 +145,12 @@ def plan_sweep(
 def base_row(row: PlannedRow, setup: Setup, steps: int, repeats: int) -> dict[str, str]:
     """The row's columns known before it runs (the rest empty)."""
     scene, solver = setup.scene, row.solver
+    probe = availability(row.backend)  # a row that fails before its backend is built still names them
     out = dict.fromkeys(COLUMNS, "")
     out.update(row.fields(scene.name))
     out.update(
-        device=availability(row.backend).device,
+        device=probe.device,
+        driver=probe.driver,
         particles=str(scene.particles),
         springs=str(scene.springs),
         dt=repr(solver.dt),

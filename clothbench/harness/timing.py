@@ -60,6 +60,7 @@ class RunResult:
     scene: Scene
     solver: Solver
     steps: int
+    driver: str = ""  # Backend.driver: which runtime (of several for one device) ran it, and its version
     chunk_ms_per_step: list[float] = field(default_factory=list)  # one per timed chunk
     device_ms_per_step: list[float] = field(default_factory=list)  # the device's clock, if any
     device_timer: str = ""  # which device clock measured device_ms_per_step (DEVICE_TIMERS); '' none
@@ -140,7 +141,7 @@ def run_timed(
     not fit is shortened (fit_budget; result.steps and result.chunk say what ran)."""
     chunk = chunk or default_chunk(steps)
     scene, solver = backend.scene, backend.solver
-    result = RunResult(backend.name, backend.device, backend.mode, scene, solver, steps)
+    result = RunResult(backend.name, backend.device, backend.mode, scene, solver, steps, backend.driver)
     result.warmup_s = build_s + warm_up(backend)
     if budget_s is not None:
         fitted = fit_budget(steps, chunk, _one_step_s(backend), budget_s)

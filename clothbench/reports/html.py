@@ -303,6 +303,15 @@ def _inline_all(figures: Figures, folder: Path, known: dict[str, tuple[str, str]
 
 # --- the machine ---------------------------------------------------------------------------
 
+DRIVER_NOT_RECORDED = "not recorded"  # a file older than the driver column
+
+
+def driver_cell(row: dict[str, str]) -> str:
+    """The runtime and its version that ran a row (its `driver`): one CPU's name is also the
+    name every CPU runtime gives its device. "not recorded" for a file older than the column;
+    '' where the backend names none (numpy)."""
+    return row.get("driver", DRIVER_NOT_RECORDED)
+
 
 def machine_section(files: list[ResultsFile]) -> Section:
     """The machines (cpu, cores, python, packages, driver environment) the rows record, said
@@ -340,16 +349,17 @@ def machine_section(files: list[ResultsFile]) -> Section:
         whose = f" (machine #{i})" if len({m[3] for m in machines}) > 1 else ""
         items = "".join(f"<li><code>{esc(p)}</code></li>" for p in packages.split())
         sec.body.append(Html(f'<p>Packages that can change a result{whose}:</p><ul class="packages">{items}</ul>'))
-    devices: dict[tuple[str, str], list[str]] = {}
+    devices: dict[tuple[str, str, str], list[str]] = {}  # (backend, device, driver) -> files
     for f in files:
         for r in f.rows:
             if r.get("device"):
-                names = devices.setdefault((r["backend"], r["device"]), [])
+                names = devices.setdefault((r["backend"], r["device"], driver_cell(r)), [])
                 names += [] if f.name in names else [f.name]
     if devices:
         sec.body.append(table(
-            ["backend", "device, as its driver names it", "in"], [[b, d, ", ".join(n)] for (b, d), n in devices.items()],
-            row_classes=["peer" if is_peer(b) else "" for b, _ in devices],
+            ["backend", "device, as its driver names it", "driver", "in"],
+            [[b, d, v, ", ".join(n)] for (b, d, v), n in devices.items()],
+            row_classes=["peer" if is_peer(b) else "" for b, _, _ in devices],
         ))  # fmt: skip
     runs = []
     for f in files:

@@ -17,6 +17,7 @@ def print_run(s: dict) -> None:
     rows = [
         ("backend", f"{s['backend']} ({s['mode']})"),
         ("device", s["device"]),
+        *((("driver", s["driver"]),) if s.get("driver") else ()),  # which runtime: the device name may not say
         ("grid", f"{s['grid']} x {s['grid']}"),
         ("particles", f"{s['particles']:,}"),
         ("springs", f"{s['springs']:,}"),
@@ -49,8 +50,14 @@ def print_backends(rows: list[dict]) -> None:
     for r in rows:
         usable = "[green]yes[/green]" if r["usable"] else "[red]no[/red]"
         # escaped: a reason's install hint ("pip install 'clothbench[peers]'") is not markup
-        table.add_row(r["backend"], r["kind"], usable, escape(r["device"] if r["usable"] else r["reason"]))
+        table.add_row(r["backend"], r["kind"], usable, escape(device_cell(r) if r["usable"] else r["reason"]))
     Console().print(table)
+
+
+def device_cell(r: dict) -> str:
+    """A usable backend's device, and on a line of its own the driver that runs it where it
+    names one: one CPU's name is every CPU runtime's."""
+    return r["device"] + (f"\ndriver: {r['driver']}" if r.get("driver") else "")
 
 
 def gpu_style(backend: str) -> bool:

@@ -57,7 +57,14 @@ def probe() -> Availability:
         omp_num_threads()
     except ClothbenchError as e:  # a bad OMP_NUM_THREADS: say so as the reason, in one line
         return Availability(False, str(e))
-    return Availability(True, device=environment.cpu_model())
+    return Availability(True, device=environment.cpu_model(), driver=compiler_driver())
+
+
+def compiler_driver() -> str:
+    """The compiler that builds the step, with its version, and OpenMP: what probe() and
+    CBackend.driver name as the driver; '' without a compiler."""
+    cc = compiler()
+    return f"{cc.version}, OpenMP" if cc else ""
 
 
 def omp_num_threads() -> int | None:
@@ -213,8 +220,7 @@ class CBackend(Backend):
 
     @property
     def driver(self) -> str:
-        cc = compiler()
-        return f"{cc.version}, OpenMP" if cc else ""
+        return compiler_driver()
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         expected = (self.n2, 4)

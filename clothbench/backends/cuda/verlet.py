@@ -156,7 +156,18 @@ def probe() -> Availability:
         return Availability(False, f"no CUDA compiler for {build} ({install_hint(major)}, or put nvcc on PATH)")
     name = cupy.cuda.runtime.getDeviceProperties(0)["name"]
     device = name.decode() if isinstance(name, bytes) else str(name)
-    return Availability(True, reason=f"{build}, {compiler_name(using)}", device=device)
+    compiler_label = compiler_name(using)
+    return Availability(
+        True, reason=f"{build}, {compiler_label}", device=device, driver=cuda_driver(cupy, compiler_label, device)
+    )
+
+
+def cuda_driver(cupy, compiler_label: str, device: str) -> str:
+    """What a CUDA run names as its driver (probe's and CudaBackend.driver): the NVIDIA
+    driver's CUDA version, the CuPy build and its runtime, the compiler, the device, e.g.
+    "CUDA driver 13.0, cupy-cuda13x 14.0.1, CUDA 13.0 runtime, NVRTC 13.0, NVIDIA H200"."""
+    driver = version_string(cupy.cuda.runtime.driverGetVersion())
+    return f"CUDA driver {driver}, {cupy_build(cupy)}, {compiler_label}, {device}"
 
 
 # --- compilation ----------------------------------------------------------------------
@@ -303,9 +314,7 @@ class CudaBackend(Backend):
         self.defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision)
         module = self._load_module(options.strict, self._device.compute_capability, self.defines)
         # which CuPy (CUDA 12 or 13) and which compiler built the module: part of the tuning key
-        self._driver = (
-            f"CUDA driver {version_string(rt.driverGetVersion())}, {cupy_build(cupy)}, {self._compiler}, {self._name}"
-        )
+        self._driver = cuda_driver(cupy, self._compiler, self._name)
         self._kernels = {name: module.get_function(name) for name in (launch.STEP_KERNEL, launch.STEPS_KERNEL)}
         limit = self._kernels[launch.STEP_KERNEL].max_threads_per_block
         if options.local_size is not None and options.local_size > limit:  # the base refused < 1

@@ -29,7 +29,7 @@ from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
-from clothbench.backends.gl.driver import GLDriverInfo
+from clothbench.backends.gl.driver import GLDriverInfo, gl_driver
 from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_context.X)
     COLLIDER_KINDS, MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
     GLBodies, MeshBuffers, body_defines, collider_kinds, collider_source, mesh_layout, motion_offsets,
@@ -370,7 +370,7 @@ def probe(min_version: int = 330) -> Availability:
     if device.version_code < min_version:
         offers = f"{device.version_code / 100:.1f}"
         return Availability(False, f"needs OpenGL {min_version / 100:.1f}; {device.renderer} offers {offers}")
-    return Availability(True, device=device.renderer)
+    return Availability(True, device=device.renderer, driver=gl_driver(device))
 
 
 def open_device(backend: str, options: BackendOptions, min_version: int) -> GLDevice:

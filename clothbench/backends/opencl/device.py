@@ -71,7 +71,7 @@ def probe() -> Availability:
         device = choose_device(os.environ.get("PYOPENCL_CTX"))
     except ClothbenchError as e:
         return Availability(False, str(e))
-    return Availability(True, device=device.name)
+    return Availability(True, device=device.name, driver=platform_driver(device))
 
 
 def _platforms() -> list:
@@ -343,6 +343,10 @@ def _none_compiles(rows: list) -> str:
 
 
 def platform_driver(device) -> str:
+    """What a run on `device` names as its driver (probe's and the backends' `driver`): the
+    platform's name and version and the device's driver version, e.g. "Portable Computing
+    Language: OpenCL 3.0 PoCL 3.1+debian Linux, ...; driver 3.1+debian". The device's name
+    alone is the same under two runtimes (Intel's and the PoCL wheel's both say the CPU's)."""
     platform = device.platform
     return f"{platform.name}: {' '.join(platform.version.split())}; driver {device.driver_version}"
 
