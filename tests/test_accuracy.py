@@ -219,7 +219,7 @@ def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
 @pytest.mark.parametrize(
     "committed, argv, lacks",
     [
-        ("accuracy-drape.csv", ["accuracy", "--backends", "numpy", "--grid", "8"], "lacks cores, python"),
+        ("accuracy-drape.csv", ["accuracy", "--backends", "numpy", "--grid", "8"], "lacks driver, cores, python"),
         ("stability.csv", ["stability", "--backends", "numpy", "--grid", "8"], "lacks cpu, cores"),
     ],
 )
