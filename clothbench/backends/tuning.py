@@ -45,6 +45,7 @@ from typing import Callable, Sequence
 from clothbench.errors import ClothbenchError
 from clothbench.machine_load import MIN_WINDOW_S, Load, LoadSampler
 from clothbench.native import cache_dir
+from clothbench.reports.progress import waiting
 
 TUNING_ENV = "CLOTHBENCH_TUNING"
 # turns per candidate: with one timed turn each, the tuner picked a band shape ~20% slower than
@@ -155,25 +156,28 @@ def choose_shape(
 
 def _measure(backend: str, text_key: str, names: list[str], time_candidate) -> tuple[dict, dict, Load]:
     """Every candidate's turn times (seconds per step), the failures, and the load meanwhile."""
-    window = sampler.start()
-    _measured_here.add((backend, text_key))
-    turns: dict[str, list[float]] = {}
-    failures: dict[str, str] = {}
-    for _ in range(TUNING_ROUNDS):
-        for name in names:
-            if name in failures:
-                continue
-            try:
-                seconds = time_candidate(name)
-            except ClothbenchError as e:
-                failures[name] = str(e).splitlines()[0]
-                turns.pop(name, None)
-                continue
-            turns.setdefault(name, []).append(seconds)
-    if not turns:
-        why = "; ".join(f"{k}: {v}" for k, v in failures.items())
-        raise ClothbenchError(f"{backend}: no kernel shape runs here ({why})")
-    return turns, failures, window.stop(MIN_WINDOW_S)  # a short tuning waits out the window for a verdict
+    what = f"tuning {backend} (measured once, then cached)"
+    with waiting(what, timed=True) as say:
+        window = sampler.start()
+        _measured_here.add((backend, text_key))
+        turns: dict[str, list[float]] = {}
+        failures: dict[str, str] = {}
+        for turn in range(TUNING_ROUNDS):
+            for name in names:
+                if name in failures:
+                    continue
+                say(f"{what}: {name}, turn {turn + 1} of {TUNING_ROUNDS}")  # drawn here, between the timed runs
+                try:
+                    seconds = time_candidate(name)
+                except ClothbenchError as e:
+                    failures[name] = str(e).splitlines()[0]
+                    turns.pop(name, None)
+                    continue
+                turns.setdefault(name, []).append(seconds)
+        if not turns:
+            why = "; ".join(f"{k}: {v}" for k, v in failures.items())
+            raise ClothbenchError(f"{backend}: no kernel shape runs here ({why})")
+        return turns, failures, window.stop(MIN_WINDOW_S)  # a short tuning waits out the window for a verdict
 
 
 def noise(times: Sequence[float]) -> float:

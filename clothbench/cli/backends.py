@@ -16,21 +16,25 @@ def register(subparsers) -> None:
 
 def cmd_backends(args) -> int:
     from clothbench.backends import BACKENDS, availability
+    from clothbench.reports.progress import waiting
 
     rows = []
-    for name, entry in BACKENDS.items():
-        a = availability(name)
-        rows.append(
-            {
-                "backend": name,
-                "kind": "peer" if entry.peer else "clothbench",
-                "usable": a.usable,
-                "device": a.device,
-                "driver": a.driver,
-                "reason": a.reason,
-            }
-        )
-    devices, default = opencl_devices(args.retune)
+    with waiting("probing backends"):  # a cold probe imports every peer and opens every device
+        for name, entry in BACKENDS.items():
+            with waiting(f"probing backends: {name}"):
+                a = availability(name)
+            rows.append(
+                {
+                    "backend": name,
+                    "kind": "peer" if entry.peer else "clothbench",
+                    "usable": a.usable,
+                    "device": a.device,
+                    "driver": a.driver,
+                    "reason": a.reason,
+                }
+            )
+        with waiting("probing backends: OpenCL devices (compiling a kernel on each)"):
+            devices, default = opencl_devices(args.retune)
     for row in rows:
         if row["backend"] == "opencl" and devices is not None:
             row["devices"], row["default_device"] = devices, default

@@ -28,7 +28,7 @@ def register(subparsers) -> None:
 
 
 def cmd_report(args) -> int:
-    from clothbench.reports.html import build_report
+    from clothbench.reports.progress import waiting
     from clothbench.reports.results_files import read_results
 
     out = Path(args.out)
@@ -36,8 +36,11 @@ def cmd_report(args) -> int:
     for p in paths:
         if p.exists() and out.exists() and out.samefile(p):
             raise ClothbenchError(f"--out {out} is one of the RESULTS files: choose another --out")
-    with _Writable(out) as target:
+    with _Writable(out) as target, waiting("building the report: reading the results files") as say:
         files = [read_results(p) for p in paths]  # every file checked before anything is drawn
+        say("building the report: drawing its figures")
+        from clothbench.reports.html import build_report  # matplotlib: most of a second to import
+
         page, count = build_report(files, args.title)
         target.write(page)
     kinds = ", ".join(dict.fromkeys(f.kind for f in files))

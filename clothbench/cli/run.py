@@ -41,7 +41,7 @@ def cmd_run(args) -> int:
     from clothbench.backends import check_name, create_backend
     from clothbench.harness import run_timed
     from clothbench.harness.energy import predicted_fast_impact
-    from clothbench.reports.progress import LazyProgress
+    from clothbench.reports.progress import LazyProgress, waiting
 
     from clothbench.harness.preflight import check_memory, check_writable
 
@@ -57,10 +57,14 @@ def cmd_run(args) -> int:
     if warning := predicted_fast_impact(scene, solver):
         print(f"clothbench: warning: {warning}", file=sys.stderr)
     t0 = time.perf_counter()
-    backend = create_backend(args.backend, scene, solver, options)
+    with waiting(f"building {args.backend}: imports, device, kernels"):
+        backend = create_backend(args.backend, scene, solver, options)
     build_s = time.perf_counter() - t0
+    warming = waiting(f"warming up {args.backend}: first steps (a JIT compiles here)")
     with backend, LazyProgress(steps, f"{args.backend} n={scene.grid}") as progress:
-        result = run_timed(backend, steps, on_progress=progress.update, raise_on_blowup=False, build_s=build_s)
+        result = run_timed(
+            backend, steps, on_progress=progress.update, raise_on_blowup=False, build_s=build_s, warming=warming
+        )
         normals = backend.read_normals() if args.save_normals else None
         stages = None
         if args.profile and result.blowup is None:

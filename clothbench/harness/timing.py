@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -134,15 +134,19 @@ def run_timed(
     raise_on_blowup: bool = True,
     build_s: float = 0.0,
     budget_s: float | None = None,
+    warming: AbstractContextManager = nullcontext(),
 ) -> RunResult:
     """Run `steps` steps of the backend's scene and solver from the solver's start in timed
     chunks, checking health after each. With `budget_s`, one synchronised step timed after the
     warm-up sets how many steps fit in that many seconds of timed run, and a run that would
-    not fit is shortened (fit_budget; result.steps and result.chunk say what ran)."""
+    not fit is shortened (fit_budget; result.steps and result.chunk say what ran). `warming` is
+    entered around the warm-up alone (`clothbench run`'s terminal line naming the wait), never
+    around anything timed."""
     chunk = chunk or default_chunk(steps)
     scene, solver = backend.scene, backend.solver
     result = RunResult(backend.name, backend.device, backend.mode, scene, solver, steps, backend.driver)
-    result.warmup_s = build_s + warm_up(backend)
+    with warming:
+        result.warmup_s = build_s + warm_up(backend)
     if budget_s is not None:
         fitted = fit_budget(steps, chunk, _one_step_s(backend), budget_s)
         result.budget_cut = fitted != (steps, chunk)
