@@ -17,6 +17,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from clothbench import machine_load
 from clothbench.machine_load import Load, LoadSampler
 
 # The window the load is sampled over: long enough for /proc/stat's 1/100 s ticks to show half
@@ -186,7 +187,7 @@ def check(
     cpus: list[int] | None = None,
 ) -> Fitness:
     """The machine's fitness to benchmark, over a window of `window_s` (this process sleeps)."""
-    sampler = sampler or LoadSampler()
+    sampler = sampler or machine_load.LoadSampler()
     cpus = allowed_cpus() if cpus is None else cpus
     procs_before = process_cpu_ticks(proc_root)
     load = sampler.sample(window_s)

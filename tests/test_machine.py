@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 from pathlib import Path
 
 import pytest
 
 from clothbench import machine_fitness
 from clothbench.cli import main
+from clothbench.harness.noise import row_doubts
 from clothbench.machine_load import LoadSampler
 
 TICKS = 100  # /proc/stat's ticks per second in these recordings
@@ -165,3 +167,98 @@ def test_a_sweep_says_at_its_start_whether_the_machine_is_fit(monkeypatch, capsy
     # resumed with nothing left to measure: no row, so nothing to say of the machine
     assert main([*argv, "--resume"]) == 0
     assert not any(x.startswith("machine: ") for x in capsys.readouterr().err.splitlines())
+
+
+# --- the machine's state in every row (issue 30 part 1) -------------------------------
+
+
+class FixedLoad(LoadSampler):
+    """A sampler whose every window saw `other_cores` of 2 cores used by others: recorded
+    /proc/stat lines, one second apart, on a clock that moves only when read."""
+
+    def __init__(self, other_cores: float):
+        busy = round(other_cores * TICKS)  # of 2 cores x 100 ticks in the second
+        self.lines = itertools.cycle(["cpu 1000 0 0 9000 0 0 0 0 0 0",
+                                      f"cpu {1000 + busy} 0 0 {9000 + 2 * TICKS - busy} 0 0 0 0 0 0"])  # fmt: skip
+        self.t = 0.0
+        super().__init__(lambda: next(self.lines), self._tick, lambda: 0.0, 2, lambda s: None, TICKS)
+
+    def _tick(self) -> float:
+        self.t += 0.5  # each snapshot half a second after the last: a 1 s window from start to stop
+        return self.t
+
+
+@pytest.fixture
+def machine_seen_as(monkeypatch):
+    """machine_seen_as(cores): every LoadSampler clothbench makes from now on sees that load."""
+    from clothbench import machine_load
+
+    def seen(other_cores: float) -> None:
+        monkeypatch.setattr(machine_load, "LoadSampler", lambda *a, **k: FixedLoad(other_cores))
+
+    return seen
+
+
+@pytest.mark.parametrize("other_cores, busy", [(1.2, True), (0.02, False)])
+def test_a_sweep_row_records_how_busy_the_machine_was_and_a_busy_one_says_so(machine_seen_as, tmp_path, capsys,
+                                                                             other_cores, busy):  # fmt: skip
+    import csv
+
+    machine_seen_as(other_cores)
+    out = tmp_path / "s.csv"
+    argv = ["sweep", "--backends", "numpy", "--grids", "8", "--steps", "2", "--repeat", "4", "--out", str(out)]
+    assert main(argv) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert {r["busy"] for r in rows} == {"true" if busy else "false"}
+    assert all(r["load"].startswith(f"other processes {other_cores:.2f} of 2 cores") for r in rows)
+    printed = capsys.readouterr().out
+    noted = [r for r in rows if "the figure may not hold: busy (other processes" in r["note"]]
+    if busy:
+        assert len(noted) == len(rows) and printed.count("ok, busy") == len(rows)
+        assert f"{len(rows)} rows may not hold" in printed
+    else:  # quiet: no row is busy; one may still be unstable, from its own (real) chunks
+        assert noted == [] and "ok, busy" not in printed
+        unstable = [r for r in rows if row_doubts(r, [float(v) for v in r["chunk_ms"].split()])]
+        assert ("may not hold" in printed) == bool(unstable), printed
+
+
+def test_run_warns_in_one_line_when_the_machine_was_busy_and_not_when_quiet(machine_seen_as, capsys):
+    argv = ["run", "--backend", "numpy", "--grid", "8", "--steps", "40", "--json"]
+    machine_seen_as(1.5)
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    warnings = [line for line in err.splitlines() if "may not hold" in line]
+    assert warnings == [w for w in warnings if w.startswith("clothbench: warning: the result may not hold: busy (")]
+    assert len(warnings) == 1 and json.loads(out)["busy"] is True
+    machine_seen_as(0.0)
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    assert "busy (" not in err and json.loads(out)["busy"] is False
+
+
+def test_the_report_lists_the_rows_whose_figure_may_not_hold_and_why(tmp_path):
+    import csv
+
+    src = Path(__file__).resolve().parent.parent / "results" / "xeon-2026-12-01.csv"
+    with open(src, newline="") as f:
+        reader = csv.DictReader(f)
+        rows = [r for r in reader if r["grid"] == "32" and r["backend"] in ("numpy", "c") and r["status"] == "ok"]
+        columns = [*reader.fieldnames, "busy", "load"]
+    steady = " ".join(["1.0"] * 8)
+    for r in rows:  # steady chunks: only the busy column can put a row in the table
+        r.update(busy="false", load="other processes 0.01 of 2 cores", chunk_ms=steady)
+    rows[0].update(busy="true", load="other processes 1.3 of 2 cores, steal 0% over 2.0 s")
+    rows[1].update(chunk_ms="0.5 1.5 0.7 1.3 0.6 1.4 1.0 1.0")  # spread wide: unstable
+    path = tmp_path / "sweep.csv"
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, columns, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    out = tmp_path / "r.html"
+    assert main(["report", str(path), "--out", str(out)]) == 0
+    page = out.read_text(encoding="utf-8")
+    section = page[page.index("<h3>Rows whose figure may not hold</h3>") :].split("</table>")[0]
+    listed = re.findall(r"<tr><td>(.*?)</td><td>(.*?)</td>", section)
+    assert listed == [(rows[0]["backend"], rows[0]["mode"]), (rows[1]["backend"], rows[1]["mode"])], listed
+    assert "busy (other processes 1.3 of 2 cores, steal 0% over 2.0 s)" in section
+    assert "unstable (spread" in section

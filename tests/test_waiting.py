@@ -1,4 +1,4 @@
-"""What a command says while it waits (reports/progress.py `waiting`): on a terminal, a line
+"""What a command says while it waits (clothbench/progress.py `waiting`): on a terminal, a line
 naming the wait (probing backends, building and warming up a backend, tuning, drawing a
 report's figures); with stderr piped, nothing at all. The terminal is a fake one (a stream
 that says it is a tty); the delay before a wait is drawn is set to 0 (drawn at once) or to
@@ -17,8 +17,8 @@ import pytest
 
 from clothbench.backends import tuning
 from clothbench.cli import main
-from clothbench.reports import progress
-from clothbench.reports.progress import LazyProgress, waiting
+from clothbench import progress
+from clothbench.progress import LazyProgress, waiting
 from test_tuning import KEY, machine, tuning_on  # noqa: F401  (fixtures: a recorded machine, tuning on)
 
 

@@ -45,7 +45,7 @@ from typing import Callable, Sequence
 from clothbench.errors import ClothbenchError
 from clothbench.machine_load import MIN_WINDOW_S, Load, LoadSampler
 from clothbench.native import cache_dir
-from clothbench.reports.progress import waiting
+from clothbench.progress import waiting
 
 TUNING_ENV = "CLOTHBENCH_TUNING"
 # turns per candidate: with one timed turn each, the tuner picked a band shape ~20% slower than

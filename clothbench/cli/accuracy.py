@@ -149,7 +149,7 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 def cmd_accuracy(args) -> int:
     from clothbench.analysis.convergence import dt_levels, model_name, run_accuracy, steps_for
     from clothbench.reports.accuracy_plots import plot_convergence, plot_speed_vs_error
-    from clothbench.reports.progress import LazyProgress
+    from clothbench.progress import LazyProgress
     from clothbench.harness.executor import executor_for
     from clothbench.harness.preflight import check_memory, check_writable
     from clothbench.scene import check_float32_step, load_setup

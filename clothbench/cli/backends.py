@@ -16,7 +16,7 @@ def register(subparsers) -> None:
 
 def cmd_backends(args) -> int:
     from clothbench.backends import BACKENDS, availability
-    from clothbench.reports.progress import waiting
+    from clothbench.progress import waiting
 
     rows = []
     with waiting("probing backends"):  # a cold probe imports every peer and opens every device

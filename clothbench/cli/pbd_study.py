@@ -62,7 +62,7 @@ def cmd_pbd_study(args) -> int:
     from clothbench.backends import BACKENDS
     from clothbench.harness.preflight import check_writable
     from clothbench.harness.study_csv import StudyFile, cell, cells, from_cells
-    from clothbench.reports.progress import LazyProgress
+    from clothbench.progress import LazyProgress
     from clothbench.scene import builtin_scenes, load_scene
     from clothbench.solver import PBD_METHODS
 

@@ -69,7 +69,7 @@ def register(subparsers) -> None:
 
 def cmd_render(args) -> int:
     from clothbench.backends import BackendOptions, check_name
-    from clothbench.reports.progress import LazyProgress
+    from clothbench.progress import LazyProgress
     from clothbench.harness.preflight import check_memory, check_writable
     from clothbench.reports.render import RenderSettings, check_settings, output_kind, render
 

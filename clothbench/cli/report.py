@@ -28,7 +28,7 @@ def register(subparsers) -> None:
 
 
 def cmd_report(args) -> int:
-    from clothbench.reports.progress import waiting
+    from clothbench.progress import waiting
     from clothbench.reports.results_files import read_results
 
     out = Path(args.out)

@@ -41,7 +41,9 @@ def cmd_run(args) -> int:
     from clothbench.backends import check_name, create_backend
     from clothbench.harness import run_timed
     from clothbench.harness.energy import predicted_fast_impact
-    from clothbench.reports.progress import LazyProgress, waiting
+    from clothbench.harness.noise import doubts
+    from clothbench.machine_load import LoadSampler
+    from clothbench.progress import LazyProgress, waiting
 
     from clothbench.harness.preflight import check_memory, check_writable
 
@@ -62,9 +64,11 @@ def cmd_run(args) -> int:
     build_s = time.perf_counter() - t0
     warming = waiting(f"warming up {args.backend}: first steps (a JIT compiles here)")
     with backend, LazyProgress(steps, f"{args.backend} n={scene.grid}") as progress:
+        watch = LoadSampler().start()  # how busy the machine was while it ran
         result = run_timed(
             backend, steps, on_progress=progress.update, raise_on_blowup=False, build_s=build_s, warming=warming
         )
+        load = watch.stop()
         normals = backend.read_normals() if args.save_normals else None
         stages = None
         if args.profile and result.blowup is None:
@@ -72,6 +76,9 @@ def cmd_run(args) -> int:
             stages = backend.profile_stages(steps)
     for warning in result.warnings:
         print(f"clothbench: warning: {warning}", file=sys.stderr)
+    if result.blowup is None and (doubt := doubts(load.busy, load.why, result.chunk_ms_per_step)):
+        # as pyperf warns: the figure is printed, and said not to hold
+        print(f"clothbench: warning: the result may not hold: {'; '.join(doubt)}", file=sys.stderr)
     if save is not None:
         arrays = {"pos": result.pos, "prev": result.prev}
         if normals is not None:
@@ -104,6 +111,8 @@ def cmd_run(args) -> int:
         "warmup_s": result.warmup_s,
         "finite": result.finite,
         "max_penetration": result.max_penetration,
+        "busy": load.busy,  # None: not measured, or too short a run to tell
+        "load": load.why,
     }
     if result.device_ms_per_step:
         summary["device_ms_per_step"] = statistics.median(result.device_ms_per_step)

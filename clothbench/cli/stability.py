@@ -58,7 +58,7 @@ def register(subparsers) -> None:
 def cmd_stability(args) -> int:
     from clothbench.analysis.stability import PBD_CAP, STABILITY_SCENES, measure_stability_limit, stability_scene
     from clothbench.reports.accuracy_plots import plot_stability_map
-    from clothbench.reports.progress import LazyProgress
+    from clothbench.progress import LazyProgress
     from clothbench.harness.executor import executor_for, fork_safe
     from clothbench.harness.preflight import check_memory, check_writable
     from clothbench.solver import Pbd, Verlet

@@ -142,7 +142,7 @@ def cmd_sweep(args) -> int:
     from clothbench.harness.executor import SCHEDULER_ENV, executor_for
     from clothbench.harness.sweep import SweepSettings, run_sweep
     from clothbench.harness.sweep_csv import COLUMN_DOCS, KEY_COLUMNS
-    from clothbench.reports.progress import LazyProgress
+    from clothbench.progress import LazyProgress
     from clothbench.scene import load_setup
 
     if args.columns:
@@ -300,11 +300,19 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
     heads = ("backend", "mode") + (("local",) if local else ()) + tuple(shape.values())
     for col in heads + ("n", "ms/step", "min-max", "RMS err (m)", "status"):
         table.add_column(col, justify="left" if col in ("backend", "mode", "status") else "right")
+    from clothbench.harness.noise import row_doubts
+    from clothbench.harness.sweep_csv import parse_chunks
+
     reasons: dict[tuple[str, str], list[str]] = {}
+    doubtful = 0
     for r in rows:
         if r["status"] == "ok":
             cells = [f"{float(r['ms_median']):.3f}", f"{float(r['ms_min']):.3f}-{float(r['ms_max']):.3f}"]
-            cells += [f"{float(r['err_rms_m']):.2e}" if r["err_rms_m"] else "", "ok"]
+            # the mark of a figure that may not hold: busy, unstable (harness/noise.py)
+            marks = [d.split(" (")[0] for d in row_doubts(r, parse_chunks(r.get("chunk_ms", "")))]
+            doubtful += bool(marks)
+            status = f"[yellow]ok, {', '.join(marks)}[/yellow]" if marks else "ok"
+            cells += [f"{float(r['err_rms_m']):.2e}" if r["err_rms_m"] else "", status]
         else:
             cells = ["", "", "", f"[red]{r['status']}[/red]"]
             reasons.setdefault((r["status"], r["note"]), []).append(f"{r['backend']} n={r['grid']}")
@@ -312,6 +320,13 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
         lead += [r.get(c, "") for c in shape] + [r["grid"]]
         table.add_row(*lead, *cells)
     console.print(table)
+    if doubtful:
+        console.print(
+            f"[yellow]{doubtful} rows may not hold[/yellow]: measured while the machine was busy, or their chunks "
+            "spread over 10 % of the median (the note column says which); measure them again on a quiet machine "
+            "(clothbench machine)",
+            highlight=False,
+        )
     for (status, note), where in reasons.items():
         places = ", ".join(dict.fromkeys(where))
         console.print(f"[red]{status}[/red] ({len(where)} rows: {escape(places)}): {escape(note)}", highlight=False)

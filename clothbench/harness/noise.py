@@ -38,17 +38,23 @@ def _quantile(xs: list[float], q: float) -> float:
     return xs[lo] + (xs[hi] - xs[lo]) * (at - lo)
 
 
-def row_doubts(row: dict, chunks: list[float]) -> list[str]:
-    """Why a row's median is not to be trusted as a measure of the step, one phrase each:
-    'busy (...)' where the row says the machine was (its `busy` column, and why in
-    `load`), 'unstable (spread N %)' where its chunks say so. [] for a row with neither."""
-    doubts = []
-    if row.get("busy", "").lower() == "true":
-        doubts.append(f"busy ({row['load']})" if row.get("load") else "busy")
+def doubts(busy: bool | None, load: str, chunks: list[float]) -> list[str]:
+    """Why a timing's median is not to be trusted as a measure of the step, one phrase each:
+    'busy (...)' where the machine was (machine_load's verdict over the run, with its why),
+    'unstable (spread N % of the median)' where its chunks say so; [] for neither."""
+    out = []
+    if busy:
+        out.append(f"busy ({load})" if load else "busy")
     spread = robust_spread(chunks)
     if spread is not None and spread > UNSTABLE_SPREAD:
-        doubts.append(f"unstable (spread {spread:.0%} of the median)")
-    return doubts
+        out.append(f"unstable (spread {spread:.0%} of the median)")
+    return out
 
 
-__all__ = ["UNSTABLE_SPREAD", "robust_spread", "row_doubts"]
+def row_doubts(row: dict, chunks: list[float]) -> list[str]:
+    """doubts() of a sweep row: its `busy` and `load` columns (empty in files older than them)
+    and its chunks."""
+    return doubts(row.get("busy", "").lower() == "true", row.get("load", ""), chunks)
+
+
+__all__ = ["UNSTABLE_SPREAD", "doubts", "robust_spread", "row_doubts"]

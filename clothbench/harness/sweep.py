@@ -25,7 +25,7 @@ import numpy as np
 from clothbench import environment, machine_load
 from clothbench.backends import BackendOptions, availability, create_backend, tuning
 from clothbench.errors import ClothbenchError
-from clothbench.harness import faults
+from clothbench.harness import faults, noise
 from clothbench.harness.executor import Outcome, fork_safe, run_isolated, start_method
 from clothbench.harness.plan import SceneVariant, Variant, plan_variants
 from clothbench.harness.simulate import position_error, reference
@@ -198,7 +198,8 @@ def measure_row(
                 build_s=build_s,
                 budget_s=budget_s,
             )
-            quiet = watch.stop().busy is False
+            load = watch.stop()
+            quiet = load.busy is False
     except MemoryError as e:  # a Python-side allocation the machine could not hold
         out.update(status="crashed", note=one_line(f"out of memory: {e}"), **environment.collect())
         return out
@@ -250,7 +251,11 @@ def measure_row(
             out["note"] = "the float64 reference blew up: no error measured"
     except Exception as e:
         out["note"] = one_line(f"no error measured: float64 reference failed: {type(e).__name__}: {e}")
-    out["note"] = "; ".join(n for n in (out.get("note", ""), shape_note) if n)
+    out.update(busy="" if load.busy is None else fmt(load.busy), load=load.why)
+    # a figure measured on a busy machine, or from chunks spread wide, says so (harness/noise.py)
+    doubt = "; ".join(noise.doubts(load.busy, load.why, result.chunk_ms_per_step))
+    doubt = f"the figure may not hold: {doubt}" if doubt else ""
+    out["note"] = "; ".join(n for n in (out.get("note", ""), shape_note, doubt) if n)
     out.update(environment.collect())
     return out
 

@@ -103,6 +103,9 @@ COLUMN_DOCS: dict[str, str] = {
     "vs_c": "ms_median / ms_median of the c backend's row of the same grid, solver, precision and strict flag in "
     "this file (the native CPU line; > 1 is slower than it)",
     "timed_region": "what the clock saw: 'steps' (upload and readback outside) or 'steps+transfers' (per-step transfer mode)",
+    "busy": "true: other processes used half a core or more, or the hypervisor stole 5 %, while the row ran "
+    "(clothbench/machine_load.py); false: quiet; empty: not measured or too short a run to tell",
+    "load": "the machine's load while the row ran: other processes' cores and steal, over how long",
     **MACHINE_COLUMN_DOCS,
     "cpu": "CPU model",
     "cores": "logical CPUs available to the process",

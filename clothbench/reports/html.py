@@ -414,6 +414,14 @@ def sweep_section(f: ResultsFile, figures: Figures) -> Section:
     sec.children.append(sweep_pareto_section(ok, sec.id))
     if len({r.get("solver") or "verlet" for r in ok}) > 1:
         sec.children.append(sweep_solvers_section(ok, sec.id))
+    doubtful = _doubtful_rows(ok)
+    if doubtful:
+        sec.children.append(Section("Rows whose figure may not hold", f"{sec.id}-doubtful", [table(
+            ["backend", "mode", "grid", "ms/step", "why"], doubtful,
+            caption="Measured while the machine was busy (the busy and load columns) or with chunks spread over "
+                    "10 % of their median (harness/noise.py): measure them again on a quiet machine before "
+                    "reading a ratio from them.", right={2, 3},
+        )]))  # fmt: skip
     bad = [r for r in f.rows if r["status"] != "ok"]
     if bad:
         groups: dict[tuple, list[str]] = {}
@@ -423,6 +431,24 @@ def sweep_section(f: ResultsFile, figures: Figures) -> Section:
             ["backend", "status", "rows", "why"], [[b, s, len(w), n] for (b, s, n), w in groups.items()]
         )]))  # fmt: skip
     return sec
+
+
+def _doubtful_rows(ok: list[dict]) -> list[list]:
+    """[backend, mode, grid, ms, why] of each ok row the machine was busy for or whose chunks
+    spread wide; [] for a file older than the busy column with steady chunks."""
+    from clothbench.harness.noise import row_doubts
+    from clothbench.harness.sweep_csv import parse_chunks
+
+    out = []
+    for r in ok:
+        try:
+            chunks = parse_chunks(r.get("chunk_ms", ""))
+        except ValueError:
+            chunks = []
+        why = row_doubts(r, chunks)
+        if why:
+            out.append([r["backend"], r["mode"], r["grid"], num(float(r["ms_median"])), "; ".join(why)])
+    return out
 
 
 def ms_per_step_section(ok: list[dict], parent: str) -> Section:

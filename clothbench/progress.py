@@ -7,6 +7,8 @@ what it would be without either. Nor in a worker process: a sweep's rows run in 
 share the parent's terminal, where the sweep's bar is already drawn. One display is on the
 terminal at a time: a wait met while a bar is drawn is said in the bar's description, and a
 bar does not start drawing during a wait.
+
+Layer 0 (tests/test_layout.py): the commands, the harness and a backend's tuning all draw it.
 """
 
 from __future__ import annotations
