@@ -30,8 +30,11 @@ from PIL import Image
 from clothbench import cli
 from clothbench.errors import ClothbenchError
 from clothbench.harness.simulate import simulate
+from clothbench.backends import backend_class
 from clothbench.reports.viewer import keys as view_keys
+from clothbench.reports.viewer import overlay_text
 from clothbench.reports.viewer.camera import Trackball
+from clothbench.reports.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, fit_lines, layout
 from clothbench.reports.viewer.profiler import FrameProfile, Stage, gl_timer_queries
 from clothbench.scene import load_setup
 
@@ -353,3 +356,22 @@ def test_a_signal_stops_a_window_with_one_line_and_exit_130(tmp_path, sig, to_gr
         if server.poll() is None:
             server.terminate()
             server.wait(timeout=120)
+
+
+def test_a_refusal_wider_than_the_window_is_wrapped_inside_it():
+    with pytest.raises(ClothbenchError) as refused:
+        backend_class("newton", "verlet")  # newton has PBD only: its refusal names every Verlet backend
+    refusal = f"F10 newton: cannot run: {refused.value}"
+    hint = overlay_text.HINT.format(view_keys.backend_key_span())
+    glyphs = Glyphs()
+    for w, h in ((1280, 720), (320, 240)):
+        chars = (w - 2 * GAP - 2 * PAD) // glyphs.width
+        assert len(refusal) > chars  # the case: wider than the window
+        lines = fit_lines([(refusal, WARN), (hint, DIM)], chars)
+        assert all(len(text) <= chars for text, _ in lines), (w, h)
+        said = [text for text, colour in lines if colour == WARN]
+        assert " ".join(said).split() == refusal.split(), (w, h)  # every word, in order, in its colour
+        [(x, y, image)] = layout([("bottom-left", [(refusal, WARN), (hint, DIM)])], (w, h), glyphs)
+        ph, pw = image.shape[:2]
+        assert GAP <= x and x + pw <= w - GAP and GAP <= y and y + ph <= h - GAP, (w, h)
+        assert ph == len(lines) * glyphs.height + 2 * PAD, (w, h)  # a row for every line: none cut off
