@@ -2,6 +2,10 @@
 
 import signal
 
+# what a Ctrl-C (or a SIGTERM, taken as one) ends a command with
+INTERRUPTED_LINE = "clothbench: interrupted"
+INTERRUPTED_EXIT = 130
+
 
 class ClothbenchError(Exception):
     """Bad input or an unusable backend: one line on stderr, exit code 2."""

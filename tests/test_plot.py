@@ -9,11 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.text import Annotation, Text
 from PIL import Image
 
 from clothbench.cli import main
 from clothbench.harness.sweep_csv import COLUMNS, csv_line
-from clothbench.reports.figures_common import MAX_SERIES, figure_svg, pareto_front
+from clothbench.reports.figures_common import MAX_SERIES, PNG_DPI, figure_svg, pareto_front
 from clothbench.reports.plots import FILES, draw_sweep, plot_sweep, scaling_exponent
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -106,10 +107,10 @@ def test_plot_of_a_csv_missing_columns_fails_in_one_line_with_exit_2(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
-def many_variant_rows(**extra) -> list[dict[str, str]]:
+def many_variant_rows(grids=(32, 64, 128), **extra) -> list[dict[str, str]]:
     """Every platform, 26 variants in all: OpenCL alone has 12 (8 Verlet, 4 PBD), GL 8."""
     rows = []
-    for n in (32, 64, 128):
+    for n in grids:
         base = 1e-4 * n * n
         for p in ("f32", "f64"):
             rows.append(row(grid=n, mode=p, precision=p, ms=base * (2 if p == "f64" else 1),
@@ -267,3 +268,67 @@ def test_the_committed_sweep_plots_every_figure(tmp_path):
         assert (tmp_path / f"{name}.svg").exists(), name
         assert all(len(labels) <= MAX_SERIES for labels in report.charts[name].panels.values()), name
     assert all(report.charts["speed_vs_error"].fronts.values())  # a front in every grid's panel
+
+
+OCTAVES = (32, 64, 128, 256, 512, 1024, 2048)  # a sweep's grids an octave apart, as `sweep --grids` makes them
+
+
+def _drawn(fig):
+    """`fig` laid out at the dpi its PNG is written at; the renderer its texts are measured with."""
+    fig.set_dpi(PNG_DPI)
+    fig.canvas.draw()
+    return fig.canvas.get_renderer()
+
+
+def _clashes(texts, renderer) -> list[tuple[str, str]]:
+    """The pairs of `texts` whose boxes intersect (a front label's own box: not its leader line)."""
+    boxes = [(t.get_text(), Text.get_window_extent(t, renderer)) for t in texts if t.get_visible() and t.get_text()]
+    return [(a, b) for i, (a, box) in enumerate(boxes) for b, other in boxes[i + 1 :] if box.overlaps(other)]
+
+
+def test_grid_labels_on_time_vs_grid_never_overlap(tmp_path):
+    # small multiples (a panel a third of the figure wide) over seven grids: `1024×1024` and
+    # `2048×2048` with their particle counts ran into each other
+    report = draw_sweep(write_csv(tmp_path / "many.csv", many_variant_rows(grids=OCTAVES)))
+    fig = report.charts["time_vs_grid"].figure
+    renderer = _drawn(fig)
+    panels = [ax for ax in fig.axes if ax.get_xticklabels()]
+    assert len(panels) == len(report.charts["time_vs_grid"].panels) > 3
+    for ax in panels:
+        labels = [t for t in ax.get_xticklabels() if t.get_text()]
+        assert _clashes(labels, renderer) == [], ax.get_title()
+        assert [t.get_text().split("\n")[0] for t in labels] == [f"{n}²" for n in OCTAVES], ax.get_title()
+
+
+def test_front_labels_never_overlap_and_a_moved_one_is_joined_to_its_point(tmp_path):
+    # eight variants each 6 % less accurate and 3 % cheaper than the last (all on the front, their
+    # points in a clump on an axis four decades wide), and numpy f64 (error 0) just above real
+    # time, its label where the "real time" line's name is
+    n = 2048
+    rows = [row(grid=g, mode="f64", precision="f64", ms=0.55, err_rms_m=0) for g in (1024, n)]
+    variants = [("numpy", "f32"), ("c", "strict"), ("c", "fast"), ("opencl", "strict"), ("opencl", "fast"),
+                ("glsl", "fast"), ("taichi", "default"), ("warp", "default")]  # fmt: skip
+    for k, (backend, mode) in enumerate(variants):
+        peer = "true" if backend in ("taichi", "warp") else "false"
+        for g in (1024, n):
+            rows.append(row(grid=g, backend=backend, mode=mode, strict=str(mode == "strict").lower(), peer=peer,
+                            ms=0.3 * 0.97**k, err_rms_m=1e-6 * 1.06**k))  # fmt: skip
+    rows += [row(grid=g, backend="numba", peer="true", ms=0.01, err_rms_m=1e-3) for g in (1024, n)]  # the axis wide
+    report = draw_sweep(write_csv(tmp_path / "front.csv", rows))
+    chart = report.charts["speed_vs_error"]
+    renderer = _drawn(chart.figure)
+    panel = f"{n}×{n} ({n * n:,} particles)"
+    assert len(chart.fronts[panel]) == len(variants) + 2  # every one on the front, so every one labelled
+    for ax in chart.figure.axes:
+        labels = [t for t in ax.texts if isinstance(t, Annotation)]
+        if not labels:
+            continue
+        assert _clashes(ax.texts, renderer) == [], ax.get_title()
+        for label in labels:
+            corner = Text.get_window_extent(label, renderer).p1  # top right, towards its point
+            point = ax.transData.transform(label.xy)
+            away = np.hypot(*(point - corner)) * 72 / PNG_DPI  # points
+            if away > 12:  # its ring's radius (4.5 points) and a label's height away: joined by a line
+                assert label.arrow_patch.get_visible(), (ax.get_title(), label.get_text(), away)
+            elif away < 8:  # at its point (5 and 4 points left and down) or nearly: no line
+                assert not label.arrow_patch.get_visible(), (ax.get_title(), label.get_text(), away)

@@ -17,6 +17,7 @@ stay inside that (at most 600 steps, glsl for 150 of them).
 from __future__ import annotations
 
 import json
+import signal
 import os
 import shutil
 import subprocess
@@ -29,12 +30,15 @@ from PIL import Image
 from clothbench import cli
 from clothbench.errors import ClothbenchError
 from clothbench.harness.simulate import simulate
+from clothbench.backends import backend_class
 from clothbench.reports.viewer import keys as view_keys
+from clothbench.reports.viewer import overlay_text
 from clothbench.reports.viewer.camera import Trackball
+from clothbench.reports.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, fit_lines, layout
 from clothbench.reports.viewer.profiler import FrameProfile, Stage, gl_timer_queries
 from clothbench.scene import load_setup
 
-from conftest import assert_bit_exact, require
+from conftest import assert_bit_exact, lines_in, require, wait_until
 
 pytestmark = pytest.mark.serial  # holds a GL context (a window): one xdist worker
 
@@ -296,3 +300,78 @@ def test_a_real_window_under_xvfb_driven_by_keys(tmp_path):
     r, b = middle[..., 0], middle[..., 2]
     cloth = (r > 1.5 * b) & (r - b > 30)  # the checker's red and gold, lit or in shade
     assert cloth.mean() > 0.2, f"only {cloth.mean():.1%} of the middle is the cloth's colour"
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # a shell's background job passes SIGINT on ignored
+
+
+def _x_server(tmp_path) -> tuple[subprocess.Popen, str]:
+    """Xvfb on a display it picks, leading a process group of its own as a terminal's foreground
+    group would; (the server, its DISPLAY) once it takes connections."""
+    if shutil.which("Xvfb") is None:
+        pytest.skip("Xvfb not installed (apt-get install xvfb)")
+    ready_r, ready_w = os.pipe()
+    server = subprocess.Popen(["Xvfb", "-displayfd", str(ready_w), "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
+                              pass_fds=[ready_w], process_group=0, preexec_fn=_default_sigint,
+                              stderr=open(tmp_path / "xvfb.err", "w"))  # fmt: skip
+    os.close(ready_w)
+    with os.fdopen(ready_r) as ready:
+        number = ready.readline().strip()  # written once the server listens; nothing if it failed
+    if not number:
+        server.wait()
+        raise AssertionError(f"Xvfb did not start: {(tmp_path / 'xvfb.err').read_text()[-1000:]}")
+    return server, f":{number}"
+
+
+@pytest.mark.parametrize(
+    "sig, to_group",
+    [(signal.SIGINT, False), (signal.SIGINT, True), (signal.SIGTERM, False)],
+    ids=["ctrl-c-to-the-viewer", "ctrl-c-to-the-viewer-and-its-x-server", "sigterm-to-the-viewer"],
+)
+def test_a_signal_stops_a_window_with_one_line_and_exit_130(tmp_path, sig, to_group):
+    """A terminal's Ctrl-C under xvfb-run reaches the X server too, and it exits first: the
+    viewer then finds its display gone, and Xlib's own handler would print XIO lines and exit 1."""
+    require("glsl")  # an OpenGL 3.3 implementation to draw the window with
+    server, display = _x_server(tmp_path)
+    log = tmp_path / "l.jsonl"
+    try:
+        argv = ["view", "--scene", "drape", "--backend", "numpy", "--steps-per-frame", "1", "--size", "320x240",
+                "--log", str(log)]  # fmt: skip
+        viewer = subprocess.Popen([sys.executable, "-c", RUN, *argv], env=dict(os.environ, DISPLAY=display),
+                                  process_group=server.pid, preexec_fn=_default_sigint,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+        wait_until(lambda: lines_in(log) >= 2, viewer, "the window's frames")
+        if to_group:
+            os.killpg(server.pid, sig)
+        else:
+            viewer.send_signal(sig)
+        out, err = viewer.communicate(timeout=120)
+        assert "XIO" not in err and "Traceback" not in err, err[-2000:]
+        assert viewer.returncode == 130 and err.splitlines() == ["clothbench: interrupted"], err[-2000:]
+        assert out == ""
+        if to_group:  # the case is the one it names: the server went with the same signal
+            assert server.wait(timeout=120) is not None
+    finally:
+        if server.poll() is None:
+            server.terminate()
+            server.wait(timeout=120)
+
+
+def test_a_refusal_wider_than_the_window_is_wrapped_inside_it():
+    with pytest.raises(ClothbenchError) as refused:
+        backend_class("newton", "verlet")  # newton has PBD only: its refusal names every Verlet backend
+    refusal = f"F10 newton: cannot run: {refused.value}"
+    hint = overlay_text.HINT.format(view_keys.backend_key_span())
+    glyphs = Glyphs()
+    for w, h in ((1280, 720), (320, 240)):
+        chars = (w - 2 * GAP - 2 * PAD) // glyphs.width
+        assert len(refusal) > chars  # the case: wider than the window
+        lines = fit_lines([(refusal, WARN), (hint, DIM)], chars)
+        assert all(len(text) <= chars for text, _ in lines), (w, h)
+        said = [text for text, colour in lines if colour == WARN]
+        assert " ".join(said).split() == refusal.split(), (w, h)  # every word, in order, in its colour
+        [(x, y, image)] = layout([("bottom-left", [(refusal, WARN), (hint, DIM)])], (w, h), glyphs)
+        ph, pw = image.shape[:2]
+        assert GAP <= x and x + pw <= w - GAP and GAP <= y and y + ph <= h - GAP, (w, h)
+        assert ph == len(lines) * glyphs.height + 2 * PAD, (w, h)  # a row for every line: none cut off

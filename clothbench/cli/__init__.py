@@ -13,7 +13,7 @@ from clothbench import __version__
 from clothbench.cli import accuracy, advise, backends, plot, render, report, run, stability, sweep, view
 from clothbench.cli import machine, pbd_study, tuning
 from clothbench.cli.args import Parser
-from clothbench.errors import BlowUp, ClothbenchError
+from clothbench.errors import INTERRUPTED_EXIT, INTERRUPTED_LINE, BlowUp, ClothbenchError
 
 COMMANDS = (run, backends, sweep, plot, report, accuracy, stability, advise, render, view)
 COMMANDS += (pbd_study, tuning, machine)
@@ -39,8 +39,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"clothbench: error: {e}", file=sys.stderr)
         return e.exit_code
     except KeyboardInterrupt:
-        print("clothbench: interrupted", file=sys.stderr)
-        return 130
+        print(INTERRUPTED_LINE, file=sys.stderr)
+        return INTERRUPTED_EXIT
     except BrokenPipeError:  # `clothbench backends | head`: the reader left, nothing to say
         # point stdout at /dev/null so the interpreter's final flush does not complain
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

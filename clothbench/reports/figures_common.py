@@ -20,6 +20,7 @@ from typing import Callable, Iterable, Mapping, TypeVar
 from matplotlib import rc_context
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.text import Annotation, Text
 from matplotlib.ticker import FuncFormatter
 
 from clothbench.backends import BACKENDS, PEERS, PLATFORMS, check_name
@@ -41,6 +42,7 @@ FRONT_COLOR = "black"
 FRONT_TOLERANCE = 0.05
 FRONT_LEGEND = "Pareto front: no other point both cheaper and more accurate (errors within 5 % count as equal)"
 BOUND_COLOR = "0.55"
+PNG_DPI = 150  # what save_figure writes a PNG at
 REPRODUCIBLE = {"svg.hashsalt": "clothbench"}  # SVG element ids from this, not from a random salt
 
 
@@ -167,39 +169,69 @@ def draw_front(ax, points: list[tuple[float, float, str]], labelled: bool = True
             markeredgecolor=FRONT_COLOR, markeredgewidth=1.0, zorder=5)  # fmt: skip
     if not labelled:
         return []
-    return [
+    labels = [
         ax.annotate(label, (x, y), xytext=LABEL_OFFSET, textcoords="offset points", ha="right", va="top",
-                    fontsize=6.5, zorder=6, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+                    fontsize=6.5, zorder=6, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
+                    arrowprops=LEADER)
         for x, y, label in points
     ]  # fmt: skip
+    for label in labels:
+        label.arrow_patch.set_visible(False)  # shown by fit_labels where it moves the label off its point
+    return labels
 
 
 LABEL_OFFSET = (-5.0, -4.0)  # points: a front label's top right corner, from its point
+# a moved label's line from its top right corner (the one towards its point) to the point's ring
+# (draw_front's markersize 9: radius 4.5 points)
+LEADER_AFTER = 4.0  # points a label moves down before it needs a leader: less, and it still touches the ring
+LEADER = dict(arrowstyle="-", color=FRONT_COLOR, linewidth=0.5, alpha=0.6, shrinkA=0, shrinkB=4.5, relpos=(1, 1))
 
 
 def fit_labels(fig: Figure, labels: list) -> None:
-    """Move draw_front's labels apart: each one that overlaps a label before it goes down
-    (still lower left of its point, so still on no other point), and the axes grow down and
-    left until every label is inside. The layout is run first, so positions are final."""
+    """Move draw_front's labels apart: each one that overlaps a text placed before it (a label,
+    or an axes' own text, such as a line's name) goes down, still lower left of its point, so
+    still on no other point, with a leader line to its point once it is moved far. The axes
+    grow down and left until every label is inside, five times at most; the last placement is
+    on the final limits, so no two texts overlap even where a label could not be brought in."""
     if not labels:
         return
     for _ in range(5):
-        fig.canvas.draw()
-        renderer = fig.canvas.get_renderer()
-        placed = []
-        for label in labels:
-            label.xyann = LABEL_OFFSET
-            box = label.get_window_extent(renderer)
-            for _ in range(len(labels) * 4):
-                clash = next((p for p in placed if box.overlaps(p)), None)
-                if clash is None:
-                    break
-                down = (box.y1 - clash.y0 + 2) * 72 / fig.dpi
-                label.xyann = (label.xyann[0], label.xyann[1] - down)
-                box = label.get_window_extent(renderer)
-            placed.append(box)
-        if not _grow_to_fit(labels, placed):
+        boxes = _place_labels(fig, labels)
+        if not _grow_to_fit(labels, boxes):
             return
+    _place_labels(fig, labels)
+
+
+def _place_labels(fig: Figure, labels: list) -> list:
+    """fit_labels' placement on the figure as it is laid out now; each label's box."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    own = set(map(id, labels))
+    axes = list(dict.fromkeys(label.axes for label in labels))
+    placed = [_text_box(t, renderer) for ax in axes for t in ax.texts
+              if id(t) not in own and t.get_visible() and t.get_text().strip()]  # fmt: skip
+    boxes = []
+    for label in labels:
+        label.xyann = LABEL_OFFSET
+        box = _text_box(label, renderer)
+        for _ in range(len(placed) * 4):
+            clash = next((p for p in placed if box.overlaps(p)), None)
+            if clash is None:
+                break
+            down = (box.y1 - clash.y0 + 2) * 72 / fig.dpi
+            label.xyann = (label.xyann[0], label.xyann[1] - down)
+            box = _text_box(label, renderer)
+        label.arrow_patch.set_visible(LABEL_OFFSET[1] - label.xyann[1] > LEADER_AFTER)
+        placed.append(box)
+        boxes.append(box)
+    return boxes
+
+
+def _text_box(text, renderer):
+    """A text's own box in pixels: an annotation's without its leader line, where it is now."""
+    if isinstance(text, Annotation):
+        text.update_positions(renderer)
+    return Text.get_window_extent(text, renderer)
 
 
 def _grow_to_fit(labels: list, boxes: list) -> bool:
@@ -383,7 +415,7 @@ def panel_legend(ax, ncol: int | None = None, handles: list | None = None) -> No
                   frameon=False, handlelength=2.6, columnspacing=1.2)  # fmt: skip
 
 
-def save_figure(fig: Figure, path: Path, dpi: int = 150) -> list[Path]:
+def save_figure(fig: Figure, path: Path, dpi: int = PNG_DPI) -> list[Path]:
     """Write `fig` as PNG at `path` (its suffix made .png) and as SVG beside it, the folder
     made if missing; the two paths. No date and SVG ids from a fixed salt: a figure drawn again from the same
     data writes the same bytes, so regenerated figures change in git only where they changed."""

@@ -32,6 +32,7 @@ from clothbench.reports.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, name_of, wind
 from clothbench.reports.viewer.overlay_text import panels
 from clothbench.reports.viewer.profiler import FrameProfile, GLTimer, gl_timer_queries
 from clothbench.reports.viewer.session import Session
+from clothbench.reports.viewer.signals import on_lost_display, raise_if_stopped, stop_between_frames
 
 NO_DISPLAY = (
     "no display to open a window on ({why}): run it under a virtual display with --frames N and "
@@ -81,6 +82,8 @@ def open_window(settings: ViewSettings):
             raise ClothbenchError(f"no headless EGL window: {why} ({gl_context.INSTALL_HINT})") from None
         raise ClothbenchError(NO_DISPLAY.format(why=why)) from None
     window.exit_key = None  # escape and Q quit through the viewer, which then writes its files
+    if window.name == "pyglet" and sys.platform.startswith("linux"):
+        on_lost_display()  # an X display: its server may go first (a Ctrl-C under xvfb-run)
     return window
 
 
@@ -183,6 +186,7 @@ class Viewer:
             self._log = _writing(self.settings.log, lambda: open(self.settings.log, "w"))
         try:
             while not self.quit and (self.settings.frames is None or self.frame < self.settings.frames):
+                raise_if_stopped()
                 if self.window.is_closing:
                     break
                 self.run_frame()
@@ -332,7 +336,12 @@ class Viewer:
 
 def view(scene, solver, backend: str, options, settings: ViewSettings) -> ViewReport:
     """Open the window and run `scene` stepped by `solver` on `backend` in it until it closes
-    or `settings.frames` frames are drawn."""
+    or `settings.frames` frames are drawn. Ctrl-C or SIGTERM stops it between frames."""
+    with stop_between_frames():
+        return _view(scene, solver, backend, options, settings)
+
+
+def _view(scene, solver, backend: str, options, settings: ViewSettings) -> ViewReport:
     window = open_window(settings)
     try:
         with shared_context(window) as device:

@@ -90,6 +90,64 @@ class Glyphs:
         return np.concatenate(self.tiles[codes], axis=1) if len(codes) else np.zeros((self.height, 0), np.float32)
 
 
+def wrap(text: str, width: int) -> list[str]:
+    """`text` in lines of at most `width` characters, broken between words (inside a word
+    only where it is longer than a line)."""
+    width = max(1, width)
+    lines, line = [], ""
+    for word in text.split():
+        while len(word) > width:
+            if line:
+                lines.append(line)
+                line = ""
+            lines.append(word[:width])
+            word = word[width:]
+        if line and len(line) + 1 + len(word) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = f"{line} {word}".strip()
+    return lines + [line] if line else lines
+
+
+def fit_lines(lines: list, width: int) -> list[tuple[str, tuple]]:
+    """An overlay panel's lines as (text, colour), each at most `width` characters: a longer
+    one (a backend's refusal names every backend that could run) wrapped in its colour."""
+    items = [(line, TEXT) if isinstance(line, str) else line for line in lines]
+    return [(part, colour) for text, colour in items for part in (wrap(text, width) if len(text) > width else [text])]
+
+
+def layout(panels: list[tuple[str, list]], size: tuple[int, int], g: Glyphs) -> list[tuple[int, int, np.ndarray]]:
+    """Each panel as (x, y from the top, RGBA uint8 image): `panels` are (corner, lines),
+    corner one of 'top-left', 'top-right', 'bottom-left'; a line is text or (text, colour).
+    The bottom panel's lines (the last event, the keys) wider than the window go on below
+    (fit_lines); the top panels are tables, a column to a line, cut at the window's edge
+    (wrapped, a narrow window's run panel would cover the cloth)."""
+    w, h = size
+    out = []
+    for corner, lines in panels:
+        if not lines:
+            continue
+        items = [(line, TEXT) if isinstance(line, str) else line for line in lines]
+        if corner == "bottom-left":
+            items = fit_lines(items, (w - 2 * GAP - 2 * PAD) // g.width)
+        pw = min(w - 2 * GAP, max(len(text) for text, _ in items) * g.width + 2 * PAD)
+        ph = min(h - 2 * GAP, len(items) * g.height + 2 * PAD)
+        x = GAP if corner != "top-right" else max(0, w - GAP - pw)
+        y = GAP if corner != "bottom-left" else max(0, h - GAP - ph)
+        cover = np.zeros((ph, pw), dtype=np.float32)  # text coverage, 0..1
+        ink = np.zeros((ph, 1, 4), dtype=np.float32)  # each row's text colour
+        for i, (text, colour) in enumerate(items):
+            top = PAD + i * g.height
+            line = g.line(text)[: max(0, ph - top), : max(0, pw - PAD)]
+            cover[top : top + line.shape[0], PAD : PAD + line.shape[1]] = line
+            ink[top : top + g.height] = colour
+        back = np.array(PANEL, dtype=np.float32)
+        panel = back + cover[..., None] * (ink - back)
+        out.append((x, y, (panel + 0.5).astype(np.uint8)))
+    return out
+
+
 class Overlay:
     """Panels of text over the frame: each a list of lines, placed at a corner."""
 
@@ -102,37 +160,11 @@ class Overlay:
             self.texture = ctx.texture(size, 4)
             self.vao = ctx.vertex_array(self.program, [])
 
-    def layout(self, panels: list[tuple[str, list]]) -> list[tuple[int, int, np.ndarray]]:
-        """Each panel as (x, y from the top, RGBA uint8 image): `panels` are (corner, lines),
-        corner one of 'top-left', 'top-right', 'bottom-left'; a line is text or (text, colour)."""
-        w, h = self.size
-        g = self.glyphs
-        out = []
-        for corner, lines in panels:
-            if not lines:
-                continue
-            items = [(line, TEXT) if isinstance(line, str) else line for line in lines]
-            pw = min(w - GAP, max(len(text) for text, _ in items) * g.width + 2 * PAD)
-            ph = min(h - GAP, len(items) * g.height + 2 * PAD)
-            x = GAP if corner != "top-right" else max(0, w - GAP - pw)
-            y = GAP if corner != "bottom-left" else max(0, h - GAP - ph)
-            cover = np.zeros((ph, pw), dtype=np.float32)  # text coverage, 0..1
-            ink = np.zeros((ph, 1, 4), dtype=np.float32)  # each row's text colour
-            for i, (text, colour) in enumerate(items):
-                top = PAD + i * g.height
-                line = g.line(text)[: max(0, ph - top), : max(0, pw - PAD)]
-                cover[top : top + line.shape[0], PAD : PAD + line.shape[1]] = line
-                ink[top : top + g.height] = colour
-            back = np.array(PANEL, dtype=np.float32)
-            panel = back + cover[..., None] * (ink - back)
-            out.append((x, y, (panel + 0.5).astype(np.uint8)))
-        return out
-
     def draw(self, target, panels) -> None:
         """Blend `panels` over what `target` (the window's framebuffer) holds. Only the panels'
         rectangles are written and drawn (a software rasteriser pays for every pixel)."""
         h = self.size[1]
-        placed = self.layout(panels)
+        placed = layout(panels, self.size, self.glyphs)
         with self.gl:
             ctx = self.gl.ctx
             for x, y, image in placed:  # texture row r is screen row r from the top (the shader)

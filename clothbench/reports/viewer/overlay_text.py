@@ -3,7 +3,7 @@ event and the keys (bottom left)."""
 
 from __future__ import annotations
 
-from clothbench.reports.viewer.draw import DIM, WARN
+from clothbench.reports.viewer.draw import DIM, WARN, wrap
 from clothbench.reports.viewer.keys import backend_key_span, help_lines, key_of
 from clothbench.reports.viewer.session import has_stages
 
@@ -61,28 +61,17 @@ def _cut(text: str, width: int) -> str:
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
-def _wrap(text: str, width: int) -> list[str]:
-    lines, line = [], ""
-    for word in text.split():
-        if line and len(line) + 1 + len(word) > width:
-            lines.append(line)
-            line = word
-        else:
-            line = f"{line} {word}".strip()
-    return lines + [line] if line else lines
-
-
 def profiler_lines(viewer) -> list:
     tree = viewer.last_tree
     if tree is None:
         return ["profiler: from the next frame"]
     lines = [(f"{'profiler, frame ' + str(viewer.frame - 1):<18}{'time':>11} {'parent':>6} {'frame':>6}", DIM)]
     lines += tree.lines(tree.ms)
-    lines += [(line, DIM) for line in _wrap(viewer.timer_note, PROFILER_WIDTH)]
+    lines += [(line, DIM) for line in wrap(viewer.timer_note, PROFILER_WIDTH)]
     if viewer.session.profiling and viewer.session.backend_name:
         if has_stages(viewer.session.backend):
             note = "kernel stages: the backend's profile_stages, synchronised between stages"
-            lines += [(line, DIM) for line in _wrap(note, PROFILER_WIDTH)]
+            lines += [(line, DIM) for line in wrap(note, PROFILER_WIDTH)]
     return lines
 
 
