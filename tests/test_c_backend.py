@@ -314,3 +314,52 @@ def test_gcc_vectorises_the_interior_loop(scene_name, strict, precision):
     assert any(first <= int(n) <= last or int(n) == loop for n in found), (
         f"the interior loop (lines {first}-{last}, {loop}) is not vectorised:\n{out.stderr}"
     )
+
+
+# --- a busy machine: the threads the others leave free (issue 30 part 3) ---------------
+
+
+class _SeenLoad:
+    """A LoadSampler whose sample() reports `other_cores` of 2 cores used by others."""
+
+    def __init__(self, other_cores: float):
+        self.other_cores = other_cores
+
+    def sample(self, seconds):
+        from clothbench.machine_load import BUSY_CORES, Load
+
+        busy = self.other_cores >= BUSY_CORES
+        return Load(seconds, 2, self.other_cores, self.other_cores / 2, 0.0, busy, f"other {self.other_cores}")
+
+
+@pytest.mark.parametrize(
+    "other_cores, options, tuning, threads",
+    [
+        (1.0, BackendOptions(), "on", 1),  # one core taken: one thread, not two waiting at each barrier
+        (1.9, BackendOptions(), "on", 1),  # both nearly taken: still one, never none
+        (0.1, BackendOptions(), "on", 2),  # quiet: the tuned two
+        (1.0, BackendOptions(shape="threads=2"), "on", 2),  # the user's --shape stands
+        (1.0, BackendOptions(), "off", 2),  # tuning off (the suite's default shapes): no watch at all
+    ],
+)
+def test_a_run_that_starts_on_a_busy_machine_takes_the_threads_left_free(monkeypatch, other_cores, options, tuning,
+                                                                         threads):  # fmt: skip
+    require("c")
+    from clothbench import environment, machine_load
+    from clothbench.backends import tuning as tuning_module
+
+    monkeypatch.setenv("CLOTHBENCH_TUNING", tuning)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(environment, "cores", lambda: 2)
+    monkeypatch.setattr(tuning_module, "choose_shape", lambda backend, key, candidates, time, retune=False: "threads=2")
+    monkeypatch.setattr(machine_load, "LoadSampler", lambda *a, **k: _SeenLoad(other_cores))
+    with create_backend("c", scene_named("sphere", 8), VERLET, options) as b:
+        assert b.threads == threads and b.shape == f"threads={threads}"
+        assert b.mode.endswith(f"threads={threads}"), b.mode
+        if threads == 1:
+            assert b.run_note == f"threads=1 for this run, not the tuned 2: the machine was busy (other {other_cores})"
+        else:
+            assert b.run_note == ""
+        b.upload(*b.initial_state())
+        b.advance(3)  # and it steps on them
+        assert np.isfinite(b.read()[0]).all()

@@ -272,6 +272,9 @@ class Backend(ABC):
 
     # the kernel shape that runs (backends/tuning.py), part of the mode; None: it has one
     shape: str | None = None
+    # one line on how this run differs from the backend's usual choice, for the row's note and
+    # run's stderr (c: fewer threads on a busy machine); '' where it does not
+    run_note: str = ""
 
     # the work-group size the backend chose where options.local_size is None
     effective_local_size: int | None = None

@@ -76,6 +76,8 @@ def cmd_run(args) -> int:
             stages = backend.profile_stages(steps)
     for warning in result.warnings:
         print(f"clothbench: warning: {warning}", file=sys.stderr)
+    if backend.run_note:
+        print(f"clothbench: note: {backend.name}: {backend.run_note}", file=sys.stderr)
     if result.blowup is None and (doubt := doubts(load.busy, load.why, result.chunk_ms_per_step)):
         # as pyperf warns: the figure is printed, and said not to hold
         print(f"clothbench: warning: the result may not hold: {'; '.join(doubt)}", file=sys.stderr)

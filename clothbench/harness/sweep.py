@@ -255,7 +255,7 @@ def measure_row(
     # a figure measured on a busy machine, or from chunks spread wide, says so (harness/noise.py)
     doubt = "; ".join(noise.doubts(load.busy, load.why, result.chunk_ms_per_step))
     doubt = f"the figure may not hold: {doubt}" if doubt else ""
-    out["note"] = "; ".join(n for n in (out.get("note", ""), shape_note, doubt) if n)
+    out["note"] = "; ".join(n for n in (out.get("note", ""), shape_note, backend.run_note, doubt) if n)
     out.update(environment.collect())
     return out
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 
 import numpy as np
@@ -179,6 +180,36 @@ class CBackend(Backend):
         self._w = aligned(self.n2, t)
         self._w_prev = self._w  # the prev state's w as uploaded, until a step writes pos's w
         self.threads = thread_count(self.pick_shape(self._tuning_key(), self._time_shape))
+        self.run_note = self._fewer_threads_if_busy()
+
+    def _fewer_threads_if_busy(self) -> str:
+        """On a machine others are using, the threads they leave free, not the tuned count.
+
+        A thread of a split step waits at every step's barrier for the slowest; a core another
+        process holds keeps one descheduled, and the whole step waits with it. Measured on the
+        2-core Xeon (2026-12-04, docs/c.md "Under load"): 32^2 fast 6.3 us a step quiet on two
+        threads, 16.6 us under one unpinned busy process, 2,839 us in a sweep beside two;
+        one thread under the same one-process load 11.5 us. So a run that starts on a busy
+        machine (machine_load, a quarter of a second's watch) takes cores minus the others'
+        share, at least one, for this run only: the cached choice is untouched (tuning.py:
+        a choice made under load does not stick). Not where the thread count is the user's
+        (OMP_NUM_THREADS, --shape) or tuning is off (the test suite's default shapes)."""
+        from clothbench import machine_load
+        from clothbench.backends.tuning import tuning_enabled
+
+        if self.threads == 1 or self.options.shape is not None or omp_num_threads() is not None:
+            return ""
+        if not tuning_enabled():
+            return ""
+        load = machine_load.LoadSampler().sample(machine_load.MIN_WINDOW_S)
+        if not load.busy or load.other_cores is None:
+            return ""
+        free = max(1, environment.cores() - math.ceil(load.other_cores - 0.25))
+        if free >= self.threads:
+            return ""
+        tuned, self.threads = self.threads, free
+        self.shape = f"threads={free}"
+        return f"threads={free} for this run, not the tuned {tuned}: the machine was busy ({load.why})"
 
     @classmethod
     def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
