@@ -56,6 +56,33 @@ def test_readme_names_the_cpu_and_drivers_of_the_committed_sweep(committed):
         assert version and version.group(0) in section, f"README does not name {driver!r}"
 
 
+def performance_section() -> str:
+    return README.read_text().split("## Performance on one machine", 1)[1].split("\n## ", 1)[0]
+
+
+def test_every_registered_backend_the_committed_sweep_lacks_is_said_why(committed):
+    # issue 31 item 19: a backend that runs here but has no row reads as forgotten unless said
+    from clothbench.backends import BACKENDS
+
+    swept = {r["backend"] for r in committed}
+    missing = [name for name in BACKENDS if name not in swept]
+    prose = " ".join(performance_section().split())  # the paragraph's lines joined
+    for name in missing:
+        said = re.search(rf"(^|[\s,`(]){re.escape(name)}[\s,`)][^.]*?(skipped|not in it)", prose)
+        assert said, f"README's performance section does not say why {name} has no row in {readme_sweep().name}"
+
+
+def test_readme_says_which_opencl_runtime_the_quick_start_gets(committed):
+    # issue 31 item 19: the quick start installs Intel's runtime, the tables ran on Debian's PoCL
+    quick = README.read_text().split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    assert "intel-opencl" in quick
+    assert {r["driver"].split(":")[0] for r in committed if r["backend"] == "opencl"} == {"Portable Computing Language"}
+    prose = " ".join(performance_section().split())
+    assert re.search(
+        r"The quick start installs Intel's runtime and no system PoCL[^.]*not of the Debian PoCL line", prose
+    )
+
+
 def row(backend: str, grid: int, ms: float, peer: bool = False, **extra) -> dict[str, str]:
     out = {
         "backend": backend, "peer": "true" if peer else "false", "mode": "fast", "status": "ok", "grid": str(grid),
@@ -81,7 +108,11 @@ def test_limits_take_the_fastest_of_each_kind_per_grid():
     assert (line["grid"], line["best"], line["peer"]) == (256, "opencl fast", "numba fast")
     assert line["vs_c"] == pytest.approx(0.8) and line["peer_ratio"] == pytest.approx(5.0)
     assert line["bound_ms"] == 0.12 and line["fraction"] == 0.5 and line["fastest_any"] == "opencl fast"
+    # the fastest row is the GPU-style row already named: not named twice (issue 31 item 19)
     assert (
-        "| 256×256 | 0.300 | opencl fast | 0.240 | 0.80× | numba fast | 1.200 | 5.0× | 0.120 (memory) | 50 % (opencl fast) |"
+        "| 256×256 | 0.300 | opencl fast | 0.240 | 0.80× | numba fast | 1.200 | 5.0× | 0.120 (memory) | 50 % (the same row) |"
         in limits_markdown(rows)
     )
+    # where the fastest row is another (here the c line), it is named
+    faster_c = [r if r["backend"] != "c" else row("c", 256, 0.20, bound_fraction="0.6") for r in rows]
+    assert "| 0.120 (memory) | 60 % (c fast) |" in limits_markdown(faster_c)

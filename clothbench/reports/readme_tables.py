@@ -71,7 +71,9 @@ def limits_markdown(rows: list[dict]) -> str:
     for r in limits_rows(rows):
         peer_ms = "–" if r["peer_ms"] is None else f"{r['peer_ms']:.3f}"
         bound = "–" if r["bound_ms"] is None else f"{r['bound_ms']:.3f} ({r['bound_kind']})"
-        share = "–" if r["fraction"] is None else f"{100 * r['fraction']:.0f} % ({r['fastest_any']})"
+        # the fastest row's name only where it is not the GPU-style row already named (issue 31 item 19)
+        who = "the same row" if r["fastest_any"] == r["best"] else r["fastest_any"]
+        share = "–" if r["fraction"] is None else f"{100 * r['fraction']:.0f} % ({who})"
         lines.append(
             f"| {r['grid']}×{r['grid']} | {r['c_ms']:.3f} | {r['best']} | {r['best_ms']:.3f} | {_x(r['vs_c'])} | "
             f"{r['peer'] or '–'} | {peer_ms} | {_x(r['peer_ratio'], 1)} | {bound} | {share} |"
