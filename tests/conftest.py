@@ -15,9 +15,9 @@ os.environ["CLOTHBENCH_TUNING"] = "off"
 # without FMA (peers/jax.py): a test process that started JAX for a fast test first cannot run a
 # strict one after it, and which tests share a process is xdist's choice. So every test process
 # starts JAX without FMA; jax's fast mode is then held to its error bound without contraction
-# (tests/test_gpu_peers.py checks the refusal in a process of its own, XLA_FLAGS emptied).
-if "--xla_cpu_max_isa=AVX" not in os.environ.get("XLA_FLAGS", "").split():
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_max_isa=AVX".strip()
+# (tests/test_gpu_peers.py checks the refusal in a process of its own, XLA_FLAGS set empty: a
+# value given in the environment, even an empty one, is left as it is).
+os.environ.setdefault("XLA_FLAGS", "--xla_cpu_max_isa=AVX")
 
 from clothbench.backends import availability
 from clothbench.scene import Cylinder, Plane, Scene, Setup, Sphere, load_scene, load_setup

@@ -27,12 +27,18 @@ ARGS = ["sweep", "--backends", "numpy", "--grids", "8,12,16", "--steps", "3", "-
 def cluster(monkeypatch):
     monkeypatch.setenv("CLOTHBENCH_FAULT", "numpy:slow")  # every row takes >= 2 s (the workers inherit it)
     monkeypatch.setenv("DASK_DISTRIBUTED__WORKER__DAEMON", "False")
+    # Dask's nanny writes its workers' thread settings (OMP_NUM_THREADS=1, MKL_..., OPENBLAS_...)
+    # into this process's environment before it spawns them, and leaves them: every later test in
+    # this xdist worker would run c on one thread and record them in its rows' env column
+    environ = dict(os.environ)
     with dask.config.set({"distributed.worker.daemon": False}):
         with distributed.LocalCluster(
             n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
             resources={"timing": 1}, silence_logs=40,
         ) as c, distributed.Client(c) as client:  # fmt: skip
             yield c, client
+    os.environ.clear()
+    os.environ.update(environ)
 
 
 def _rows(path) -> int:
@@ -97,7 +103,12 @@ def test_accuracy_and_stability_on_the_cluster_give_the_local_numbers(tmp_path, 
     assert main([*args, "--out", str(tmp_path / "dask.csv"), "--scheduler", c.scheduler_address]) == 0
     import csv
 
-    timing = {"ms_per_step", "ms_per_sim_s", "timestamp"}  # the clock's, not the result's
+    timing = {
+        "ms_per_step",
+        "ms_per_sim_s",
+        "timestamp",
+        "env",
+    }  # the clock's and the worker's (its thread settings), not the result's
     read = lambda p: [{k: v for k, v in r.items() if k not in timing} for r in csv.DictReader(open(p))]  # noqa: E731
     assert read(tmp_path / "local.csv") == read(tmp_path / "dask.csv")
     st = [

@@ -145,7 +145,12 @@ STUDIES = {
     "stability": ["stability", "--backends", "numpy", "--grid", "12", "--steps", "1500", "--scenes", "flat",
                   "--stiffness", "1000,3000,10000"],
 }  # fmt: skip
-TIMED = {"ms_per_step", "ms_per_sim_s", "timestamp"}  # a study's cost columns and when: the clock, not the result
+TIMED = {
+    "ms_per_step",
+    "ms_per_sim_s",
+    "timestamp",
+    "env",
+}  # cost, when, and the process's thread settings (a worker's are its own): not the result
 
 
 def _study_rows(path):
