@@ -164,6 +164,11 @@ def test_a_sweep_says_at_its_start_whether_the_machine_is_fit(monkeypatch, capsy
     line = next(x for x in err if x.startswith("machine: "))
     assert line.startswith("machine: NOT fit to benchmark now: busy (other processes 1.50 of 2 cores")
     assert err.index(line) < next(i for i, x in enumerate(err) if "rows measured" in x)
+    # and every row of the run records that verdict, measured once
+    import csv
+
+    states = {r["machine_state"] for r in csv.DictReader(out.open())}
+    assert len(states) == 1 and states.pop().startswith("busy (other processes 1.50 of 2 cores")
     # resumed with nothing left to measure: no row, so nothing to say of the machine
     assert main([*argv, "--resume"]) == 0
     assert not any(x.startswith("machine: ") for x in capsys.readouterr().err.splitlines())

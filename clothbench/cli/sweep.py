@@ -214,8 +214,8 @@ def cmd_sweep(args) -> int:
             f"on {scene.name}{shapes}, grids {','.join(map(str, args.grids))}, {args.repeat} chunks x {args.steps} steps "
             f"-> {args.out}"
         )
-        if progress.todo and not (args.scheduler or os.environ.get(SCHEDULER_ENV)):  # rows measured here
-            _note(machine_verdict())
+        if progress.fitness is not None:  # rows measured here
+            _note(machine_verdict(progress.fitness))
         bar = LazyProgress(max(1, len(progress.todo) * args.steps * args.repeat), "sweep")
 
     def on_step(done: int, description: str) -> None:
@@ -332,13 +332,9 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
         console.print(f"[red]{status}[/red] ({len(where)} rows: {escape(places)}): {escape(note)}", highlight=False)
 
 
-def machine_verdict() -> str:
+def machine_verdict(f) -> str:
     """One line on whether this machine is fit to benchmark now (`clothbench machine` says more),
-    from a quarter of a second's watch of its load, before the first row."""
-    from clothbench.machine_fitness import check
-    from clothbench.machine_load import MIN_WINDOW_S
-
-    f = check(window_s=MIN_WINDOW_S)
+    from the quarter of a second's watch of its load the sweep made before its first row."""
     if f.fit is False:
         return f"machine: NOT fit to benchmark now: {'; '.join(map(str, f.problems))} (clothbench machine)"
     return f"machine: {f.verdict}"

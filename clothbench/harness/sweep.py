@@ -22,7 +22,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from clothbench import environment, machine_load
+from clothbench import environment, machine_fitness, machine_load
 from clothbench.backends import BackendOptions, availability, create_backend, tuning
 from clothbench.errors import ClothbenchError
 from clothbench.harness import faults, noise
@@ -360,6 +360,9 @@ class SweepProgress:
     measured: list[dict[str, str]] = field(default_factory=list)
     machine: object = None  # the machine's limits (harness/bounds.py), once measured
     machine_note: str = ""  # why they were not, if not
+    # `clothbench machine`'s verdict before the first row (machine_fitness.Fitness), where rows run
+    # here; every row of the run records it (machine_state)
+    fitness: object = None
 
     @property
     def already(self) -> int:
@@ -462,6 +465,9 @@ def run_sweep(
         todo = [r for r in plan.rows if r.key(name) not in have]
         commits = {r["git_commit"] for r in f.rows} - {environment.machine()["git_commit"]}
         progress = SweepProgress(plan, todo, list(f.rows), f.dropped_bytes, commits)
+        here = executor is None or getattr(executor, "where", "local") == "local"
+        if todo and here:  # once, before any row: is this machine fit to benchmark now?
+            progress.fitness = machine_fitness.check(window_s=machine_load.MIN_WINDOW_S)
         if on_start:
             on_start(progress)
         references: dict = {}
@@ -478,6 +484,8 @@ def run_sweep(
                     result["specialised_speedup"] = fmt(float(result["ms_median"]) / float(twin["ms_median"]))
             if result["status"] == "ok":
                 result.update(_compared_columns(result, f.rows, settings, row, progress.machine))
+            if progress.fitness is not None:
+                result["machine_state"] = progress.fitness.verdict
             f.append(result)
             progress.measured.append(result)
             if on_row:
