@@ -15,6 +15,7 @@ verdict is unknown (busy None), never a guess.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -163,4 +164,41 @@ class Window:
         return self.sampler.between(self.first, self.sampler.snapshot())
 
 
-__all__ = ["BUSY_CORES", "BUSY_STEAL", "MIN_WINDOW_S", "Load", "LoadSampler", "Snapshot", "Window", "parse_cpu_line"]
+def threads_left_free(threads: int, cores: int) -> tuple[int, Load | None]:
+    """The threads a split step should run on now: `threads`, or, where a quarter of a second's
+    watch finds the machine busy, the cores the other processes leave free (at least one).
+
+    A thread of a split step waits at every step's barrier for the slowest, and a core another
+    process holds keeps one descheduled: the whole step waits with it (docs/c.md, "Under load":
+    the c backend's 32^2 step 2.6x slower beside one busy process on two threads, 1.8x on one).
+    Also returns the load it saw (None where `threads` is 1: nothing to watch for)."""
+    if threads <= 1:
+        return threads, None
+    load = LoadSampler().sample(MIN_WINDOW_S)
+    if not load.busy or load.other_cores is None:
+        return threads, load
+    return min(threads, max(1, cores - math.ceil(load.other_cores - 0.25))), load
+
+
+def cpu_context(sys_root: str = "/sys") -> str:
+    """Where this process runs, for a row's load column: the CPUs its affinity allows and their
+    clock now where /sys has it ('clock not readable' in most VMs)."""
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = list(range(os.cpu_count() or 1))
+    khz = []
+    for cpu in cpus:
+        try:
+            with open(f"{sys_root}/devices/system/cpu/cpu{cpu}/cpufreq/scaling_cur_freq") as f:
+                khz.append(int(f.read().strip()))
+        except (OSError, ValueError):
+            continue
+    clock = f"clock {sum(khz) / len(khz) / 1e6:.2f} GHz" if khz else "clock not readable"
+    return f"CPUs {','.join(map(str, cpus))}, {clock}"
+
+
+__all__ = [
+    "BUSY_CORES", "BUSY_STEAL", "MIN_WINDOW_S", "Load", "LoadSampler", "Snapshot", "Window", "cpu_context",
+    "parse_cpu_line", "threads_left_free",
+]  # fmt: skip

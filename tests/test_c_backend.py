@@ -363,3 +363,28 @@ def test_a_run_that_starts_on_a_busy_machine_takes_the_threads_left_free(monkeyp
         b.upload(*b.initial_state())
         b.advance(3)  # and it steps on them
         assert np.isfinite(b.read()[0]).all()
+
+
+@pytest.mark.parametrize("other_cores, tuning, threads", [(1.0, "on", 1), (0.1, "on", 2), (1.0, "off", 2)])
+def test_numba_takes_the_same_threads_left_free_on_a_busy_machine(monkeypatch, other_cores, tuning, threads):
+    # the c backend's rule (machine_load.threads_left_free), for the peer whose threads can be set per run
+    require("numba")
+    import numba
+
+    from clothbench import environment, machine_load
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread here: nothing to take away")
+    monkeypatch.setenv("CLOTHBENCH_TUNING", tuning)
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    monkeypatch.setattr(environment, "cores", lambda: 2)
+    monkeypatch.setattr(machine_load, "LoadSampler", lambda *a, **k: _SeenLoad(other_cores))
+    usual = numba.get_num_threads()
+    try:
+        with create_backend("numba", scene_named("sphere", 8), VERLET, BackendOptions()) as b:
+            b.upload(*b.initial_state())
+            b.advance(2)
+            assert numba.get_num_threads() == threads and b.device == f"numba parallel ({threads} threads)"
+            assert ("for this run" in b.run_note) == (threads == 1), b.run_note
+    finally:
+        numba.set_num_threads(usual)  # the count is the calling thread's: give it back to later tests

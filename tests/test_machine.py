@@ -267,3 +267,17 @@ def test_the_report_lists_the_rows_whose_figure_may_not_hold_and_why(tmp_path):
     assert listed == [(rows[0]["backend"], rows[0]["mode"]), (rows[1]["backend"], rows[1]["mode"])], listed
     assert "busy (other processes 1.3 of 2 cores, steal 0% over 2.0 s)" in section
     assert "unstable (spread" in section
+
+
+def test_a_rows_load_names_the_cpus_it_may_run_on_and_their_clock_where_readable(tmp_path, monkeypatch):
+    from clothbench import machine_load
+
+    monkeypatch.setattr(machine_load.os, "sched_getaffinity", lambda pid: {0, 1})
+    for cpu, khz in ((0, 2_900_000), (1, 3_100_000)):
+        folder = tmp_path / f"devices/system/cpu/cpu{cpu}/cpufreq"
+        folder.mkdir(parents=True)
+        (folder / "scaling_cur_freq").write_text(f"{khz}\n")
+    assert machine_load.cpu_context(str(tmp_path)) == "CPUs 0,1, clock 3.00 GHz"
+    assert machine_load.cpu_context(str(tmp_path / "no-sys")) == "CPUs 0,1, clock not readable"
+    monkeypatch.setattr(machine_load.os, "sched_getaffinity", lambda pid: {1})  # taskset -c 1
+    assert machine_load.cpu_context(str(tmp_path)) == "CPUs 1, clock 3.10 GHz"

@@ -251,7 +251,7 @@ def measure_row(
             out["note"] = "the float64 reference blew up: no error measured"
     except Exception as e:
         out["note"] = one_line(f"no error measured: float64 reference failed: {type(e).__name__}: {e}")
-    out.update(busy="" if load.busy is None else fmt(load.busy), load=load.why)
+    out.update(busy="" if load.busy is None else fmt(load.busy), load=f"{load.why}; {machine_load.cpu_context()}")
     # a figure measured on a busy machine, or from chunks spread wide, says so (harness/noise.py)
     doubt = "; ".join(noise.doubts(load.busy, load.why, result.chunk_ms_per_step))
     doubt = f"the figure may not hold: {doubt}" if doubt else ""

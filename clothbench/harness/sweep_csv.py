@@ -105,7 +105,8 @@ COLUMN_DOCS: dict[str, str] = {
     "timed_region": "what the clock saw: 'steps' (upload and readback outside) or 'steps+transfers' (per-step transfer mode)",
     "busy": "true: other processes used half a core or more, or the hypervisor stole 5 %, while the row ran "
     "(clothbench/machine_load.py); false: quiet; empty: not measured or too short a run to tell",
-    "load": "the machine's load while the row ran: other processes' cores and steal, over how long",
+    "load": "the machine's load while the row ran: other processes' cores and steal, over how long; the CPUs "
+    "this process may run on (its affinity) and their clock where readable",
     "machine_state": "`clothbench machine`'s verdict at the sweep's start, once for every row of that run: "
     "'quiet (...)', or what made the machine unfit (busy, a frequency governor); empty on a cluster",
     **MACHINE_COLUMN_DOCS,

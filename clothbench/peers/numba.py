@@ -13,6 +13,8 @@ Numba runs synchronously on its own thread pool (NUMBA_NUM_THREADS).
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
@@ -148,7 +150,8 @@ class NumbaBackend(Backend):
         super().__init__(scene, solver, options)
         import numba
 
-        self._threads = numba.get_num_threads()
+        self._threads = numba.config.NUMBA_NUM_THREADS  # the pool's size: a run may use fewer (advance)
+        self.run_note = self._fewer_threads_if_busy()
         # fast: fastmath=True, as Numba's performance tips suggest; strict: Numba's default
         self._step = _kernel(fastmath=not options.strict)
         c = VerletConstants.of(scene, solver)
@@ -175,7 +178,25 @@ class NumbaBackend(Backend):
         self.pos[:] = pos
         self.prev[:] = prev
 
+    def _fewer_threads_if_busy(self) -> str:
+        """As the c backend: on a busy machine the prange's threads are the cores the others
+        leave free, for this run (machine_load.threads_left_free). Not where NUMBA_NUM_THREADS
+        is the user's, nor with tuning off (the test suite: nothing measured decides a run)."""
+        from clothbench import environment, machine_load
+        from clothbench.backends.tuning import tuning_enabled
+
+        if "NUMBA_NUM_THREADS" in os.environ or not tuning_enabled():
+            return ""
+        free, load = machine_load.threads_left_free(self._threads, environment.cores())
+        if free >= self._threads:
+            return ""
+        usual, self._threads = self._threads, free
+        return f"{free} threads for this run, not {usual}: the machine was busy ({load.why})"
+
     def advance(self, steps: int) -> None:
+        import numba
+
+        numba.set_num_threads(self._threads)  # per calling thread: this run's count (busy machine)
         for _ in range(steps):
             self._step(self.pos, self.prev, *self._args)
             self.pos, self.prev = self.prev, self.pos  # x_new was written over prev

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
-import math
 import os
 
 import numpy as np
@@ -183,28 +182,18 @@ class CBackend(Backend):
         self.run_note = self._fewer_threads_if_busy()
 
     def _fewer_threads_if_busy(self) -> str:
-        """On a machine others are using, the threads they leave free, not the tuned count.
-
-        A thread of a split step waits at every step's barrier for the slowest; a core another
-        process holds keeps one descheduled, and the whole step waits with it. Measured on the
-        2-core Xeon (2026-12-04, docs/c.md "Under load"): 32^2 fast 6.3 us a step quiet on two
-        threads, 16.6 us under one unpinned busy process, 2,839 us in a sweep beside two;
-        one thread under the same one-process load 11.5 us. So a run that starts on a busy
-        machine (machine_load, a quarter of a second's watch) takes cores minus the others'
-        share, at least one, for this run only: the cached choice is untouched (tuning.py:
-        a choice made under load does not stick). Not where the thread count is the user's
-        (OMP_NUM_THREADS, --shape) or tuning is off (the test suite's default shapes)."""
+        """On a machine others are using, the threads they leave free, not the tuned count
+        (machine_load.threads_left_free; measured in docs/c.md, "Under load": 32^2 fast 6.3 us
+        a step quiet on two threads, 16.6 us beside one busy process, one thread there 11.5),
+        for this run only: the cached choice is untouched (tuning.py: a choice made under load
+        does not stick). Not where the thread count is the user's (OMP_NUM_THREADS, --shape) or
+        tuning is off (the test suite's default shapes)."""
         from clothbench import machine_load
         from clothbench.backends.tuning import tuning_enabled
 
-        if self.threads == 1 or self.options.shape is not None or omp_num_threads() is not None:
+        if self.options.shape is not None or omp_num_threads() is not None or not tuning_enabled():
             return ""
-        if not tuning_enabled():
-            return ""
-        load = machine_load.LoadSampler().sample(machine_load.MIN_WINDOW_S)
-        if not load.busy or load.other_cores is None:
-            return ""
-        free = max(1, environment.cores() - math.ceil(load.other_cores - 0.25))
+        free, load = machine_load.threads_left_free(self.threads, environment.cores())
         if free >= self.threads:
             return ""
         tuned, self.threads = self.threads, free
