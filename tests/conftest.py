@@ -28,6 +28,11 @@ VERLET = load_setup("sphere").solver
 assert VERLET == Verlet(dt=5e-4)
 
 
+# A study row's columns that say how fast, when and in which process it ran, not what it computed
+# (a worker's thread settings are in env): two runs of the same study agree on every other column.
+NOT_THE_RESULT = frozenset({"ms_per_step", "ms_per_sim_s", "timestamp", "env"})
+
+
 def require(backend: str) -> None:
     """Skip the calling test with the registry's reason if `backend` cannot run here."""
     a = availability(backend)

@@ -16,6 +16,7 @@ from clothbench.environment import host_name
 from clothbench.harness.sweep_csv import row_key
 
 from test_sweep import read_csv
+from conftest import NOT_THE_RESULT
 
 distributed = pytest.importorskip("distributed")
 dask = pytest.importorskip("dask")
@@ -103,12 +104,7 @@ def test_accuracy_and_stability_on_the_cluster_give_the_local_numbers(tmp_path, 
     assert main([*args, "--out", str(tmp_path / "dask.csv"), "--scheduler", c.scheduler_address]) == 0
     import csv
 
-    timing = {
-        "ms_per_step",
-        "ms_per_sim_s",
-        "timestamp",
-        "env",
-    }  # the clock's and the worker's (its thread settings), not the result's
+    timing = NOT_THE_RESULT
     read = lambda p: [{k: v for k, v in r.items() if k not in timing} for r in csv.DictReader(open(p))]  # noqa: E731
     assert read(tmp_path / "local.csv") == read(tmp_path / "dask.csv")
     st = [

@@ -16,6 +16,7 @@ from clothbench.harness.executor import LocalExecutor, run_isolated
 from clothbench.harness.sweep_csv import MEASUREMENT_COLUMNS, row_key
 
 from test_sweep import TINY, read_csv, register_fake_backends
+from conftest import NOT_THE_RESULT
 
 
 def _fake(name: str) -> type:
@@ -150,12 +151,7 @@ def test_accuracy_over_two_jobs_gives_the_numbers_of_one_process():
     plain = run_accuracy(scene, variants, dts, 0.02)
     with LocalExecutor(jobs=2) as ex:
         spread = run_accuracy(scene, variants, dts, 0.02, executor=ex)
-    timing = {
-        "ms_per_step",
-        "ms_per_sim_s",
-        "timestamp",
-        "env",
-    }  # the clock's and the worker's (its thread settings), not the result's
+    timing = NOT_THE_RESULT
     strip = lambda rows: [{k: v for k, v in r.as_dict().items() if k not in timing} for r in rows]  # noqa: E731
     assert strip(plain.rows) == strip(spread.rows)
     assert all(r.status == "ok" for r in spread.rows)

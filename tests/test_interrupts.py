@@ -14,7 +14,7 @@ import pytest
 
 from clothbench.harness.sweep_csv import row_key
 
-from conftest import lines_in, wait_until
+from conftest import NOT_THE_RESULT, lines_in, wait_until
 from test_sweep import read_csv
 
 ARGS = ["sweep", "--backends", "numpy", "--grids", "8,12", "--steps", "3", "--repeat", "2"]
@@ -145,12 +145,7 @@ STUDIES = {
     "stability": ["stability", "--backends", "numpy", "--grid", "12", "--steps", "1500", "--scenes", "flat",
                   "--stiffness", "1000,3000,10000"],
 }  # fmt: skip
-TIMED = {
-    "ms_per_step",
-    "ms_per_sim_s",
-    "timestamp",
-    "env",
-}  # cost, when, and the process's thread settings (a worker's are its own): not the result
+TIMED = NOT_THE_RESULT  # tests/conftest.py
 
 
 def _study_rows(path):
