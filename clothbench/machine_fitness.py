@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from clothbench import machine_load
-from clothbench.machine_load import Load, LoadSampler
+from clothbench.machine_load import Load, LoadSampler, allowed_cpus
 
 # The window the load is sampled over: long enough for /proc/stat's 1/100 s ticks to show half
 # a core on two cores (machine_load.MIN_WINDOW_S is the shortest), short enough not to be a wait.
@@ -67,7 +67,8 @@ class Fitness:
 
     @property
     def verdict(self) -> str:
-        """One line: 'quiet' or 'busy: ...' / 'unknown: ...' (what a sweep row records)."""
+        """One line (what a sweep row records): 'quiet (...)', 'unknown (...)', or what each
+        problem is, '; '-joined."""
         if self.fit:
             return f"quiet ({self.load.why})"
         if self.fit is None:
@@ -95,13 +96,6 @@ def _read(path: Path) -> str | None:
         return path.read_text()
     except OSError:
         return None
-
-
-def allowed_cpus() -> list[int]:
-    try:
-        return sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return list(range(os.cpu_count() or 1))
 
 
 def parse_cpu_list(text: str) -> list[int]:

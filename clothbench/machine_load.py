@@ -180,13 +180,18 @@ def threads_left_free(threads: int, cores: int) -> tuple[int, Load | None]:
     return min(threads, max(1, cores - math.ceil(load.other_cores - 0.25))), load
 
 
+def allowed_cpus() -> list[int]:
+    """The logical CPUs this process may run on (its affinity), in order."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return list(range(os.cpu_count() or 1))
+
+
 def cpu_context(sys_root: str = "/sys") -> str:
     """Where this process runs, for a row's load column: the CPUs its affinity allows and their
     clock now where /sys has it ('clock not readable' in most VMs)."""
-    try:
-        cpus = sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cpus = list(range(os.cpu_count() or 1))
+    cpus = allowed_cpus()
     khz = []
     for cpu in cpus:
         try:
@@ -199,6 +204,6 @@ def cpu_context(sys_root: str = "/sys") -> str:
 
 
 __all__ = [
-    "BUSY_CORES", "BUSY_STEAL", "MIN_WINDOW_S", "Load", "LoadSampler", "Snapshot", "Window", "cpu_context",
-    "parse_cpu_line", "threads_left_free",
+    "BUSY_CORES", "BUSY_STEAL", "MIN_WINDOW_S", "Load", "LoadSampler", "Snapshot", "Window", "allowed_cpus",
+    "cpu_context", "parse_cpu_line", "threads_left_free",
 ]  # fmt: skip

@@ -42,6 +42,7 @@ import tempfile
 import time
 from typing import Callable, Sequence
 
+from clothbench import environment, machine_load
 from clothbench.errors import ClothbenchError
 from clothbench.machine_load import MIN_WINDOW_S, Load, LoadSampler
 from clothbench.native import cache_dir
@@ -178,6 +179,19 @@ def _measure(backend: str, text_key: str, names: list[str], time_candidate) -> t
             why = "; ".join(f"{k}: {v}" for k, v in failures.items())
             raise ClothbenchError(f"{backend}: no kernel shape runs here ({why})")
         return turns, failures, window.stop(MIN_WINDOW_S)  # a short tuning waits out the window for a verdict
+
+
+def threads_for_this_run(threads: int, chosen_by_user: bool) -> tuple[int, str]:
+    """(threads, why) a split step runs on now: the chosen count, or fewer where the machine
+    is busy (machine_load.threads_left_free), with why; (threads, '') where the count is the
+    user's, or tuning is off (the test suite: nothing measured decides a run). For this run
+    only: the cached choice is untouched, as a choice made under load must not stick."""
+    if chosen_by_user or threads <= 1 or not tuning_enabled():
+        return threads, ""
+    free, load = machine_load.threads_left_free(threads, environment.cores())
+    if free >= threads:
+        return threads, ""
+    return free, f"the machine was busy ({load.why})"
 
 
 def noise(times: Sequence[float]) -> float:

@@ -152,8 +152,8 @@ def _by_key(runs: list[list[dict]], row_key) -> dict[tuple, list[dict]]:
     """key -> the key's row in each run that has it (in run order)."""
     out: dict[tuple, list[dict]] = {}
     for rows in runs:
-        for r in {row_key(r): r for r in rows}.values():
-            out.setdefault(row_key(r), []).append(r)
+        for key, r in {row_key(r): r for r in rows}.items():  # a key's last row in a run, as before
+            out.setdefault(key, []).append(r)
     return out
 
 

@@ -301,7 +301,6 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
     for col in heads + ("n", "ms/step", "min-max", "RMS err (m)", "status"):
         table.add_column(col, justify="left" if col in ("backend", "mode", "status") else "right")
     from clothbench.harness.noise import row_doubts
-    from clothbench.harness.sweep_csv import parse_chunks
 
     reasons: dict[tuple[str, str], list[str]] = {}
     doubtful = 0
@@ -309,7 +308,7 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
         if r["status"] == "ok":
             cells = [f"{float(r['ms_median']):.3f}", f"{float(r['ms_min']):.3f}-{float(r['ms_max']):.3f}"]
             # the mark of a figure that may not hold: busy, unstable (harness/noise.py)
-            marks = [d.split(" (")[0] for d in row_doubts(r, parse_chunks(r.get("chunk_ms", "")))]
+            marks = [d.split(" (")[0] for d in row_doubts(r)]
             doubtful += bool(marks)
             status = f"[yellow]ok, {', '.join(marks)}[/yellow]" if marks else "ok"
             cells += [f"{float(r['err_rms_m']):.2e}" if r["err_rms_m"] else "", status]

@@ -13,6 +13,10 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
+from clothbench.harness.sweep_csv import parse_chunks
+
 UNSTABLE_SPREAD = 0.10  # a robust standard deviation over this share of the median: unstable
 IQR_PER_SIGMA = 1.349  # the interquartile range of a normal distribution, in standard deviations
 MIN_CHUNKS_FOR_SPREAD = 4  # fewer chunks have no quartiles worth the name: spread unknown
@@ -23,19 +27,10 @@ def robust_spread(chunks: list[float]) -> float | None:
     move. None with fewer than MIN_CHUNKS_FOR_SPREAD chunks or a median that is not positive."""
     if len(chunks) < MIN_CHUNKS_FOR_SPREAD:
         return None
-    xs = sorted(chunks)
-    median = _quantile(xs, 0.5)
+    q1, median, q3 = (float(q) for q in np.percentile(chunks, [25, 50, 75]))  # as RunResult.spread's IQR
     if not median > 0 or not math.isfinite(median):
         return None
-    return (_quantile(xs, 0.75) - _quantile(xs, 0.25)) / IQR_PER_SIGMA / median
-
-
-def _quantile(xs: list[float], q: float) -> float:
-    """numpy's default (linear) quantile of sorted `xs`."""
-    at = q * (len(xs) - 1)
-    lo = math.floor(at)
-    hi = min(lo + 1, len(xs) - 1)
-    return xs[lo] + (xs[hi] - xs[lo]) * (at - lo)
+    return (q3 - q1) / IQR_PER_SIGMA / median
 
 
 def doubts(busy: bool | None, load: str, chunks: list[float]) -> list[str]:
@@ -51,9 +46,15 @@ def doubts(busy: bool | None, load: str, chunks: list[float]) -> list[str]:
     return out
 
 
-def row_doubts(row: dict, chunks: list[float]) -> list[str]:
+def row_doubts(row: dict, chunks: list[float] | None = None) -> list[str]:
     """doubts() of a sweep row: its `busy` and `load` columns (empty in files older than them)
-    and its chunks."""
+    and its chunks, `chunks` where the caller has them, else read from its chunk_ms (none where
+    that is missing or unreadable)."""
+    if chunks is None:
+        try:
+            chunks = parse_chunks(row.get("chunk_ms", ""))
+        except ValueError:
+            chunks = []
     return doubts(row.get("busy", "").lower() == "true", row.get("load", ""), chunks)
 
 

@@ -180,18 +180,15 @@ class NumbaBackend(Backend):
 
     def _fewer_threads_if_busy(self) -> str:
         """As the c backend: on a busy machine the prange's threads are the cores the others
-        leave free, for this run (machine_load.threads_left_free). Not where NUMBA_NUM_THREADS
-        is the user's, nor with tuning off (the test suite: nothing measured decides a run)."""
-        from clothbench import environment, machine_load
-        from clothbench.backends.tuning import tuning_enabled
+        leave free, for this run (tuning.threads_for_this_run). The count is the user's with
+        NUMBA_NUM_THREADS."""
+        from clothbench.backends.tuning import threads_for_this_run
 
-        if "NUMBA_NUM_THREADS" in os.environ or not tuning_enabled():
-            return ""
-        free, load = machine_load.threads_left_free(self._threads, environment.cores())
-        if free >= self._threads:
+        free, why = threads_for_this_run(self._threads, "NUMBA_NUM_THREADS" in os.environ)
+        if not why:
             return ""
         usual, self._threads = self._threads, free
-        return f"{free} threads for this run, not {usual}: the machine was busy ({load.why})"
+        return f"{free} threads for this run, not {usual}: {why}"
 
     def advance(self, steps: int) -> None:
         import numba

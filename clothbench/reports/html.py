@@ -437,15 +437,10 @@ def _doubtful_rows(ok: list[dict]) -> list[list]:
     """[backend, mode, grid, ms, why] of each ok row the machine was busy for or whose chunks
     spread wide; [] for a file older than the busy column with steady chunks."""
     from clothbench.harness.noise import row_doubts
-    from clothbench.harness.sweep_csv import parse_chunks
 
     out = []
     for r in ok:
-        try:
-            chunks = parse_chunks(r.get("chunk_ms", ""))
-        except ValueError:
-            chunks = []
-        why = row_doubts(r, chunks)
+        why = row_doubts(r)
         if why:
             out.append([r["backend"], r["mode"], r["grid"], num(float(r["ms_median"])), "; ".join(why)])
     return out

@@ -182,23 +182,19 @@ class CBackend(Backend):
         self.run_note = self._fewer_threads_if_busy()
 
     def _fewer_threads_if_busy(self) -> str:
-        """On a machine others are using, the threads they leave free, not the tuned count
-        (machine_load.threads_left_free; measured in docs/c.md, "Under load": 32^2 fast 6.3 us
-        a step quiet on two threads, 16.6 us beside one busy process, one thread there 11.5),
-        for this run only: the cached choice is untouched (tuning.py: a choice made under load
-        does not stick). Not where the thread count is the user's (OMP_NUM_THREADS, --shape) or
-        tuning is off (the test suite's default shapes)."""
-        from clothbench import machine_load
-        from clothbench.backends.tuning import tuning_enabled
+        """On a busy machine, the threads the others leave free for this run, not the tuned
+        count (tuning.threads_for_this_run; measured in docs/c.md, "Under load": 32^2 fast 6.3 us
+        a step quiet on two threads, 16.6 us beside one busy process, one thread there 11.5).
+        The count is the user's with OMP_NUM_THREADS or --shape."""
+        from clothbench.backends.tuning import threads_for_this_run
 
-        if self.options.shape is not None or omp_num_threads() is not None or not tuning_enabled():
-            return ""
-        free, load = machine_load.threads_left_free(self.threads, environment.cores())
-        if free >= self.threads:
+        user = self.options.shape is not None or omp_num_threads() is not None
+        free, why = threads_for_this_run(self.threads, user)
+        if not why:
             return ""
         tuned, self.threads = self.threads, free
         self.shape = f"threads={free}"
-        return f"threads={free} for this run, not the tuned {tuned}: the machine was busy ({load.why})"
+        return f"threads={free} for this run, not the tuned {tuned}: {why}"
 
     @classmethod
     def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:

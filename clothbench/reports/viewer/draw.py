@@ -110,10 +110,9 @@ def wrap(text: str, width: int) -> list[str]:
     return lines + [line] if line else lines
 
 
-def fit_lines(lines: list, width: int) -> list[tuple[str, tuple]]:
-    """An overlay panel's lines as (text, colour), each at most `width` characters: a longer
-    one (a backend's refusal names every backend that could run) wrapped in its colour."""
-    items = [(line, TEXT) if isinstance(line, str) else line for line in lines]
+def fit_lines(items: list[tuple[str, tuple]], width: int) -> list[tuple[str, tuple]]:
+    """An overlay panel's (text, colour) lines, each at most `width` characters: a longer one (a
+    backend's refusal names every backend that could run) wrapped in its colour."""
     return [(part, colour) for text, colour in items for part in (wrap(text, width) if len(text) > width else [text])]
 
 
