@@ -34,7 +34,7 @@ from clothbench.backends import backend_class
 from clothbench.reports.viewer import keys as view_keys
 from clothbench.reports.viewer import overlay_text
 from clothbench.reports.viewer.camera import Trackball
-from clothbench.reports.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, fit_lines, layout
+from clothbench.reports.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, clear_span, fit_lines, layout
 from clothbench.reports.viewer.profiler import FrameProfile, Stage, gl_timer_queries
 from clothbench.scene import load_setup
 
@@ -170,6 +170,44 @@ def test_the_trackball_turns_the_view_and_keeps_it_a_rotation():
     ball.turn(0, 2)  # the arrow keys: a turntable about the vertical, the eye's height kept
     assert np.isclose(ball.camera().eye[1], home[1]) and not np.allclose(ball.camera().eye, home)
     assert np.isclose(ball.orientation[0][1], 0.0, atol=1e-12)  # the view's right axis stays level
+
+
+def test_the_cloth_is_framed_clear_of_the_panels():
+    """The drape's cloth starts level at the top of its bounds: `render`'s framing put its left
+    corner under the run panel (issue 31, item 18). Framed between the top panels, every
+    particle is on screen and none under a panel, in a wide window and a narrower one (moved,
+    and made smaller where the width needs it); a span under half the window keeps the
+    whole-window framing."""
+    scene = load_setup("drape").scene
+    cloth = scene.initial_state()[0][:, :3]
+    glyphs = Glyphs()
+    run = ("top-left", ["x" * 50])
+    placed = layout([run, ("bottom-left", ["keys"])], (1280, 720), glyphs)
+    left, right = clear_span(placed, 1280)
+    assert (left, right) == (GAP + 50 * glyphs.width + 2 * PAD + GAP, 1280)  # the run panel's edge only
+    for size in ((1280, 720), (1024, 768)):
+        ball = Trackball(scene, size)
+        before = ball.camera().project(cloth)[:, 0]
+        ball.keep_clear_of(left, size[0])
+        after = ball.camera().project(cloth)[:, 0]
+        assert before.min() < left, size  # the case: without it, a corner is under the panel
+        assert left <= after.min() and after.max() <= size[0], size
+        ball.keep_clear_of(left - 40, size[0])  # the panel a frame narrower: the frame stays
+        assert np.array_equal(ball.camera().project(cloth)[:, 0], after), size
+    ball.resize((1280, 720))
+    assert ball.clear == (0, 1280)  # a new window size: the panels are placed again
+    # the profiler opened at the right: the span between the panels, or the whole window
+    profiler = ("top-right", ["y" * 30])
+    left, right = clear_span(layout([run, profiler], (1600, 900), glyphs), 1600)
+    assert right == 1600 - GAP - (30 * glyphs.width + 2 * PAD) - GAP
+    ball = Trackball(scene, (1600, 900))
+    ball.keep_clear_of(left, right)
+    x = ball.camera().project(cloth)[:, 0]
+    assert left <= x.min() and x.max() <= right
+    narrow = Trackball(scene, (800, 600))
+    whole = narrow.camera().view_projection
+    narrow.keep_clear_of(*clear_span(layout([run], (800, 600), glyphs), 800))  # over half of it
+    assert np.array_equal(narrow.camera().view_projection, whole)
 
 
 # --- the viewer on the headless window ---------------------------------------------------------
@@ -371,7 +409,7 @@ def test_a_refusal_wider_than_the_window_is_wrapped_inside_it():
         assert all(len(text) <= chars for text, _ in lines), (w, h)
         said = [text for text, colour in lines if colour == WARN]
         assert " ".join(said).split() == refusal.split(), (w, h)  # every word, in order, in its colour
-        [(x, y, image)] = layout([("bottom-left", [(refusal, WARN), (hint, DIM)])], (w, h), glyphs)
+        [(_, x, y, image)] = layout([("bottom-left", [(refusal, WARN), (hint, DIM)])], (w, h), glyphs)
         ph, pw = image.shape[:2]
         assert GAP <= x and x + pw <= w - GAP and GAP <= y and y + ph <= h - GAP, (w, h)
         assert ph == len(lines) * glyphs.height + 2 * PAD, (w, h)  # a row for every line: none cut off

@@ -27,7 +27,7 @@ from clothbench.backends.gl import context as gl_context
 from clothbench.errors import ClothbenchError
 from clothbench.reports.render import write_gif
 from clothbench.reports.viewer.camera import WHEEL_ZOOM, KEY_ZOOM, Trackball
-from clothbench.reports.viewer.draw import Overlay, WindowRenderer
+from clothbench.reports.viewer.draw import Overlay, WindowRenderer, clear_span
 from clothbench.reports.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, name_of, window_key_names
 from clothbench.reports.viewer.overlay_text import panels
 from clothbench.reports.viewer.profiler import FrameProfile, GLTimer, gl_timer_queries
@@ -214,17 +214,20 @@ class Viewer:
             _, prev = session.state()
             normals = session.cloth_normals(prev)
         self.source = "device" if drawable is not None else "readback"
-        self.renderer.camera = self.trackball.camera()
-        self.renderer.wireframe = self.wireframe
         last = self.settings.frames is not None and self.frame == self.settings.frames
         with profile.stage("draw"):
+            with profile.stage("overlay"):  # laid out first: the camera frames the cloth clear of it
+                placed = self.overlay.place(panels(self, profile))
+            self.trackball.keep_clear_of(*clear_span(placed, self.size[0]))
+            self.renderer.camera = self.trackball.camera()
+            self.renderer.wireframe = self.wireframe
             with profile.stage("cloth"):
                 if drawable is not None:
                     self.renderer.draw_state(drawable)
                 else:
                     self.renderer.draw_arrays(prev, normals)
             with profile.stage("overlay"):
-                self.overlay.draw(self.window.fbo, panels(self, profile))
+                self.overlay.draw(self.window.fbo, placed)
             if self.settings.record or (
                 self.settings.screenshot and (last or self.quit or self.settings.frames is None)
             ):
