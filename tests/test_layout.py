@@ -18,7 +18,8 @@ MAX_LINES = 900
 
 # Lower layers never import higher ones. The model and its solver settings sit at the
 # bottom; backends (clothbench's and the peers) run one step; the harness times and checks
-# them; analysis measures with the harness; reports draw what was measured; the CLI drives all.
+# them; analysis measures with the harness; reports draw what was measured; the viewer is an
+# application beside the CLI (it runs backends live in its own window); the CLI drives all.
 LAYERS = {
     "scene": 0, "colliders": 0, "solver": 0, "errors": 0, "environment": 0, "constraints": 0, "kernel_source": 0,
     "native": 0, "machine_load": 0, "machine_fitness": 0, "progress": 0, "_build_info": 0,
@@ -26,7 +27,8 @@ LAYERS = {
     "harness": 2,
     "analysis": 3,
     "reports": 4,
-    "cli": 5, "__main__": 5,
+    "viewer": 5,
+    "cli": 6, "__main__": 6,
 }  # fmt: skip
 
 

@@ -31,11 +31,11 @@ from clothbench import cli
 from clothbench.errors import ClothbenchError
 from clothbench.harness.simulate import simulate
 from clothbench.backends import backend_class
-from clothbench.reports.viewer import keys as view_keys
-from clothbench.reports.viewer import overlay_text
-from clothbench.reports.viewer.camera import Trackball
-from clothbench.reports.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, clear_span, fit_lines, layout
-from clothbench.reports.viewer.profiler import FrameProfile, Stage, gl_timer_queries
+from clothbench.viewer import keys as view_keys
+from clothbench.viewer import overlay_text
+from clothbench.viewer.camera import Trackball
+from clothbench.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, clear_span, fit_lines, layout
+from clothbench.viewer.profiler import FrameProfile, Stage, gl_timer_queries
 from clothbench.scene import load_setup
 
 from conftest import assert_bit_exact, lines_in, require, wait_until

@@ -26,13 +26,13 @@ display, run it under a virtual one:
 
 
 def _epilog() -> str:
-    from clothbench.reports.viewer.keys import KEYS_TEXT, help_lines
+    from clothbench.viewer.keys import KEYS_TEXT, help_lines
 
     return EPILOG.format(keys="\n".join(f"  {key:<11} {what}" for key, what in help_lines()), names=KEYS_TEXT)
 
 
 def register(subparsers) -> None:
-    from clothbench.reports.viewer import ViewSettings
+    from clothbench.viewer import ViewSettings
 
     d = ViewSettings()
     p = subparsers.add_parser(
@@ -75,8 +75,8 @@ def _output(path: str | None, suffix: str | None, option: str) -> None:
 
 
 def settings_from_args(args):
-    from clothbench.reports.viewer import ViewSettings
-    from clothbench.reports.viewer.keys import parse_script
+    from clothbench.viewer import ViewSettings
+    from clothbench.viewer.keys import parse_script
 
     if args.frames is not None and args.frames < 1:
         raise ClothbenchError(f"--frames must be >= 1, got {args.frames}")
@@ -106,7 +106,7 @@ def settings_from_args(args):
 def cmd_view(args) -> int:
     from clothbench.backends import BackendOptions, check_name
     from clothbench.harness.preflight import check_memory
-    from clothbench.reports.viewer import view
+    from clothbench.viewer import view
 
     check_name(args.backend)
     settings = settings_from_args(args)

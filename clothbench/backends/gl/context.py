@@ -256,7 +256,7 @@ class GLClock:
 
     Timestamps (glQueryCounter), not a GL_TIME_ELAPSED query: only one GL_TIME_ELAPSED query
     may be active in a context, and the viewer's profiler holds one around advance()
-    (reports/viewer/profiler.py). The pair of query objects goes back to the context's pool
+    (clothbench/viewer/profiler.py). The pair of query objects goes back to the context's pool
     when the clock is collected: backends share the context, and not every one closes its
     clock (the PBD solver's close() is its own)."""
 

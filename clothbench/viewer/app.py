@@ -26,13 +26,13 @@ import numpy as np
 from clothbench.backends.gl import context as gl_context
 from clothbench.errors import ClothbenchError
 from clothbench.reports.render import write_gif
-from clothbench.reports.viewer.camera import WHEEL_ZOOM, KEY_ZOOM, Trackball
-from clothbench.reports.viewer.draw import Overlay, WindowRenderer, clear_span
-from clothbench.reports.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, name_of, window_key_names
-from clothbench.reports.viewer.overlay_text import panels
-from clothbench.reports.viewer.profiler import FrameProfile, GLTimer, gl_timer_queries
-from clothbench.reports.viewer.session import Session
-from clothbench.reports.viewer.signals import on_lost_display, raise_if_stopped, stop_between_frames
+from clothbench.viewer.camera import WHEEL_ZOOM, KEY_ZOOM, Trackball
+from clothbench.viewer.draw import Overlay, WindowRenderer, clear_span
+from clothbench.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, name_of, window_key_names
+from clothbench.viewer.overlay_text import panels
+from clothbench.viewer.profiler import FrameProfile, GLTimer, gl_timer_queries
+from clothbench.viewer.session import Session
+from clothbench.viewer.signals import on_lost_display, raise_if_stopped, stop_between_frames
 
 NO_DISPLAY = (
     "no display to open a window on ({why}): run it under a virtual display with --frames N and "

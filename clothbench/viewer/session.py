@@ -27,8 +27,8 @@ from clothbench.harness.normals import grid_normals
 from clothbench.harness.simulate import position_error
 from clothbench.scene import Scene, load_scene
 from clothbench.solver import Solver
-from clothbench.reports.viewer.keys import COLLIDER_KEYS, GRID_KEYS, backend_keys
-from clothbench.reports.viewer.profiler import FrameProfile, GLTimer
+from clothbench.viewer.keys import COLLIDER_KEYS, GRID_KEYS, backend_keys
+from clothbench.viewer.profiler import FrameProfile, GLTimer
 
 SHADOW_MAX_GRID = 128  # float64 NumPy keeps up with a frame up to here (~2 ms/step at 128)
 KINDS = {"sphere": "spheres", "cylinder": "cylinders", "plane": "planes"}
