@@ -180,6 +180,30 @@ def test_no_private_name_is_imported_from_another_module():
     )
 
 
+def test_no_private_name_is_reached_through_another_module():
+    """`import clothbench.x as m` then `m._name`: the same reach as importing _name, which the
+    test above cannot see."""
+    known = {module_name(p) for p in modules()}
+    reached = set()
+    for path in modules():
+        tree = ast.parse(path.read_text())
+        aliases = {}  # a name bound in this module -> the clothbench module it is
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                aliases |= {a.asname or a.name: a.name for a in node.names if a.name in known}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                bound = {a.asname or a.name: f"{node.module}.{a.name}" for a in node.names}
+                aliases |= {alias: full for alias, full in bound.items() if full in known}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases:
+                target = aliases[node.value.id]
+                if node.attr.startswith("_") and not node.attr.startswith("__") and target != module_name(path):
+                    reached.add(f"{path.relative_to(PACKAGE)} reaches {target}.{node.attr}")
+    assert not reached, "private names used outside their module (make them public, or move the code): " + "; ".join(
+        sorted(reached)
+    )
+
+
 def test_no_placeholder_branches():
     for path in modules():
         text = path.read_text().lower()

@@ -31,6 +31,7 @@ from clothbench import cli
 from clothbench.errors import ClothbenchError
 from clothbench.harness.simulate import simulate
 from clothbench.backends import backend_class
+from clothbench.backends.gl import context as gl_context
 from clothbench.viewer import keys as view_keys
 from clothbench.viewer import overlay_text
 from clothbench.viewer.camera import Trackball
@@ -150,6 +151,18 @@ def test_timer_queries_of_a_software_rasteriser_are_not_called_a_gpus():
     assert not real and "not a GPU's clock" in note
     Device.renderer = "NVIDIA H200/PCIe/SSE2"
     assert gl_timer_queries(Device())[0]
+
+
+def test_a_lent_context_is_what_the_gl_backends_get_until_it_is_given_back():
+    require("glsl")
+    own = gl_context.get_device()
+    window, inner = object(), object()  # lend_device takes any device: nothing draws here
+    with gl_context.lend_device(window):
+        assert gl_context.get_device() is window
+        with gl_context.lend_device(inner):
+            assert gl_context.get_device() is inner
+        assert gl_context.get_device() is window
+    assert gl_context.get_device() is own
 
 
 def test_the_trackball_turns_the_view_and_keeps_it_a_rotation():

@@ -111,17 +111,10 @@ def _writing(path: str, write):
 @contextmanager
 def shared_context(window):
     """The window's context as the GL backends' device for as long as the window is open,
-    so that they compute where the window draws. The context they had is restored after."""
+    so that they compute where the window draws (gl_context.lend_device)."""
     device = gl_context.GLDevice(window.ctx, "window", _proc_address(window))
-    saved = gl_context._devices.get("egl")
-    gl_context._devices["egl"] = device  # what get_device() gives the GL backends
-    try:
+    with gl_context.lend_device(device):
         yield device
-    finally:
-        if saved is None:
-            gl_context._devices.pop("egl", None)
-        else:
-            gl_context._devices["egl"] = saved
 
 
 class Viewer:

@@ -357,6 +357,22 @@ def get_device(gl: str = "egl") -> GLDevice:
     raise GLUnavailable(f"no EGL display ({_failures['egl']}) and no OSMesa ({_failures['osmesa']}) ({INSTALL_HINT})")
 
 
+@contextmanager
+def lend_device(device: GLDevice):
+    """Within the block, `device` is what get_device() gives for `--gl egl` (the default): a
+    context an application made (the viewer's window) lent to the GL backends, so that they
+    compute where it draws. The context there was before, if any, comes back after."""
+    saved = _devices.get("egl")
+    _devices["egl"] = device
+    try:
+        yield device
+    finally:
+        if saved is None:
+            _devices.pop("egl", None)
+        else:
+            _devices["egl"] = saved
+
+
 def probe(min_version: int = 330) -> Availability:
     """Can a GL backend needing OpenGL `min_version` (e.g. 430 for compute) run here?"""
     try:
