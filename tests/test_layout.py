@@ -1,10 +1,12 @@
 """The architecture, as statements that fail when the layout drifts: layers import only
 downwards, no two modules import each other (however indirectly, however deep in a function),
-no module reaches into another's private names, no half-written branches, and a size alarm."""
+no module reaches into another's private names, no half-written branches, a size alarm, and
+README's Layout naming what is there and every folder of the package."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -209,3 +211,67 @@ def test_no_placeholder_branches():
         text = path.read_text().lower()
         for phrase in ("not implemented yet", "not written yet", "being written"):
             assert phrase not in text, f"{path.relative_to(PACKAGE)} still says {phrase!r}"
+
+
+ROOT = Path(__file__).resolve().parent.parent
+# a file name as README's Layout writes one in a description: analytic.py, kernels/verlet_cloth.c
+FILE_NAME = re.compile(r"(?<![\w./-])((?:[\w-]+/)*[\w-]+\.(?:py|md|toml|cl|cu|cuh|c|comp|vert|frag|glsl))\b")
+FOLDER_NAME = re.compile(r"(?<![\w./-])((?:[\w-]+/)+)(?![\w.])")  # shim/, tests/contract/
+
+
+def readme_layout() -> dict[str, str]:
+    """README's Layout block as path (from the repository root) -> its description: a line
+    at the margin names a path, one indented by four a path in the folder above it, and a
+    line indented further continues the description. A path named twice fails here."""
+    section = (ROOT / "README.md").read_text().split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
+    block = section.split("```\n", 2)[1]
+    entries: dict[str, str] = {}
+    top = path = ""
+    for line in block.splitlines():
+        if not line.strip():
+            continue
+        indent = len(line) - len(line.lstrip())
+        if indent > 4:
+            entries[path] += " " + line.strip()
+            continue
+        name, _, text = line.strip().partition("  ")
+        path = name if indent == 0 else top + name
+        top = path if indent == 0 else top
+        assert path not in entries, f"README's Layout names {path} twice"
+        entries[path] = text.strip()
+    return entries
+
+
+def folder_of(path: str) -> Path:
+    return ROOT / path if path.endswith("/") else (ROOT / path).parent
+
+
+def test_every_path_readme_s_layout_names_is_there():
+    missing = []
+    for path, text in readme_layout().items():
+        if not (ROOT / path).exists():
+            missing.append(path)
+        folder = folder_of(path)
+        for name in FILE_NAME.findall(text) + FOLDER_NAME.findall(text):
+            # a name with a folder in it is written from the root or from clothbench/; a bare
+            # one is in the entry's folder or below it (colliders/: analytic.py)
+            if "/" in name.rstrip("/"):
+                there = (ROOT / name).exists() or (PACKAGE / name).exists()
+            else:
+                there = any(folder.rglob(name.rstrip("/")))
+            if not there:
+                missing.append(f"{name} (in {path}'s description)")
+    assert not missing, f"README's Layout names what is not there: {missing}"
+
+
+def test_every_folder_of_the_package_is_in_readme_s_layout():
+    entries = readme_layout()
+    unnamed = []
+    for folder in sorted(p for p in PACKAGE.rglob("*") if p.is_dir() and "__pycache__" not in p.parts):
+        if not any(f.is_file() for f in folder.iterdir()):
+            continue  # only __pycache__ left behind by a folder that moved
+        path = folder.relative_to(PACKAGE.parent).as_posix() + "/"
+        parent = folder.parent.relative_to(PACKAGE.parent).as_posix() + "/"
+        if path not in entries and folder.name + "/" not in FOLDER_NAME.findall(entries.get(parent, "")):
+            unnamed.append(path)
+    assert not unnamed, f"folders of clothbench/ that README's Layout does not name: {unnamed}"
