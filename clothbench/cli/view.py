@@ -46,8 +46,12 @@ def register(subparsers) -> None:
     p.add_argument("--backend", default="glsl", help="the backend it starts on (default glsl)")
     p.add_argument("--strict", action="store_true", help="every backend bit-exact with the numpy f32 reference")
     p.add_argument("--generic", action="store_true", help="one kernel for every scene (no specialisation)")
-    p.add_argument("--steps-per-frame", type=int, default=d.steps_per_frame,
-                   help=f"steps simulated per frame (default {d.steps_per_frame})")  # fmt: skip
+    p.add_argument(
+        "--steps-per-frame",
+        type=int,
+        default=d.steps_per_frame,
+        help=f"steps simulated per frame (default {d.steps_per_frame})",
+    )
     p.add_argument("--frames", type=int, help="stop after this many frames (default: when the window closes)")
     p.add_argument("--keys", default="", help='keys to press, FRAME:KEY pairs: "40:F3,80:F2,120:P"')
     p.add_argument("--screenshot", help="write the last frame to this .png")
@@ -56,8 +60,11 @@ def register(subparsers) -> None:
     p.add_argument("--save", help="write the final pos and prev to this .npz")
     p.add_argument("--log", help="write one JSON line per frame to this .jsonl")
     p.add_argument("--size", type=size, default=d.size, help="window size WIDTHxHEIGHT (default 1280x720)")
-    p.add_argument("--headless", action="store_true",
-                   help="moderngl-window's headless window (EGL): no display needed, nothing shown")  # fmt: skip
+    p.add_argument(
+        "--headless",
+        action="store_true",
+        help="moderngl-window's headless window (EGL): no display needed, nothing shown",
+    )
     p.set_defaults(func=cmd_view)
 
 
@@ -93,14 +100,25 @@ def settings_from_args(args):
         raise ClothbenchError(f"--size must be between 64x64 and 8192x8192, got {w}x{h}")
     if not args.fps > 0:
         raise ClothbenchError(f"--fps must be > 0, got {args.fps}")
-    for path, suffix, option in ((args.screenshot, ".png", "--screenshot"), (args.record, ".gif", "--record"),
-                                 (args.save, ".npz", "--save"), (args.log, None, "--log")):  # fmt: skip
+    for path, suffix, option in (
+        (args.screenshot, ".png", "--screenshot"),
+        (args.record, ".gif", "--record"),
+        (args.save, ".npz", "--save"),
+        (args.log, None, "--log"),
+    ):
         _output(path, suffix, option)
     return ViewSettings(
-        frames=args.frames, size=args.size, steps_per_frame=args.steps_per_frame, keys=keys,
-        screenshot=args.screenshot, record=args.record, save=args.save, log=args.log,
-        headless=args.headless, fps=args.fps,
-    )  # fmt: skip
+        frames=args.frames,
+        size=args.size,
+        steps_per_frame=args.steps_per_frame,
+        keys=keys,
+        screenshot=args.screenshot,
+        record=args.record,
+        save=args.save,
+        log=args.log,
+        headless=args.headless,
+        fps=args.fps,
+    )
 
 
 def cmd_view(args) -> int:

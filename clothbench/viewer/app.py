@@ -74,8 +74,15 @@ def open_window(settings: ViewSettings):
     kind, extra = ("headless", {"backend": "egl"}) if settings.headless else ("pyglet", {})
     try:  # importing pyglet's window already connects to the display
         cls = moderngl_window.get_local_window_cls(kind)
-        window = cls(title="clothbench view", size=settings.size, gl_version=(3, 3), vsync=False,
-                     resizable=not settings.headless, samples=0, **extra)  # fmt: skip
+        window = cls(
+            title="clothbench view",
+            size=settings.size,
+            gl_version=(3, 3),
+            vsync=False,
+            resizable=not settings.headless,
+            samples=0,
+            **extra,
+        )
     except Exception as e:  # a display that cannot be reached, no GL: one line
         why = f"{type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}".rstrip(": ")
         if settings.headless:

@@ -44,8 +44,15 @@ def has_stages(backend: Backend) -> bool:
 class Session:
     """The simulation behind a window: scene, solver, backend, step, and the shadow run."""
 
-    def __init__(self, scene: Scene, solver: Solver, backend: str, options: BackendOptions,
-                 steps_per_frame: int = 10, gl_timer: GLTimer | None = None):  # fmt: skip
+    def __init__(
+        self,
+        scene: Scene,
+        solver: Solver,
+        backend: str,
+        options: BackendOptions,
+        steps_per_frame: int = 10,
+        gl_timer: GLTimer | None = None,
+    ):
         if steps_per_frame < 1:
             raise ClothbenchError(f"--steps-per-frame must be >= 1, got {steps_per_frame}")
         self.base = scene  # the scene as loaded: what a collider toggle restores
