@@ -115,8 +115,9 @@ def test_bad_input_is_one_line_before_any_window(monkeypatch, capsys):
 
 def test_without_a_display_it_says_what_to_do_in_one_line():
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    done = subprocess.run([sys.executable, "-c", RUN, "view", "--frames", "5"], env=env, capture_output=True,
-                          text=True, timeout=120)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", RUN, "view", "--frames", "5"], env=env, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 2
     err = done.stderr.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
@@ -229,8 +230,9 @@ def test_the_cloth_is_framed_clear_of_the_panels():
 def test_switching_backends_keeps_the_cloth_where_it_is_bit_for_bit(tmp_path, monkeypatch):
     for name in ("opencl", "glsl", "glsl-compute"):
         require(name)
-    lines, saved = headless(tmp_path, monkeypatch, "--backend", "numpy", "--strict", "--keys", "4:F3,8:F2,12:F5",
-                            frames=16)  # fmt: skip
+    lines, saved = headless(
+        tmp_path, monkeypatch, "--backend", "numpy", "--strict", "--keys", "4:F3,8:F2,12:F5", frames=16
+    )
     assert [lines[i]["backend"] for i in (2, 3, 7, 11, 15)] == [
         "numpy",
         "opencl",
@@ -240,14 +242,19 @@ def test_switching_backends_keeps_the_cloth_where_it_is_bit_for_bit(tmp_path, mo
     ]
     assert "switched numpy -> opencl at step 30" in lines[3]["events"][0]
     assert [line["drawn_from"] for line in (lines[2], lines[3], lines[7], lines[11])] == [
-        "readback", "readback", "device", "device"]  # fmt: skip
+        "readback",
+        "readback",
+        "device",
+        "device",
+    ]
     assert lines[-1]["step"] == 16 * SPF
     assert_same_state(saved, unswitched(16 * SPF), "numpy -> opencl -> glsl -> glsl-compute")
 
 
 def test_an_unusable_backend_says_why_and_nothing_else_changes(tmp_path, monkeypatch):
-    lines, saved = headless(tmp_path, monkeypatch, "--backend", "numpy", "--keys", "3:F4,4:F2", "--solver", "pbd",
-                            frames=6)  # fmt: skip
+    lines, saved = headless(
+        tmp_path, monkeypatch, "--backend", "numpy", "--keys", "3:F4,4:F2", "--solver", "pbd", frames=6
+    )
     from clothbench.backends import availability
 
     cuda = lines[2]["events"][0]
@@ -290,8 +297,7 @@ def test_collider_keys_rebuild_the_scene_and_keep_the_cloth(tmp_path, monkeypatc
 
 def test_the_profiler_tree_and_the_shadow_error_are_in_every_line(tmp_path, monkeypatch):
     require("glsl-compute")
-    lines, _ = headless(tmp_path, monkeypatch, "--backend", "glsl-compute", "--keys", "2:P,2:E,5:1,6:F1",
-                        frames=8)  # fmt: skip
+    lines, _ = headless(tmp_path, monkeypatch, "--backend", "glsl-compute", "--keys", "2:P,2:E,5:1,6:F1", frames=8)
     for line in lines:
         tree = line["profiler"]
         assert tree["name"] == "frame" and tree["of_frame"] == 1.0
@@ -333,8 +339,12 @@ def test_a_real_window_under_xvfb_driven_by_keys(tmp_path):
     argv = ["view", "--scene", "sphere", "--backend", "numpy", "--strict", "--keys", "15:F3,30:F2,45:F5,50:P",
             "--frames", str(frames), "--steps-per-frame", str(SPF), "--size", "480x360",
             "--screenshot", str(shot), "--log", str(log), "--save", str(save)]  # fmt: skip
-    done = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-c", RUN, *argv],
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = subprocess.run(
+        ["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-c", RUN, *argv],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     assert len(lines) == frames and all(line["ms"] > 0 for line in lines)
@@ -363,9 +373,13 @@ def _x_server(tmp_path) -> tuple[subprocess.Popen, str]:
     if shutil.which("Xvfb") is None:
         pytest.skip("Xvfb not installed (apt-get install xvfb)")
     ready_r, ready_w = os.pipe()
-    server = subprocess.Popen(["Xvfb", "-displayfd", str(ready_w), "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
-                              pass_fds=[ready_w], process_group=0, preexec_fn=_default_sigint,
-                              stderr=open(tmp_path / "xvfb.err", "w"))  # fmt: skip
+    server = subprocess.Popen(
+        ["Xvfb", "-displayfd", str(ready_w), "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
+        pass_fds=[ready_w],
+        process_group=0,
+        preexec_fn=_default_sigint,
+        stderr=open(tmp_path / "xvfb.err", "w"),
+    )
     os.close(ready_w)
     with os.fdopen(ready_r) as ready:
         number = ready.readline().strip()  # written once the server listens; nothing if it failed
@@ -389,9 +403,15 @@ def test_a_signal_stops_a_window_with_one_line_and_exit_130(tmp_path, sig, to_gr
     try:
         argv = ["view", "--scene", "drape", "--backend", "numpy", "--steps-per-frame", "1", "--size", "320x240",
                 "--log", str(log)]  # fmt: skip
-        viewer = subprocess.Popen([sys.executable, "-c", RUN, *argv], env=dict(os.environ, DISPLAY=display),
-                                  process_group=server.pid, preexec_fn=_default_sigint,
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+        viewer = subprocess.Popen(
+            [sys.executable, "-c", RUN, *argv],
+            env=dict(os.environ, DISPLAY=display),
+            process_group=server.pid,
+            preexec_fn=_default_sigint,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         wait_until(lambda: lines_in(log) >= 2, viewer, "the window's frames")
         if to_group:
             os.killpg(server.pid, sig)
