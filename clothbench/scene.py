@@ -29,7 +29,7 @@ from clothbench.colliders.analytic import (
 from clothbench.colliders.mesh import Mesh
 from clothbench.colliders.motion import Frame, Motion, array_of_tables, frames_from_toml, motion_from_toml
 from clothbench.errors import SceneError
-from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, solver_for_spec
+from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, finite_number, solver_for_spec
 
 # The 12-spring stencil as (d_row, d_col), in the order every backend sums it.
 STRUCTURAL = ((0, -1), (0, 1), (-1, 0), (1, 0))
@@ -165,12 +165,8 @@ def count_springs(n: int) -> int:
     return sum(max(0, n - abs(dr)) * max(0, n - abs(dc)) for dr, dc in OFFSETS)
 
 
-def _finite(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
 def _vec3(value, what: str) -> tuple[float, float, float]:
-    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(_finite(v) for v in value):
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(finite_number(v) for v in value):
         raise SceneError(f"{what} must be three finite numbers, got {value!r}")
     return tuple(float(v) for v in value)
 
@@ -186,7 +182,7 @@ def _validate(s: Scene) -> None:
         ("height", None),
     ):
         value = getattr(s, name)
-        if not _finite(value):
+        if not finite_number(value):
             raise SceneError(f"{name} must be a finite number, got {value!r}")
         if positive and value <= 0:
             raise SceneError(f"{name} must be > 0, got {value!r}")
@@ -195,12 +191,12 @@ def _validate(s: Scene) -> None:
     object.__setattr__(s, "gravity", _vec3(s.gravity, "gravity"))
     for sphere in s.spheres:
         _vec3(sphere.center, "sphere center")
-        if not _finite(sphere.radius) or sphere.radius <= 0:
+        if not finite_number(sphere.radius) or sphere.radius <= 0:
             raise SceneError(f"sphere radius must be > 0, got {sphere.radius!r}")
     for cyl in s.cylinders:
         _vec3(cyl.start, "cylinder start")
         _vec3(cyl.end, "cylinder end")
-        if not _finite(cyl.radius) or cyl.radius <= 0:
+        if not finite_number(cyl.radius) or cyl.radius <= 0:
             raise SceneError(f"cylinder radius must be > 0, got {cyl.radius!r}")
         if cyl.length == 0:
             raise SceneError(f"cylinder start and end must differ (zero-length cylinder at {cyl.start})")
@@ -354,7 +350,7 @@ def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
         if "scale" in table:
             scale = table["scale"]
             values["scale"] = (
-                (float(scale),) * 3 if _finite(scale) else _vec3(scale, "mesh scale (one number or three)")
+                (float(scale),) * 3 if finite_number(scale) else _vec3(scale, "mesh scale (one number or three)")
             )
         for k in ("subdivisions", "margin"):
             if k in table:

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from clothbench.cli.args import add_scene_args, setup_from_args
+from clothbench.variant_names import GL_PROVIDERS
 
 EPILOG = """\
 A frame is drawn after every --every steps, --frames times: frame f shows the cloth after
@@ -63,7 +64,7 @@ def register(subparsers) -> None:
     p.add_argument("--fps", type=float, default=d.fps, help=f"GIF frames per second (default {d.fps:g})")
     p.add_argument("--strict", action="store_true", help="simulate bit-exact with the numpy f32 reference")
     p.add_argument("--generic", action="store_true", help="GL backends: one kernel for every scene")
-    p.add_argument("--gl", choices=["egl", "osmesa"], default="egl", help="GL context provider")
+    p.add_argument("--gl", choices=GL_PROVIDERS, default=GL_PROVIDERS[0], help="GL context provider")
     p.set_defaults(func=cmd_render)
 
 

@@ -12,6 +12,7 @@ from clothbench.backends import BACKENDS, BackendOptions, availability, backend_
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver, Verlet
+from clothbench.variant_names import mesh_word, variant_name
 
 GENERIC_CHOICES = ("no", "yes", "both")
 
@@ -36,17 +37,20 @@ class Variant:
     @property
     def mode(self) -> str:
         """The mode the backend will report (Backend.mode), known before it is built."""
-        mesh = f"/mesh={self.options.mesh_collision}" if self.options.mesh_collision else ""
-        return self.capabilities.mode(self.options, self.solver) + mesh
+        return self.mode_words.spell()
+
+    @property
+    def mode_words(self):
+        """The mode's words (variant_names.Mode): the options' and the mesh algorithm's."""
+        words = self.capabilities.mode_words(self.options, self.solver)
+        mesh = (mesh_word(self.options.mesh_collision),) if self.options.mesh_collision else ()
+        return replace(words, rest=mesh)
 
     @property
     def name(self) -> str:
         """'backend mode', a PBD one with its iterations (and substeps when more than one):
-        'numpy f32/pbd-jacobi/10it'."""
-        if self.solver.name != "pbd":
-            return f"{self.backend} {self.mode}"
-        sub = f"x{self.solver.substeps}" if self.solver.substeps > 1 else ""
-        return f"{self.backend} {self.mode}/{self.solver.iterations}it{sub}"
+        'numpy f32/pbd-jacobi/10it' (variant_names.VariantName)."""
+        return variant_name(self.backend, self.mode_words, self.solver)
 
     @property
     def is_reference(self) -> bool:
@@ -65,7 +69,7 @@ def variant_label(overrides: dict, options: BackendOptions) -> str:
     if options.generic and "generic" not in overrides:
         parts.append("generic")
     if options.mesh_collision:
-        parts.append(f"mesh={options.mesh_collision}")
+        parts.append(mesh_word(options.mesh_collision))
     return " ".join(parts) or "default"
 
 

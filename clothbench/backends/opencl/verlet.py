@@ -60,6 +60,7 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Verlet
+from clothbench.variant_names import TRANSFERS
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
@@ -81,7 +82,7 @@ KERNEL_FILE = "verlet_cloth.cl"
 class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
     name = "opencl"
     capabilities = Capabilities(
-        transfers=("resident", "per-step"),
+        transfers=TRANSFERS["opencl"],
         local_size=True,
         generic=True,  # --generic: the float4 kernel, one program for every scene
         normals=True,
