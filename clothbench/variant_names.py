@@ -138,10 +138,8 @@ class VariantName:
     substeps: int = 1
 
     def spell(self) -> str:
-        text = f"{self.backend} {self.mode.spell()}"
-        return (
-            text if self.iterations is None else f"{text}{SEPARATOR}{iterations_word(self.iterations, self.substeps)}"
-        )
+        words = [self.mode.spell()] + [iterations_word(self.iterations, self.substeps)] * (self.iterations is not None)
+        return f"{self.backend} {SEPARATOR.join(words)}"
 
     @classmethod
     def parse(cls, text: str) -> VariantName:
@@ -154,6 +152,7 @@ class VariantName:
 
 
 def variant_name(backend: str, mode: Mode, solver: Solver) -> str:
+    """The name of `backend` run in `mode` by `solver` (VariantName)."""
     pbd = solver.name == "pbd"
     return VariantName(backend, mode, solver.iterations if pbd else None, solver.substeps if pbd else 1).spell()
 
@@ -190,6 +189,22 @@ def model_display(solver: str, pbd_method: str | None, iterations=None) -> str:
         return "Verlet"
     text = f"PBD {pbd_method or ''}".rstrip()
     return f"{text}, {iterations_display(iterations)}" if iterations is not None else text
+
+
+def variant_label(overrides: dict, options) -> str:
+    """A variant's label from its option overrides (Capabilities.sweep_variants) and its
+    options (a BackendOptions), e.g. 'strict per-step' or 'f64': its mode until measured."""
+    parts = []
+    for k, v in overrides.items():
+        if isinstance(v, bool):
+            parts.append(k if v else ("fast" if k == "strict" else f"no-{k}"))
+        elif v is not None:
+            parts.append(str(v))
+    if options.generic and "generic" not in overrides:
+        parts.append("generic")
+    if options.mesh_collision:
+        parts.append(mesh_word(options.mesh_collision))
+    return " ".join(parts) or DEFAULT
 
 
 def option_flags(options) -> list[str]:

@@ -84,7 +84,7 @@ def add_backend_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--generic", action="store_true", help="one kernel for every scene (no specialisation)")
     p.add_argument(
         "--shape",
-        help="run this kernel shape (as the mode names it, e.g. v8/ls=64) instead of the one tuned for this device",
+        help="run this kernel shape (as the mode names it, e.g. v8/wg=64) instead of the one tuned for this device",
     )
     p.add_argument(
         "--mesh-collision",

@@ -12,7 +12,7 @@ from clothbench.backends import BACKENDS, BackendOptions, availability, backend_
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver, Verlet
-from clothbench.variant_names import mesh_word, variant_name
+from clothbench.variant_names import mesh_word, variant_label, variant_name
 
 GENERIC_CHOICES = ("no", "yes", "both")
 
@@ -56,21 +56,6 @@ class Variant:
     def is_reference(self) -> bool:
         """The numpy float64 run: its final state is every other row's reference."""
         return self.backend == "numpy" and self.options.precision == "f64" and self.options.local_size is None
-
-
-def variant_label(overrides: dict, options: BackendOptions) -> str:
-    """A mode name from a variant's option overrides, e.g. 'strict per-step' or 'f64'."""
-    parts = []
-    for k, v in overrides.items():
-        if isinstance(v, bool):
-            parts.append(k if v else ("fast" if k == "strict" else f"no-{k}"))
-        elif v is not None:
-            parts.append(str(v))
-    if options.generic and "generic" not in overrides:
-        parts.append("generic")
-    if options.mesh_collision:
-        parts.append(mesh_word(options.mesh_collision))
-    return " ".join(parts) or "default"
 
 
 def plan_variants(
