@@ -7,7 +7,6 @@ names. Option choices are one list each, the CLI's and the backends' alike."""
 from __future__ import annotations
 
 import csv
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -15,7 +14,7 @@ import pytest
 import clothbench.harness.plan as plan_module
 from clothbench.analysis.advise import Configuration
 from clothbench.backends import BACKENDS, BackendOptions, backend_class
-from clothbench.backends.base import MESH_COLLISIONS, Availability
+from clothbench.backends.base import MESH_COLLISIONS, Availability, Capabilities
 from clothbench.cli import build_parser
 from clothbench.cli.args import options_from_args, setup_from_args
 from clothbench.harness.plan import Variant, plan_variants
@@ -115,7 +114,8 @@ def test_advises_command_line_runs_the_variant_it_names(monkeypatch):
 
 
 def test_each_option_is_offered_from_its_one_list():
-    choices = {a.dest: a.choices for a in build_parser()._subparsers._group_actions[0].choices["run"]._actions}
+    run = next(a for a in build_parser()._actions if a.dest == "command").choices["run"]
+    choices = {a.dest: a.choices for a in run._actions}
     assert tuple(choices["precision"]) == PRECISIONS and tuple(choices["gl"]) == GL_PROVIDERS
     for name in BACKENDS:
         for solver in BACKENDS[name].solvers():
@@ -125,4 +125,5 @@ def test_each_option_is_offered_from_its_one_list():
                 continue
             assert set(caps.precisions) <= set(PRECISIONS)
             assert caps.transfers == (TRANSFERS.get(name, ()) if solver == "verlet" else ()), (name, solver)
-    assert replace(BackendOptions(), gl=GL_PROVIDERS[0]) == BackendOptions()
+    refusal = Capabilities(gl=True).refusal("glsl", BackendOptions(gl="wayland"))
+    assert refusal == f"glsl does not take --gl wayland (it takes: {', '.join(GL_PROVIDERS)})"
