@@ -125,7 +125,7 @@ class UsdWriter:
 
     def __init__(self, path: Path, scene: Scene, info: RunInfo):
         pxr = usd()
-        Gf, Usd, UsdGeom, Vt = pxr.Gf, pxr.Usd, pxr.UsdGeom, pxr.Vt
+        Usd, UsdGeom, Vt = pxr.Usd, pxr.UsdGeom, pxr.Vt
         self.path, self.scene, self.info = path, scene, info
         self.stage = Usd.Stage.CreateInMemory()
         stage = self.stage
@@ -156,7 +156,7 @@ class UsdWriter:
 
     def frame(self, step: int, pos: np.ndarray) -> None:
         pxr = usd()
-        Gf, Usd, UsdGeom, Vt = pxr.Gf, pxr.Usd, pxr.UsdGeom, pxr.Vt
+        Usd, Vt = pxr.Usd, pxr.Vt
         code = Usd.TimeCode(step / self.info.every)
         points = np.ascontiguousarray(pos[:, :3], dtype=np.float32)
         normals = grid_normals(points, self.scene.grid, np.float32)
@@ -179,7 +179,7 @@ class UsdWriter:
         """Each collider a prim under /World/Colliders with one transform op (the body's pose
         times the shape's own placement in the body frame): (op, body, local matrix)."""
         pxr = usd()
-        Gf, Usd, UsdGeom, Vt = pxr.Gf, pxr.Usd, pxr.UsdGeom, pxr.Vt
+        Gf, UsdGeom = pxr.Gf, pxr.UsdGeom
         scene, stage, made = self.scene, self.stage, []
         UsdGeom.Scope.Define(stage, "/World/Colliders")
 
@@ -222,7 +222,7 @@ class UsdWriter:
 
     def _mesh(self, where: str, points: np.ndarray, faces: np.ndarray):
         pxr = usd()
-        Gf, Usd, UsdGeom, Vt = pxr.Gf, pxr.Usd, pxr.UsdGeom, pxr.Vt
+        UsdGeom, Vt = pxr.UsdGeom, pxr.Vt
         mesh = UsdGeom.Mesh.Define(self.stage, where)
         points = np.ascontiguousarray(points, dtype=np.float32)
         mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
