@@ -191,6 +191,8 @@ def _export(args, target, setup, backend, result) -> str:
         writer = open_writer(target, setup.scene, info)
         frames, last = export_replay(backend, steps, writer)
         path = writer.close()
+    for note in writer.notes:
+        print(f"clothbench: warning: --export: {note}", file=sys.stderr)
     if result.blowup is None and not np.array_equal(last, result.pos[:, : last.shape[1]], equal_nan=True):
         worst = float(np.abs(last[:, :3].astype(np.float64) - result.pos[:, :3]).max())
         print(

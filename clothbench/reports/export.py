@@ -34,6 +34,7 @@ OBJ_DIGITS = 10
 OBJ_TOLERANCE = 0.5 * 10.0**-OBJ_DIGITS  # m
 # The floor patch a plane is drawn as: this many times the scene's box on a side, about its centre.
 PLANE_PATCH = 4.0
+WRITTEN_KINDS = {"sphere", "cylinder", "plane"}  # the analytic collider kinds _colliders writes (and meshes)
 METADATA_KEY = "clothbench"  # the stage's customLayerData entry naming the run (read back by read_usd)
 INSTALL = "pip install usd-core (or clothbench's extra: pip install 'clothbench[export]')"
 
@@ -153,6 +154,9 @@ class UsdWriter:
         self._normals = self.cloth.CreateNormalsAttr()
         self._extent = self.cloth.CreateExtentAttr()
         self._moving = [(xf, body, local) for xf, body, local in self._colliders() if body.motion is not None]
+        unwritten = sorted({c.kind for c in scene.colliders} - WRITTEN_KINDS)
+        # a kind the scene model gained after this writer (said, not dropped in silence)
+        self.notes = [f"{kind} colliders are not in the USD (no writer for them yet)" for kind in unwritten]
 
     def frame(self, step: int, pos: np.ndarray) -> None:
         pxr = usd()
@@ -256,6 +260,7 @@ class FramesWriter:
         self.folder, self.scene, self.info, self.kind = folder, scene, info, kind
         self.faces = cloth_indices(scene.grid)
         self.files: list[Path] = []
+        self.notes: list[str] = []
         try:
             folder.mkdir(exist_ok=True)
         except OSError as e:
