@@ -8,16 +8,12 @@ import bisect
 
 import numpy as np
 
-NAME = "usd"  # what the overlay and the log name the source
-
 
 class Playback:
     """The frames of an exported USD (reports/export.py's Exported), shown as the session's
     step passes each one's step; the last stays once passed, and R plays it again."""
 
-    name = NAME
-    gl = None  # computes in no GL context: drawn from a readback, as a host backend is
-    flushes_subnormals = False
+    name = "usd"  # what the overlay and the log call the source
 
     def __init__(self, exported):
         self.exported = exported
@@ -26,8 +22,8 @@ class Playback:
         self.device = f"{exported.path.name}: {info.backend} {info.mode}"
         self.steps = [exported.step(f) for f in range(exported.frames)]
         self.step = 0
-        _, first = exported.scene.initial_state(np.float32)
-        self._w = first[:, 3:]  # the inverse masses, beside the file's points as a state has them
+        start, _ = exported.scene.initial_state(np.float32)
+        self._w = start[:, 3:]  # the inverse masses, beside the file's points as a state has them
 
     @property
     def frame(self) -> int:
