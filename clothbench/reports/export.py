@@ -65,8 +65,9 @@ def export_target(out: str | None, every: int | None, frame_format: str | None) 
             f"--export {out!r} is a folder with a {suffix} suffix: name a file (anim.usd) or a folder (frames/)"
         )
     if folder or not suffix:
-        check_writable(path / "frame_0000.obj", "--export", new_folder=True)
-        return ExportTarget(path, frame_format or FRAME_FORMATS[0])
+        kind = frame_format or FRAME_FORMATS[0]
+        check_writable(path / f"frame_0000.{kind}", "--export", new_folder=True)
+        return ExportTarget(path, kind)
     if suffix not in USD_SUFFIXES:
         raise ClothbenchError(
             f"--export takes a {', '.join(USD_SUFFIXES)} file or a folder/ (OBJ or PLY frames), got {out!r}"
