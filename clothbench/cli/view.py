@@ -65,7 +65,15 @@ def register(subparsers) -> None:
         action="store_true",
         help="moderngl-window's headless window (EGL): no display needed, nothing shown",
     )
-    p.set_defaults(func=cmd_view)
+    p.add_argument(
+        "--from",
+        dest="from_usd",
+        metavar="FILE.usd",
+        help="play back the frames a `run --export` USD holds instead of simulating (its scene; one frame "
+        "per viewer frame unless --steps-per-frame says otherwise)",
+    )
+    defaults = {k: p.get_default(k) for k in ("scene", "backend", "steps_per_frame")}
+    p.set_defaults(func=cmd_view, defaults=defaults)  # --from refuses what sets up a simulation
 
 
 def _output(path: str | None, suffix: str | None, option: str) -> None:
@@ -126,6 +134,8 @@ def cmd_view(args) -> int:
     from clothbench.harness.preflight import check_memory
     from clothbench.viewer import view
 
+    if args.from_usd is not None:
+        return view_from(args)
     check_name(args.backend)
     settings = settings_from_args(args)
     setup = setup_from_args(args)
@@ -134,4 +144,32 @@ def cmd_view(args) -> int:
     report = view(setup.scene, setup.solver, args.backend, options, settings)
     wrote = f"; wrote {', '.join(report.files)}" if report.files else ""
     print(f"viewed {report.frames} frames, {report.step} steps, ending on {report.backend}{wrote}")
+    return 0
+
+
+def view_from(args) -> int:
+    """`view --from FILE.usd`: the file's frames in the window, nothing simulated."""
+    import dataclasses
+
+    from clothbench.backends import BackendOptions
+    from clothbench.reports.export import read_usd, usd_file
+    from clothbench.viewer import view
+    from clothbench.viewer.playback import Playback
+
+    d = args.defaults
+    simulating = {
+        "--scene": args.scene != d["scene"], "--grid": args.grid is not None, "--dt": args.dt is not None,
+        "--backend": args.backend != d["backend"], "--strict": args.strict, "--generic": args.generic,
+        "--solver": args.solver is not None,
+    }  # fmt: skip
+    if given := [option for option, used in simulating.items() if used]:
+        raise ClothbenchError(f"{given[0]} sets up a simulation, and --from plays the file's frames: leave it out")
+    settings = settings_from_args(args)
+    exported = read_usd(usd_file(args.from_usd))
+    if args.steps_per_frame == d["steps_per_frame"]:  # one of the file's frames per viewer frame
+        settings = dataclasses.replace(settings, steps_per_frame=exported.info.every)
+    source = Playback(exported)
+    report = view(exported.scene, exported.solver, source.name, BackendOptions(), settings, source=source)
+    wrote = f"; wrote {', '.join(report.files)}" if report.files else ""
+    print(f"played {report.frames} frames of {exported.path} ({exported.frames} in it){wrote}")
     return 0

@@ -220,6 +220,7 @@ class Viewer:
                 placed = self.overlay.place(panels(self, profile))
             self.trackball.keep_clear_of(*clear_span(placed, self.size[0]))
             self.renderer.camera = self.trackball.camera()
+            self.renderer.time = session.drawn_time()
             self.renderer.wireframe = self.wireframe
             with profile.stage("cloth"):
                 if drawable is not None:
@@ -337,19 +338,20 @@ class Viewer:
         self.overlay.release()
 
 
-def view(scene, solver, backend: str, options, settings: ViewSettings) -> ViewReport:
+def view(scene, solver, backend: str, options, settings: ViewSettings, source=None) -> ViewReport:
     """Open the window and run `scene` stepped by `solver` on `backend` in it until it closes
-    or `settings.frames` frames are drawn. Ctrl-C or SIGTERM stops it between frames."""
+    or `settings.frames` frames are drawn; with `source` (viewer/playback.py), play its frames
+    instead. Ctrl-C or SIGTERM stops it between frames."""
     with stop_between_frames():
-        return _view(scene, solver, backend, options, settings)
+        return _view(scene, solver, backend, options, settings, source)
 
 
-def _view(scene, solver, backend: str, options, settings: ViewSettings) -> ViewReport:
+def _view(scene, solver, backend: str, options, settings: ViewSettings, source=None) -> ViewReport:
     window = open_window(settings)
     try:
         with shared_context(window) as device:
             timer = GLTimer(device, gl_timer_queries(device)[0])
-            session = Session(scene, solver, backend, options, settings.steps_per_frame, timer)
+            session = Session(scene, solver, backend, options, settings.steps_per_frame, timer, source)
             try:
                 viewer = Viewer(window, device, session, settings)
                 try:
