@@ -32,7 +32,7 @@ from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.gl.driver import GLDriverInfo, gl_driver
 from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_context.X)
-    COLLIDER_KINDS, MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
+    MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
     GLBodies, MeshBuffers, body_defines, collider_kinds, collider_source, mesh_layout, motion_offsets,
     motion_rows, pin_slots, pose_block,
 )  # fmt: skip
