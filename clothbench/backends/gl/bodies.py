@@ -9,7 +9,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.colliders.kinds import KINDS, kinds_in
+from clothbench.colliders.kinds import KIND, KINDS, kinds_in
 from clothbench.kernel_source import glsl_float
 from clothbench.scene import Scene
 from clothbench.backends.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
@@ -42,7 +42,7 @@ def collider_source(kinds: tuple[str, ...], meshes: bool = False, moving: bool =
     (kernels/collide_mesh.glsl, only where the scene has meshes). A kind the program does not
     handle is not in its source at all. `moving`: the analytic colliders' rows are this
     step's (MOTION_ROW), not the file's constants (docs/semantics.md, "Moving colliders")."""
-    calls = "".join(_MOVING_CALLS[kind] if moving else f"    x = collide_{kind}s(x);\n" for kind in kinds)
+    calls = "".join(_MOVING_CALLS[kind] if moving else f"    x = collide_{KIND[kind].plural}(x);\n" for kind in kinds)
     parts = [f'#include "collide_{kind}.glsl"\n' for kind in kinds]
     if meshes:
         parts.append('#include "collide_mesh.glsl"\n')
