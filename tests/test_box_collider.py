@@ -127,7 +127,7 @@ def test_the_box_scene_reads_its_boxes():
     scene = load_scene(str(BOX_SCENE))
     tilted, rising = scene.boxes
     assert tilted == Box((0.3, 0.55, 0.4), (0.15, 0.12, 0.2), (25.0, 35.0, 10.0), name="tilted")
-    assert rising.motion == Motion(velocity=(0.0, 0.5, 0.0), angular_velocity=(0.0, 90.0, 30.0))
+    assert rising.motion == Motion(velocity=(0.0, 0.2, 0.0), angular_velocity=(0.0, 90.0, 30.0))
     assert rising.rotation == (0.0, 0.0, 0.0)
     assert [c.kind for c in scene.colliders] == ["sphere", "box", "box", "plane"], "boxes before planes"
 
