@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS, fmt
 
@@ -241,6 +242,7 @@ COUNTS = {
         spring=Ops(fp=19, sqrt=1, div=1),  # d 3, L2 5, L-rest 1, k* 1, s*d 3, -bv 3, force+ 3
         sphere=Ops(fp=14, sqrt=1, div=1),
         cylinder=Ops(fp=42, sqrt=1, div=1),
+        box=Ops(fp=28),  # docs/semantics.md, "Box": d 3, three dot3 15, depths 3, push 7
         plane=Ops(fp=14),
         face=Ops(fp=23, sqrt=1, div=3),  # normals: one face of the ring
         normal=Ops(fp=5, sqrt=1, div=3),  # normals: the sum made a unit vector
@@ -250,6 +252,7 @@ COUNTS = {
         spring=Ops(fp=10, rsqrt=1),
         sphere=Ops(fp=9, sqrt=1, div=1),
         cylinder=Ops(fp=32, sqrt=1, div=1),
+        box=Ops(fp=19),  # the dot3s and the push contracted to FMAs
         plane=Ops(fp=9),
         face=Ops(fp=18, sqrt=1, div=3),
         normal=Ops(fp=3, sqrt=1, div=3),
@@ -272,9 +275,7 @@ def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: 
     elements = LAYOUT_ELEMENTS[layout] + (NORMAL_ELEMENTS if normals else 0)
     per_particle = (
         c["particle"]
-        + c["sphere"] * len(scene.spheres)
-        + c["cylinder"] * len(scene.cylinders)
-        + c["plane"] * len(scene.planes)
+        + sum((c[kind.name] * len(getattr(scene, kind.plural)) for kind in KINDS), Ops())
         + (c["normal"] if normals else Ops())
     )
     total = Ops(bytes=elements * PRECISION_BYTES[precision] * particles) + per_particle * particles

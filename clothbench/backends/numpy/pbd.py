@@ -32,7 +32,9 @@ class NumpyPbdBackend(GridPlanes, Backend):
     device_timer = ""  # host code: the wall clock is its only clock
     # the same two precisions and one mode; meshes and motion too (docs/pbd.md, "Colliders,
     # motion and attached pins")
-    capabilities = replace(NumpyBackend.capabilities, meshes=("verlet", "pbd"), moving_colliders=("verlet", "pbd"))
+    capabilities = replace(
+        NumpyBackend.capabilities, meshes=("verlet", "pbd"), moving_colliders=("verlet", "pbd"), boxes=("verlet", "pbd")
+    )
 
     def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
         super().__init__(scene, solver, options)
