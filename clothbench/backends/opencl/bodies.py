@@ -18,6 +18,7 @@ import numpy as np
 
 from clothbench.errors import ClothbenchError
 from clothbench.backends.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
+from clothbench.backends.opencl.device import collider_counts
 
 MESH_FILE = "collide_mesh.cl"  # in the program's source only where the scene has meshes
 # Steps whose per-step constants (moving scenes) go up in one copy: a multiple of the
@@ -73,7 +74,7 @@ class OpenCLBodiesMixin:
         """The collider table at `time` (collide.cl's rows, then collide_mesh.cl's MESH_ROWS
         per mesh: R's rows with the margin, its square and closedness, T, the box)."""
         rows = collider_rows(self.scene, np.float32, time)
-        parts = [rows["spheres"], rows["cylinders"], rows["planes"]]
+        parts = [rows[kind.plural] for kind, _ in collider_counts(self.scene)]
         for mesh, c in zip(self.scene.meshes, self._meshes):
             rot, trans = pose_rows(mesh, time)
             extra = (c.margin, c.margin2, np.float32(c.closed), 0.0, 0.0, 0.0)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
@@ -396,13 +397,18 @@ def build_program(context, source: str, options: tuple[str, ...]):
     return _programs[key]
 
 
+def collider_counts(scene) -> tuple[tuple[object, int], ...]:
+    """(kind, count) of every collider kind the OpenCL kernels take (collide.cl, in the
+    table's and the step's order: colliders/kinds.py), for the counts a kernel is given."""
+    return tuple((kind, len(getattr(scene, kind.plural))) for kind in kinds_in("opencl"))
+
+
 def shape_options(scene, vector_width: int) -> tuple[str, ...]:
     """The build options that specialise a program to the scene's shape: the grid side, the
     count of each collider kind it has, and the particles per work item."""
-    counts = (("SPHERES", len(scene.spheres)), ("CYLINDERS", len(scene.cylinders)), ("PLANES", len(scene.planes)))
     return (
         f"-DCLOTH_N={scene.grid}",
-        *(f"-DCLOTH_{kind}={count}" for kind, count in counts if count),
+        *(f"-D{kind.count_name('opencl')}={count}" for kind, count in collider_counts(scene) if count),
         f"-DCLOTH_VECTOR_WIDTH={vector_width}",
     )
 
