@@ -15,11 +15,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.opencl import runtimes
+from clothbench.backends.opencl.bodies import collider_counts
 from clothbench.backends.opencl.build_log import compiler_log
 from clothbench.backends.opencl.isolated import in_child_per_device
 from clothbench.backends.opencl.runtimes import INTEL_EXTRA
@@ -395,12 +395,6 @@ def build_program(context, source: str, options: tuple[str, ...]):
             ) from None
         _programs[key] = program
     return _programs[key]
-
-
-def collider_counts(scene) -> tuple[tuple[object, int], ...]:
-    """(kind, count) of every collider kind the OpenCL kernels take (collide.cl, in the
-    table's and the step's order: colliders/kinds.py), for the counts a kernel is given."""
-    return tuple((kind, len(getattr(scene, kind.plural))) for kind in kinds_in("opencl"))
 
 
 def shape_options(scene, vector_width: int) -> tuple[str, ...]:

@@ -63,13 +63,12 @@ from clothbench.solver import Verlet
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
-from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.opencl.bodies import OpenCLBodiesMixin, collider_counts
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
     build_program,
     choose_device,
-    collider_counts,
     program_source,
     shape_options,
 )

@@ -22,7 +22,7 @@ import re
 from dataclasses import dataclass
 
 from clothbench.errors import ClothbenchError
-from clothbench.backends.opencl.device import collider_counts
+from clothbench.backends.opencl.bodies import collider_counts
 
 # Floats before and after the x, y, z planes of a state buffer (CLOTH_PAD in the kernel): the
 # rows kernels' masked loads reach one float past either end. 16 keeps the planes 64-byte aligned.
