@@ -27,13 +27,13 @@ from clothbench.backends.opencl.bodies import collider_counts
 # Floats before and after the x, y, z planes of a state buffer (CLOTH_PAD in the kernel): the
 # rows kernels' masked loads reach one float past either end. 16 keeps the planes 64-byte aligned.
 PAD = 16
-# work items per work-group of rows/vN/wg=32: it and the runtime's choice won in turn (by
-# 0-30%, 64^2 to 512^2, docs/opencl.md); 8, 32 and 128 were level with each other
+# work items per work-group of rows/vN/wg=32: it and the runtime's choice won in turn, and 8, 32
+# and 128 ran level (docs/opencl.md, "What was profiled")
 WORK_GROUP = 32
-STEPS_PER_LAUNCH = 32  # 8, 32 and 128 steps per launch were level at 32^2-128^2
-STEPS_WORK_GROUP = 1  # its one work-group: 1, 16 and 64 work items were level; 1 fits any device
-# the multi-step kernel runs on one core: at 128^2 it was within 10% of the two-core rows
-# kernels, either side, so on larger grids it cannot win
+STEPS_PER_LAUNCH = 32  # 8, 32 and 128 ran level (docs/opencl.md, "What was profiled")
+STEPS_WORK_GROUP = 1  # its one work-group: 1, 16 and 64 work items ran level; 1 fits any device
+# the multi-step kernel runs on one core: at 128^2 it already runs level with the two-core rows
+# kernels (docs/opencl.md, "What was profiled"), so on larger grids it cannot win
 STEPS_MAX_GRID = 128
 
 
