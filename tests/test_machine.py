@@ -174,7 +174,7 @@ def test_a_sweep_says_at_its_start_whether_the_machine_is_fit(monkeypatch, capsy
     assert not any(x.startswith("machine: ") for x in capsys.readouterr().err.splitlines())
 
 
-# --- the machine's state in every row (issue 30 part 1) -------------------------------
+# --- the machine's state in every row -----------------------------------------------
 
 
 class FixedLoad(LoadSampler):

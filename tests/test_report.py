@@ -39,7 +39,7 @@ def every_csv(test):
 
 @pytest.fixture(scope="session")
 def study(tmp_path_factory) -> tuple[Path, str]:
-    """The report of every committed results CSV (the issue's `clothbench report results/*.csv`)."""
+    """The report of every committed results CSV (`clothbench report results/*.csv`)."""
     out = tmp_path_factory.mktemp("report") / "r.html"
     assert main(["report", *map(str, COMMITTED), "--out", str(out)]) == 0
     return out, out.read_text(encoding="utf-8")

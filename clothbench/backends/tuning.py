@@ -10,10 +10,11 @@ the fastest is kept in
 back without measuring; `--retune` measures again and replaces it. The chosen shape is part
 of the row's mode, so a CSV says what ran.
 
-A choice is `final` or `provisional` (issue 36: a choice made in one busy minute stuck for
-good). The tuning watches the machine while it measures (clothbench.machine_load: other
-processes' CPU, steal); a choice made while the machine was busy, or whose best two candidates
-lie within their own noise, is provisional. The next meeting of a provisional key on a quiet
+A choice is `final` or `provisional`, so that a choice made in one busy minute does not stick
+for good (docs/timing.md, "Kernel shapes chosen on a busy machine"). The tuning watches the
+machine while it measures (clothbench.machine_load: other processes' CPU, steal); a choice
+made while the machine was busy, or whose best two candidates lie within their own noise, is
+provisional. The next meeting of a provisional key on a quiet
 machine (a MIN_WINDOW_S look first) re-measures only its best RECHECK_BEST candidates and the
 default, and that quiet re-measure is final, tie or not (a tie on a quiet machine is a tie:
 either shape is as fast). A busy meeting keeps the provisional choice and measures nothing:
