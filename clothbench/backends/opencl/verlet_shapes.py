@@ -77,8 +77,8 @@ def candidates(device, scene, options) -> tuple[KernelShape, ...]:
     """The shapes worth measuring for this device and scene, the default first (what an
     untuned run, CLOTHBENCH_TUNING=off, runs): rows/vN where the grid is at least N wide,
     since it was the fastest untuned shape on every runtime measured; the split kernels at
-    the device's preferred float width P (the specialised build as it was before shapes) as
-    a candidate, and the only shape on narrower grids.
+    the device's preferred float width P (two launches a step: interior and border) as a
+    candidate, and the only shape on narrower grids.
 
     The others at the native float width N (16 with AVX-512), which won on all three
     runtimes measured here (docs/opencl.md); N/2, 4 and 1 (scalar code, the runtime's own
@@ -127,7 +127,7 @@ def tuning_key(device, scene, options, source: str, mesh_collision: str | None =
         "transfer": options.transfer or "resident",
         "local_size": str(options.local_size or "auto"),
         "source": hashlib.sha256(source.encode()).hexdigest()[:16],
-        **bodies,  # absent without meshes or motion: the keys measured before stay valid
+        **bodies,  # absent without meshes or motion: a scene without them keeps its key
     }
 
 
