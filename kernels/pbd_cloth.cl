@@ -268,8 +268,8 @@ __kernel void pbd_jacobi_border(__global const float4 *X, __global float4 *Y,
 
 /* The interior in vectors: V consecutive particles of a row per work item, their float4s
  * deinterleaved into x, y, z, w vectors (or, planar, loaded as they are). Explicit vectors
- * because PoCL does not vectorise this kernel across work items by itself: at n = 256 a pass
- * took 2.5-3 ms in scalar form, 0.8 ms with V = 16, strict or fast. IEEE arithmetic is per lane, so strict stays exact.
+ * because PoCL does not vectorise this kernel across work items by itself (docs/opencl.md,
+ * "Why explicit vectors"). IEEE arithmetic is per lane, so strict stays exact.
  * When V does not divide the n - 4 interior columns, the last vector of a row overlaps the
  * one before it and stores only the lanes that one does not (its other lanes may read
  * multipliers the neighbouring item is rewriting: they are never stored), so the scalar
@@ -724,9 +724,9 @@ __kernel void pbd_substeps(__global float4 *x, __global float4 *v, __global floa
 /* Where a row holds two vectors, the bands take every particle in vectors: a row's units are
  * an edge vector at either side (columns 0 .. V-1 and n-V .. n-1, jacobi_lanes with `edge`)
  * and the interior vectors between them (the last overlapping the one before), every unit of
- * rows 0, 1, n-2 and n-1 an edge one. A particle alone cost about as much as a vector of V (its
- * bounds tests, scalar division and square root): at 256^2 the four border columns and rows
- * took a quarter of a pass. */
+ * rows 0, 1, n-2 and n-1 an edge one. A particle alone costs about as much as a vector of V (its
+ * bounds tests, scalar division and square root), so the border columns and rows one at a time
+ * were a large share of a pass (docs/pbd.md, "Time per step on OpenCL"). */
 #define MIDDLE_VECTORS ((N - 2 * V + V - 1) / V)
 #define ROW_UNITS (MIDDLE_VECTORS + 2)
 #define MIDDLE_FIRST_LANE (V * MIDDLE_VECTORS - (N - 2 * V)) /* lanes the last interior vector leaves */

@@ -311,7 +311,7 @@ static void step_row(const constants *c, const real *colliders, int row, const r
     /* The numbers as locals: a value the vectoriser sees used under a condition (the rest
      * length when L2 > 0, radial_r on a cylinder's axis) it loads only there, through a
      * masked load from the caller's pointer, which GCC 12 cannot vectorise (the loop then
-     * runs scalar, ~5x slower); from a local it loads unconditionally. */
+     * runs scalar: docs/c.md, "What the kernel does"); from a local it loads unconditionally. */
     const constants local = *c;
     real table[COLLIDER_REALS];
     for (int k = 0; k < COLLIDER_REALS; ++k)

@@ -58,8 +58,8 @@
  *       once to float32 on the host and passed with an explicit dtype, so a dt or stiffness
  *       sweep does not rebuild, and a wrongly typed argument is refused by the host wrapper
  *       instead of being reinterpreted silently (the chapter's section 22.8 complaint).
- *       Passing them as exact hex literals instead (-D, c_float) was measured no faster at
- *       n = 256 (the host code's header has the numbers).
+ *       Exact hex literals instead (-D, c_float) would gain nothing (docs/opencl.md, "What it
+ *       decided").
  *
  * The collider table (one __constant float4 array, rows rounded once from float64): spheres
  * (centre, radius); then cylinders, three rows each: (start, length), (unit axis, radius),
@@ -220,12 +220,10 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
  * builds this part with the kernel shape's V for the interior, rows and multi-step kernels
  * (V consecutive particles of a row per work item) and with V = 1 for the border kernel (one
  * particle per work item). State buffers hold CLOTH_PAD floats before and after the planes;
- * every kernel steps its state pointers past them first. Explicit vectors because PoCL 3.1 (LLVM 15) did not vectorise the
- * scalar form across work items: its first optimisation pass packs four springs of one
- * particle into gathers, which then blocks the work-item loop vectoriser. Measured at
- * n = 256: the fast interior kernel took 2.6 ms per step in scalar form, 0.15 ms with
- * float16. Whole strict steps: 2.8-5 ms with the float4 kernel (FP_CONTRACT OFF or not,
- * PoCL vectorises it across work items no better), 0.3-0.6 ms in this form.
+ * every kernel steps its state pointers past them first. Explicit vectors because PoCL 3.1
+ * (LLVM 15) does not vectorise the scalar form across work items: its first optimisation pass
+ * packs four springs of one particle into gathers, which then blocks the work-item loop
+ * vectoriser (docs/opencl.md, "Why explicit vectors").
  * ====================================================================================== */
 
 #ifndef CLOTH_N

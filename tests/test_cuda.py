@@ -721,7 +721,7 @@ def test_cuda_backend_host_code_matches_numpy_on_the_cpu_build(cuda_on_cpu, tran
 
 @pytest.mark.parametrize("build", BUILDS)
 def test_cuda_backend_runs_every_collider_kind(cuda_on_cpu, build):
-    # the backend no longer refuses cylinders and planes, specialised or generic
+    # the backend takes cylinders and planes, specialised or generic
     scene = every_kind(32)
     backend, runtime = cuda_on_cpu(scene, strict=True, generic=BUILDS[build], normals=True)
     assert backend.defines == cuda.kernel_defines(scene, VERLET, normals=True, generic=BUILDS[build])

@@ -258,7 +258,7 @@ def probe_points(mesh, rng, count):
         (Mesh(shape="icosphere"), 300),  # 20
         (Mesh(shape="torus", subdivisions=1), 200),  # 1024
         (Mesh(shape="box", subdivisions=3, scale=(1.0, 0.2, 2.0)), 150),  # 768, thin, ties on faces
-        pytest.param(Mesh(shape="icosphere", subdivisions=5), 60, marks=pytest.mark.full),  # 20480: 20 s
+        pytest.param(Mesh(shape="icosphere", subdivisions=5), 60, marks=pytest.mark.full),  # 20480: slow
     ],
     ids=["box-12", "icosphere-20", "torus-1024", "slab-768", "icosphere-20480"],
 )

@@ -190,9 +190,17 @@ def measure_here(threads: int, array_mib: int) -> dict:
     if nothing:  # a clock that did not advance, or a test the compiler emptied: no bound from it
         raise ClothbenchError(f"machine bounds: the {', '.join(nothing)} test measured no rate")
     return dict(
-        threads=threads, triad_gb_s=triad, copy_gb_s=scale, triad_pass_gb_s=triad_pass, copy_pass_gb_s=scale_pass,
-        f32=asdict(f32), f64=asdict(f64), array_mib=array_mib, compiler=compiler().version, seconds=0.0,
-    )  # fmt: skip
+        threads=threads,
+        triad_gb_s=triad,
+        copy_gb_s=scale,
+        triad_pass_gb_s=triad_pass,
+        copy_pass_gb_s=scale_pass,
+        f32=asdict(f32),
+        f64=asdict(f64),
+        array_mib=array_mib,
+        compiler=compiler().version,
+        seconds=0.0,
+    )
 
 
 # --- counting --------------------------------------------------------------------------
@@ -261,8 +269,9 @@ COUNTS = {
 PRECISION_BYTES = {"f32": 4, "f64": 8}
 
 
-def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: bool = False,
-               layout: str = BOUND_LAYOUT) -> Ops:  # fmt: skip
+def step_count(
+    scene, precision: str = "f32", *, strict: bool = False, normals: bool = False, layout: str = BOUND_LAYOUT
+) -> Ops:
     """Bytes streamed and operations done by one Verlet step of `scene` with the state in
     `layout` (LAYOUT_ELEMENTS). float64 has only the strict arithmetic (the numpy
     reference): its count is the strict one."""
@@ -285,8 +294,16 @@ def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: 
     return total
 
 
-def step_bound_ms(scene, precision: str, bounds: MachineBounds | None, *, strict: bool = False,
-                  normals: bool = False, solver=None, layout: str = BOUND_LAYOUT) -> dict | None:  # fmt: skip
+def step_bound_ms(
+    scene,
+    precision: str,
+    bounds: MachineBounds | None,
+    *,
+    strict: bool = False,
+    normals: bool = False,
+    solver=None,
+    layout: str = BOUND_LAYOUT,
+) -> dict | None:
     """The lower bound on one step's wall time on this machine, in ms, with its parts; None
     without measured bounds, or for the pbd solver (docs/bounds.md: not counted)."""
     from clothbench.solver import Pbd
@@ -305,16 +322,33 @@ def step_bound_ms(scene, precision: str, bounds: MachineBounds | None, *, strict
     return dict(
         bound_ms=max(memory_ms, arithmetic_ms),
         bound_kind="memory" if memory_ms >= arithmetic_ms else "arithmetic",
-        memory_ms=memory_ms, arithmetic_ms=arithmetic_ms, divider_ms=divider_ms, rsqrt_ms=rsqrt_ms, fp_ms=fp_ms,
-        bytes=work.bytes, fp=work.fp, sqrt=work.sqrt, div=work.div, rsqrt=work.rsqrt,
-    )  # fmt: skip
+        memory_ms=memory_ms,
+        arithmetic_ms=arithmetic_ms,
+        divider_ms=divider_ms,
+        rsqrt_ms=rsqrt_ms,
+        fp_ms=fp_ms,
+        bytes=work.bytes,
+        fp=work.fp,
+        sqrt=work.sqrt,
+        div=work.div,
+        rsqrt=work.rsqrt,
+    )
 
 
 # --- CSV cells -------------------------------------------------------------------------
 
 
-def bound_columns(scene, precision: str, ms_median, solver=None, *, strict: bool = False, normals: bool = False,
-                  bounds: MachineBounds | None = None, layout: str = BOUND_LAYOUT) -> dict[str, str]:  # fmt: skip
+def bound_columns(
+    scene,
+    precision: str,
+    ms_median,
+    solver=None,
+    *,
+    strict: bool = False,
+    normals: bool = False,
+    bounds: MachineBounds | None = None,
+    layout: str = BOUND_LAYOUT,
+) -> dict[str, str]:
     """The row's bound_ms, bound_kind and bound_fraction cells ('' where there is no bound).
     `strict` counts the strict arithmetic (the default, fast, is the smaller count: a bound
     for either mode); `layout` the bytes of one kernel's state rather than the least any

@@ -168,9 +168,9 @@ class JaxBackend(Backend):
             raise ClothbenchError(
                 f"jax has no device {options.device!r} here ({type(e).__name__}: {why}); try cpu"
             ) from None
-        # XLA's CPU runtime flushes subnormal results to zero on its threads (measured: 6
-        # values of the weightless scene after 300 steps; --xla_cpu_ftz=false does not stop
-        # it), so a strict run says where it parts from NumPy (harness/strict_watch.py)
+        # XLA's CPU runtime flushes subnormal results to zero on its threads (docs/peers.md;
+        # --xla_cpu_ftz=false does not stop it), so a strict run says where it parts from NumPy
+        # (harness/strict_watch.py)
         self.flushes_subnormals = self._device.platform == "cpu"
         if self._device.platform == "cpu" and _cpu_without_fma() and not options.strict:
             self.mode_suffix = "/no-fma"  # a strict run started JAX here: fast runs without FMA too

@@ -183,9 +183,8 @@ class CBackend(Backend):
 
     def _fewer_threads_if_busy(self) -> str:
         """On a busy machine, the threads the others leave free for this run, not the tuned
-        count (tuning.threads_for_this_run; measured in docs/c.md, "Under load": 32^2 fast 6.3 us
-        a step quiet on two threads, 16.6 us beside one busy process, one thread there 11.5).
-        The count is the user's with OMP_NUM_THREADS or --shape."""
+        count (tuning.threads_for_this_run): there fewer threads run faster (docs/c.md,
+        "Under load"). The count is the user's with OMP_NUM_THREADS or --shape."""
         from clothbench.backends.tuning import threads_for_this_run
 
         user = self.options.shape is not None or omp_num_threads() is not None

@@ -335,7 +335,7 @@ class CudaBackend(Backend):
             "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
             "arithmetic": "strict" if o.strict else "fast", "generic": str(o.generic),
             "normals": str(o.normals), "transfer": self.transfer, "local_size": str(o.local_size or "auto"),
-            # only where the scene has them, so that the keys of other scenes stay as they were
+            # only where the scene has them, so that a scene without them keeps its key
             **({"meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
                           f"{self.mesh_collision}"} if s.meshes else {}),
             **({"motion": "per-step poses"} if s.has_motion else {}),

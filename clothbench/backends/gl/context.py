@@ -39,7 +39,7 @@ from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_c
 
 INSTALL_HINT = "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for --gl osmesa"  # README
 MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs
-DEFAULT_LOCAL_SIZE = 64  # 64 to 1024 measured the same at n = 256 on llvmpipe; 32 and less slower
+DEFAULT_LOCAL_SIZE = 64  # the smallest not slower on llvmpipe (docs/llvmpipe.md, "The kernel shapes of glsl-compute")
 MAX_GROUPS_X = 65535  # GL guarantees this many work groups per dimension, no more
 
 # Renderers that run the shaders on the host CPU: their timer queries are the host's clock, not

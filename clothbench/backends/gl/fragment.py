@@ -50,7 +50,7 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
         self.mode_suffix = gl_context.mode_suffix(self.gl)
         self.image_reads = PREFER_IMAGE_READS and self.gl.version_code >= 420
         n = scene.grid
-        # Without normals there is no third target: writing zeros to one cost 16% at n = 256.
+        # Without normals there is no third target: even writing zeros to one costs (docs/llvmpipe.md).
         targets = 3 if options.normals else 2
         with self.gl:
             ctx = self.gl.ctx

@@ -11,8 +11,8 @@ operations done on one particle, so every shape of a strict build is bit-exact w
   dispatch (kernels/verlet_cloth_steps.comp), on grids of up to MULTI_STEP_MAX_PARTICLES;
   the neighbours' positions go through shared memory where 6 floats per particle fit in the
   driver's GL_MAX_COMPUTE_SHARED_MEMORY_SIZE, else through a scratch storage buffer.
-An explicit --local-size fixes the shape to "wg=L" with no tuning (and no shape in the mode,
-as before shapes existed); --shape and --local-size exclude each other.
+An explicit --local-size fixes the shape to "wg=L" with no tuning (and no shape in the mode);
+--shape and --local-size exclude each other.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def tuning_key(backend) -> dict[str, str]:
         "generic": str(options.generic),
         "normals": str(options.normals),
         "reads": "image" if backend.image_reads else "ssbo",
-        # only where the scene has them, so that the choices measured before meshes stay valid
+        # only where the scene has them, so that a scene without them keeps its key and its choice
         **({"meshes": f"{triangles}t/{backend.mesh_collision}"} if scene.meshes else {}),
         **({"motion": "moving"} if scene.has_motion else {}),
     }

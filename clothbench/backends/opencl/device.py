@@ -44,7 +44,7 @@ PROBE_CACHE = "opencl-probe"  # <cache>/tuning/opencl-probe.json: each device's 
 # at the smallest grid the benchmarks report (at 128² launch overhead decides, not the step).
 TIMING_GRID, TIMING_STEPS = 256, 10
 # Times closer than this are a tie, given to the earlier runtime in RUNTIME_ORDER: run to run
-# on a shared 2-core machine the same device's time moved by 20% and more.
+# the same device's time moves by more (docs/opencl-devices.md, "The default device").
 TIE_MARGIN = 0.10
 
 # Module-level caches, so that a sweep building many backends builds each program once.
