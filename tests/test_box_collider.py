@@ -20,6 +20,8 @@ from clothbench.colliders.analytic import COLLIDER_OPTIONAL_KEYS
 from clothbench.colliders.kinds import KINDS
 from clothbench.colliders.motion import Motion, euler_degrees
 from clothbench.errors import ClothbenchError, SceneError
+from clothbench.harness import max_penetration
+from clothbench.harness.bounds import step_count
 from clothbench.scene import Box, Scene, load_scene, load_setup
 from clothbench.solver import Pbd
 
@@ -127,7 +129,7 @@ def test_the_box_scene_reads_its_boxes():
     scene = load_scene(str(BOX_SCENE))
     tilted, rising = scene.boxes
     assert tilted == Box((0.3, 0.55, 0.4), (0.15, 0.12, 0.2), (25.0, 35.0, 10.0), name="tilted")
-    assert rising.motion == Motion(velocity=(0.0, 0.5, 0.0), angular_velocity=(0.0, 90.0, 30.0))
+    assert rising.motion == Motion(velocity=(0.0, 0.2, 0.0), angular_velocity=(0.0, 90.0, 30.0))
     assert rising.rotation == (0.0, 0.0, 0.0)
     assert [c.kind for c in scene.colliders] == ["sphere", "box", "box", "plane"], "boxes before planes"
 
@@ -218,3 +220,19 @@ def test_a_kinds_table_keys_rows_and_reference_agree_with_its_dataclass(kind):
     colliders = getattr(scene, kind.plural)
     assert colliders and len(collider_rows(scene)[kind.plural]) == kind.rows * len(colliders)
     assert COLLIDE[kind.name].__name__ == kind.function("numpy")
+
+
+def test_a_particle_inside_a_box_is_its_depth_of_penetration():
+    box = Box(center=(0.5, 0.5, 0.5), half_extents=(0.1, 0.2, 0.3), rotation=(0.0, 0.0, 90.0))
+    # rotated 90 degrees about z: its axis 0 is world y, so the least depth of (0.5, 0.55, 0.5) is 0.05
+    pos = np.array([[0.5, 0.55, 0.5, 1.0], [0.9, 0.9, 0.9, 1.0]])
+    assert max_penetration(pos, Scene(boxes=(box,))) == pytest.approx(0.05, abs=1e-12)
+    assert max_penetration(pos[1:], Scene(boxes=(box,))) == 0.0
+
+
+def test_a_box_counts_its_operations_per_particle():
+    scene = Scene(grid=8)
+    with_box = scene.replace(boxes=(UNROTATED,))
+    for strict, fp in ((True, 28), (False, 19)):  # docs/bounds.md, "per particle and box"
+        extra = step_count(with_box, strict=strict).fp - step_count(scene, strict=strict).fp
+        assert extra == fp * scene.particles

@@ -164,7 +164,7 @@ class NumbaBackend(Backend):
             c.b,
             np.array(c.g, dtype=np.float32),
             np.array([c.rest[kind] for kind in OFFSET_KIND], dtype=np.float32),  # by offset
-            *(colliders[kind] for kind in ("spheres", "cylinders", "planes")),
+            *(colliders[kind.plural] for kind in self.capabilities.collider_kinds()),  # its step's arguments
         )
         n2 = scene.particles
         self.pos = np.zeros((n2, 4), dtype=np.float32)

@@ -225,8 +225,8 @@ class WarpBackend(Backend):
             wp.vec3(*c.g),
             wp.array(rest, dtype=float, device=self._device),
             *(
-                wp.array(colliders[kind], dtype=wp.vec4, device=self._device)
-                for kind in ("spheres", "cylinders", "planes")
+                wp.array(colliders[kind.plural], dtype=wp.vec4, device=self._device)
+                for kind in self.capabilities.collider_kinds()  # its kernel's arguments
             ),
         ]
 
