@@ -17,7 +17,7 @@ from clothbench.harness.health import max_penetration
 from clothbench.harness.plan import without_motion
 from clothbench.scene import load_setup
 
-from conftest import require
+from conftest import assert_bit_exact, require
 
 BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
 PEERS = ("taichi", "warp", "numba", "torch", "jax")  # the CPU peers; cupy and numba-cuda need a GPU
@@ -45,3 +45,12 @@ def test_no_particle_ends_inside_a_box(name, strict):
     without_boxes = reference(scene.replace(boxes=()), solver, STEPS, "f32")[0]
     assert max_penetration(without_boxes, scene) > 1e-2, "without its boxes the sheet passes through them"
     assert max_penetration(pos, scene) <= PENETRATION_TOLERANCE, f"{name} strict={strict}: a particle is inside"
+
+
+def test_warp_default_with_boxes_is_numpy_f32_bit_for_bit():
+    # Warp's default kernel is its strict one (clothbench/peers/warp.py), boxes included
+    require("warp")
+    scene, solver = stopped_box_scene()
+    got, want = simulate("warp", scene, solver, STEPS), reference(scene, solver, STEPS, "f32")
+    assert_bit_exact(got[0], want[0], "warp default, boxes, pos")
+    assert_bit_exact(got[1], want[1], "warp default, boxes, prev")
