@@ -21,6 +21,8 @@ from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
 
+# CuPy's wheels for each CUDA major, and a source build ("cupy"): which one is imported
+CUPY_PACKAGES = ("cupy-cuda13x", "cupy-cuda12x", "cupy-cuda11x", "cupy")
 # Distributions whose version can change a timing or a result, in the order written.
 PACKAGES = (
     "clothbench",
@@ -29,10 +31,7 @@ PACKAGES = (
     "pocl-binary-distribution",
     "moderngl",
     "glcontext",
-    "cupy-cuda13x",
-    "cupy-cuda12x",
-    "cupy-cuda11x",
-    "cupy",
+    *CUPY_PACKAGES,
     "taichi",
     "warp-lang",
     "numba",

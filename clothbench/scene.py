@@ -30,13 +30,12 @@ from clothbench.colliders.motion import (
     Frame,
     Motion,
     array_of_tables,
-    finite,
     finite3,
     frames_from_toml,
     motion_from_toml,
 )
 from clothbench.errors import SceneError
-from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, solver_for_spec
+from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, finite_number, solver_for_spec
 
 # The 12-spring stencil as (d_row, d_col), in the order every backend sums it.
 STRUCTURAL = ((0, -1), (0, 1), (-1, 0), (1, 0))
@@ -184,7 +183,7 @@ def _validate(s: Scene) -> None:
         ("height", None),
     ):
         value = getattr(s, name)
-        if not finite(value):
+        if not finite_number(value):
             raise SceneError(f"{name} must be a finite number, got {value!r}")
         if positive and value <= 0:
             raise SceneError(f"{name} must be > 0, got {value!r}")
@@ -342,7 +341,7 @@ def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
         if "scale" in table:
             scale = table["scale"]
             values["scale"] = (
-                (float(scale),) * 3 if finite(scale) else finite3(scale, "mesh scale (one number or three)")
+                (float(scale),) * 3 if finite_number(scale) else finite3(scale, "mesh scale (one number or three)")
             )
         for k in ("subdivisions", "margin"):
             if k in table:

@@ -26,7 +26,8 @@ PBD_METHODS = ("jacobi", "coloured")
 SOLVER_SPECS = ("verlet", "pbd", *(f"pbd-{m}" for m in PBD_METHODS))
 
 
-def _finite(x) -> bool:
+def finite_number(x) -> bool:
+    """A real number (not a bool) that is finite: what a scene or solver setting must be."""
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
@@ -98,13 +99,13 @@ class Pbd(Stepping):
             raise SceneError(f"pbd method must be one of {', '.join(PBD_METHODS)}, got {self.method!r}")
         _positive_int(self.iterations, "iterations")
         _positive_int(self.substeps, "substeps")
-        if not _finite(self.relaxation) or not 0 < self.relaxation < 2:
+        if not finite_number(self.relaxation) or not 0 < self.relaxation < 2:
             raise SceneError(f"relaxation must be in (0, 2), got {self.relaxation!r}")
-        if not _finite(self.chebyshev_rho) or not 0 <= self.chebyshev_rho < 1:
+        if not finite_number(self.chebyshev_rho) or not 0 <= self.chebyshev_rho < 1:
             raise SceneError(f"chebyshev_rho must be in [0, 1) (0: no acceleration), got {self.chebyshev_rho!r}")
         if self.compliance is not None:
             c = self.compliance
-            if not isinstance(c, (list, tuple)) or len(c) != 3 or not all(_finite(v) for v in c):
+            if not isinstance(c, (list, tuple)) or len(c) != 3 or not all(finite_number(v) for v in c):
                 raise SceneError(f"compliance must be three finite numbers, got {c!r}")
             object.__setattr__(self, "compliance", tuple(float(v) for v in c))
             if min(self.compliance) < 0:
@@ -136,7 +137,7 @@ Solver = Verlet | Pbd
 
 
 def _validate_common(s: Stepping) -> None:
-    if not _finite(s.dt):
+    if not finite_number(s.dt):
         raise SceneError(f"dt must be a finite number, got {s.dt!r}")
     if s.dt <= 0:
         raise SceneError(f"dt must be > 0, got {s.dt!r}")

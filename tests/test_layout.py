@@ -1,10 +1,12 @@
 """The architecture, as statements that fail when the layout drifts: layers import only
 downwards, no two modules import each other (however indirectly, however deep in a function),
-no module reaches into another's private names, no half-written branches, and a size alarm."""
+no module reaches into another's private names, no half-written branches, a size alarm, and
+README's Layout naming what is there and every folder of the package."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -18,15 +20,17 @@ MAX_LINES = 900
 
 # Lower layers never import higher ones. The model and its solver settings sit at the
 # bottom; backends (clothbench's and the peers) run one step; the harness times and checks
-# them; analysis measures with the harness; reports draw what was measured; the CLI drives all.
+# them; analysis measures with the harness; reports draw what was measured; the viewer is an
+# application beside the CLI (it runs backends live in its own window); the CLI drives all.
 LAYERS = {
     "scene": 0, "colliders": 0, "solver": 0, "errors": 0, "environment": 0, "constraints": 0, "kernel_source": 0,
-    "native": 0, "machine_load": 0, "machine_fitness": 0, "progress": 0, "_build_info": 0,
+    "native": 0, "machine_load": 0, "machine_fitness": 0, "progress": 0, "_build_info": 0, "variant_names": 0,
     "backends": 1, "peers": 1,
     "harness": 2,
     "analysis": 3,
     "reports": 4,
-    "cli": 5, "__main__": 5,
+    "viewer": 5,
+    "cli": 6, "__main__": 6,
 }  # fmt: skip
 
 
@@ -178,8 +182,96 @@ def test_no_private_name_is_imported_from_another_module():
     )
 
 
+def test_no_private_name_is_reached_through_another_module():
+    """`import clothbench.x as m` then `m._name`: the same reach as importing _name, which the
+    test above cannot see."""
+    known = {module_name(p) for p in modules()}
+    reached = set()
+    for path in modules():
+        tree = ast.parse(path.read_text())
+        aliases = {}  # a name bound in this module -> the clothbench module it is
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                aliases |= {a.asname or a.name: a.name for a in node.names if a.name in known}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                bound = {a.asname or a.name: f"{node.module}.{a.name}" for a in node.names}
+                aliases |= {alias: full for alias, full in bound.items() if full in known}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases:
+                target = aliases[node.value.id]
+                if node.attr.startswith("_") and not node.attr.startswith("__") and target != module_name(path):
+                    reached.add(f"{path.relative_to(PACKAGE)} reaches {target}.{node.attr}")
+    assert not reached, "private names used outside their module (make them public, or move the code): " + "; ".join(
+        sorted(reached)
+    )
+
+
 def test_no_placeholder_branches():
     for path in modules():
         text = path.read_text().lower()
         for phrase in ("not implemented yet", "not written yet", "being written"):
             assert phrase not in text, f"{path.relative_to(PACKAGE)} still says {phrase!r}"
+
+
+ROOT = Path(__file__).resolve().parent.parent
+# a file name as README's Layout writes one in a description: analytic.py, kernels/verlet_cloth.c
+FILE_NAME = re.compile(r"(?<![\w./-])((?:[\w-]+/)*[\w-]+\.(?:py|md|toml|cl|cu|cuh|c|comp|vert|frag|glsl))\b")
+FOLDER_NAME = re.compile(r"(?<![\w./-])((?:[\w-]+/)+)(?![\w.])")  # shim/, tests/contract/
+
+
+def readme_layout() -> dict[str, str]:
+    """README's Layout block as path (from the repository root) -> its description: a line
+    at the margin names a path, one indented by four a path in the folder above it, and a
+    line indented further continues the description. A path named twice fails here."""
+    section = (ROOT / "README.md").read_text().split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
+    block = section.split("```\n", 2)[1]
+    entries: dict[str, str] = {}
+    top = path = ""
+    for line in block.splitlines():
+        if not line.strip():
+            continue
+        indent = len(line) - len(line.lstrip())
+        if indent > 4:
+            entries[path] += " " + line.strip()
+            continue
+        name, _, text = line.strip().partition("  ")
+        path = name if indent == 0 else top + name
+        top = path if indent == 0 else top
+        assert path not in entries, f"README's Layout names {path} twice"
+        entries[path] = text.strip()
+    return entries
+
+
+def folder_of(path: str) -> Path:
+    return ROOT / path if path.endswith("/") else (ROOT / path).parent
+
+
+def test_every_path_readme_s_layout_names_is_there():
+    missing = []
+    for path, text in readme_layout().items():
+        if not (ROOT / path).exists():
+            missing.append(path)
+        folder = folder_of(path)
+        for name in FILE_NAME.findall(text) + FOLDER_NAME.findall(text):
+            # a name with a folder in it is written from the root or from clothbench/; a bare
+            # one is in the entry's folder or below it (colliders/: analytic.py)
+            if "/" in name.rstrip("/"):
+                there = (ROOT / name).exists() or (PACKAGE / name).exists()
+            else:
+                there = any(folder.rglob(name.rstrip("/")))
+            if not there:
+                missing.append(f"{name} (in {path}'s description)")
+    assert not missing, f"README's Layout names what is not there: {missing}"
+
+
+def test_every_folder_of_the_package_is_in_readme_s_layout():
+    entries = readme_layout()
+    unnamed = []
+    for folder in sorted(p for p in PACKAGE.rglob("*") if p.is_dir() and "__pycache__" not in p.parts):
+        if not any(f.is_file() for f in folder.iterdir()):
+            continue  # only __pycache__ left behind by a folder that moved
+        path = folder.relative_to(PACKAGE.parent).as_posix() + "/"
+        parent = folder.parent.relative_to(PACKAGE.parent).as_posix() + "/"
+        if path not in entries and folder.name + "/" not in FOLDER_NAME.findall(entries.get(parent, "")):
+            unnamed.append(path)
+    assert not unnamed, f"folders of clothbench/ that README's Layout does not name: {unnamed}"

@@ -22,7 +22,7 @@ from clothbench.harness.sweep import run_sweep
 from clothbench.harness.sweep_settings import SweepSettings
 from clothbench.harness.timing import DEVICE_TIMERS
 from clothbench.reports.figures_common import platform_color, platform_title
-from clothbench.reports.viewer import keys as view_keys
+from clothbench.viewer import keys as view_keys
 from clothbench.scene import load_setup
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -122,8 +122,8 @@ def test_the_twin_is_listed_by_backends(twin, monkeypatch, capsys):
 
 
 def test_the_twin_is_in_the_viewers_keys(twin, capsys):
-    from clothbench.reports.viewer.profiler import FrameProfile
-    from clothbench.reports.viewer.session import Session
+    from clothbench.viewer.profiler import FrameProfile
+    from clothbench.viewer.session import Session
 
     assert view_keys.backend_keys()[TWIN_KEY] == TWIN and view_keys.key_of(TWIN) == TWIN_KEY
     assert f"{TWIN_KEY} {TWIN}" in " ".join(what for _, what in view_keys.help_lines())

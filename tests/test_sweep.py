@@ -22,7 +22,7 @@ from clothbench import environment
 from clothbench.cli import main
 from clothbench.harness import sweep as sweep_module
 from clothbench.harness.sweep_csv import COLUMNS, MEASUREMENT_COLUMNS, row_key
-from clothbench.reports.viewer.keys import BACKEND_KEY_NAMES
+from clothbench.viewer.keys import BACKEND_KEY_NAMES
 from clothbench.scene import count_springs
 from clothbench.solver import Pbd
 

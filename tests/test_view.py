@@ -31,11 +31,12 @@ from clothbench import cli
 from clothbench.errors import ClothbenchError
 from clothbench.harness.simulate import simulate
 from clothbench.backends import backend_class
-from clothbench.reports.viewer import keys as view_keys
-from clothbench.reports.viewer import overlay_text
-from clothbench.reports.viewer.camera import Trackball
-from clothbench.reports.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, fit_lines, layout
-from clothbench.reports.viewer.profiler import FrameProfile, Stage, gl_timer_queries
+from clothbench.backends.gl import context as gl_context
+from clothbench.viewer import keys as view_keys
+from clothbench.viewer import overlay_text
+from clothbench.viewer.camera import Trackball
+from clothbench.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, clear_span, fit_lines, layout
+from clothbench.viewer.profiler import FrameProfile, Stage, gl_timer_queries
 from clothbench.scene import load_setup
 
 from conftest import assert_bit_exact, lines_in, require, wait_until
@@ -114,8 +115,9 @@ def test_bad_input_is_one_line_before_any_window(monkeypatch, capsys):
 
 def test_without_a_display_it_says_what_to_do_in_one_line():
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    done = subprocess.run([sys.executable, "-c", RUN, "view", "--frames", "5"], env=env, capture_output=True,
-                          text=True, timeout=120)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", RUN, "view", "--frames", "5"], env=env, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 2
     err = done.stderr.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
@@ -152,6 +154,18 @@ def test_timer_queries_of_a_software_rasteriser_are_not_called_a_gpus():
     assert gl_timer_queries(Device())[0]
 
 
+def test_a_lent_context_is_what_the_gl_backends_get_until_it_is_given_back():
+    require("glsl")
+    own = gl_context.get_device()
+    window, inner = object(), object()  # lend_device takes any device: nothing draws here
+    with gl_context.lend_device(window):
+        assert gl_context.get_device() is window
+        with gl_context.lend_device(inner):
+            assert gl_context.get_device() is inner
+        assert gl_context.get_device() is window
+    assert gl_context.get_device() is own
+
+
 def test_the_trackball_turns_the_view_and_keeps_it_a_rotation():
     s = load_setup("sphere")
     ball = Trackball(s.scene, (640, 480))
@@ -172,14 +186,53 @@ def test_the_trackball_turns_the_view_and_keeps_it_a_rotation():
     assert np.isclose(ball.orientation[0][1], 0.0, atol=1e-12)  # the view's right axis stays level
 
 
+def test_the_cloth_is_framed_clear_of_the_panels():
+    """The drape's cloth starts level at the top of its bounds: `render`'s framing put its left
+    corner under the run panel (issue 31, item 18). Framed between the top panels, every
+    particle is on screen and none under a panel, in a wide window and a narrower one (moved,
+    and made smaller where the width needs it); a span under half the window keeps the
+    whole-window framing."""
+    scene = load_setup("drape").scene
+    cloth = scene.initial_state()[0][:, :3]
+    glyphs = Glyphs()
+    run = ("top-left", ["x" * 50])
+    placed = layout([run, ("bottom-left", ["keys"])], (1280, 720), glyphs)
+    left, right = clear_span(placed, 1280)
+    assert (left, right) == (GAP + 50 * glyphs.width + 2 * PAD + GAP, 1280)  # the run panel's edge only
+    for size in ((1280, 720), (1024, 768)):
+        ball = Trackball(scene, size)
+        before = ball.camera().project(cloth)[:, 0]
+        ball.keep_clear_of(left, size[0])
+        after = ball.camera().project(cloth)[:, 0]
+        assert before.min() < left, size  # the case: without it, a corner is under the panel
+        assert left <= after.min() and after.max() <= size[0], size
+        ball.keep_clear_of(left - 40, size[0])  # the panel a frame narrower: the frame stays
+        assert np.array_equal(ball.camera().project(cloth)[:, 0], after), size
+    ball.resize((1280, 720))
+    assert ball.clear == (0, 1280)  # a new window size: the panels are placed again
+    # the profiler opened at the right: the span between the panels, or the whole window
+    profiler = ("top-right", ["y" * 30])
+    left, right = clear_span(layout([run, profiler], (1600, 900), glyphs), 1600)
+    assert right == 1600 - GAP - (30 * glyphs.width + 2 * PAD) - GAP
+    ball = Trackball(scene, (1600, 900))
+    ball.keep_clear_of(left, right)
+    x = ball.camera().project(cloth)[:, 0]
+    assert left <= x.min() and x.max() <= right
+    narrow = Trackball(scene, (800, 600))
+    whole = narrow.camera().view_projection
+    narrow.keep_clear_of(*clear_span(layout([run], (800, 600), glyphs), 800))  # over half of it
+    assert np.array_equal(narrow.camera().view_projection, whole)
+
+
 # --- the viewer on the headless window ---------------------------------------------------------
 
 
 def test_switching_backends_keeps_the_cloth_where_it_is_bit_for_bit(tmp_path, monkeypatch):
     for name in ("opencl", "glsl", "glsl-compute"):
         require(name)
-    lines, saved = headless(tmp_path, monkeypatch, "--backend", "numpy", "--strict", "--keys", "4:F3,8:F2,12:F5",
-                            frames=16)  # fmt: skip
+    lines, saved = headless(
+        tmp_path, monkeypatch, "--backend", "numpy", "--strict", "--keys", "4:F3,8:F2,12:F5", frames=16
+    )
     assert [lines[i]["backend"] for i in (2, 3, 7, 11, 15)] == [
         "numpy",
         "opencl",
@@ -189,14 +242,19 @@ def test_switching_backends_keeps_the_cloth_where_it_is_bit_for_bit(tmp_path, mo
     ]
     assert "switched numpy -> opencl at step 30" in lines[3]["events"][0]
     assert [line["drawn_from"] for line in (lines[2], lines[3], lines[7], lines[11])] == [
-        "readback", "readback", "device", "device"]  # fmt: skip
+        "readback",
+        "readback",
+        "device",
+        "device",
+    ]
     assert lines[-1]["step"] == 16 * SPF
     assert_same_state(saved, unswitched(16 * SPF), "numpy -> opencl -> glsl -> glsl-compute")
 
 
 def test_an_unusable_backend_says_why_and_nothing_else_changes(tmp_path, monkeypatch):
-    lines, saved = headless(tmp_path, monkeypatch, "--backend", "numpy", "--keys", "3:F4,4:F2", "--solver", "pbd",
-                            frames=6)  # fmt: skip
+    lines, saved = headless(
+        tmp_path, monkeypatch, "--backend", "numpy", "--keys", "3:F4,4:F2", "--solver", "pbd", frames=6
+    )
     from clothbench.backends import availability
 
     cuda = lines[2]["events"][0]
@@ -239,8 +297,7 @@ def test_collider_keys_rebuild_the_scene_and_keep_the_cloth(tmp_path, monkeypatc
 
 def test_the_profiler_tree_and_the_shadow_error_are_in_every_line(tmp_path, monkeypatch):
     require("glsl-compute")
-    lines, _ = headless(tmp_path, monkeypatch, "--backend", "glsl-compute", "--keys", "2:P,2:E,5:1,6:F1",
-                        frames=8)  # fmt: skip
+    lines, _ = headless(tmp_path, monkeypatch, "--backend", "glsl-compute", "--keys", "2:P,2:E,5:1,6:F1", frames=8)
     for line in lines:
         tree = line["profiler"]
         assert tree["name"] == "frame" and tree["of_frame"] == 1.0
@@ -282,8 +339,12 @@ def test_a_real_window_under_xvfb_driven_by_keys(tmp_path):
     argv = ["view", "--scene", "sphere", "--backend", "numpy", "--strict", "--keys", "15:F3,30:F2,45:F5,50:P",
             "--frames", str(frames), "--steps-per-frame", str(SPF), "--size", "480x360",
             "--screenshot", str(shot), "--log", str(log), "--save", str(save)]  # fmt: skip
-    done = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-c", RUN, *argv],
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = subprocess.run(
+        ["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-c", RUN, *argv],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     assert len(lines) == frames and all(line["ms"] > 0 for line in lines)
@@ -312,9 +373,13 @@ def _x_server(tmp_path) -> tuple[subprocess.Popen, str]:
     if shutil.which("Xvfb") is None:
         pytest.skip("Xvfb not installed (apt-get install xvfb)")
     ready_r, ready_w = os.pipe()
-    server = subprocess.Popen(["Xvfb", "-displayfd", str(ready_w), "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
-                              pass_fds=[ready_w], process_group=0, preexec_fn=_default_sigint,
-                              stderr=open(tmp_path / "xvfb.err", "w"))  # fmt: skip
+    server = subprocess.Popen(
+        ["Xvfb", "-displayfd", str(ready_w), "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
+        pass_fds=[ready_w],
+        process_group=0,
+        preexec_fn=_default_sigint,
+        stderr=open(tmp_path / "xvfb.err", "w"),
+    )
     os.close(ready_w)
     with os.fdopen(ready_r) as ready:
         number = ready.readline().strip()  # written once the server listens; nothing if it failed
@@ -338,9 +403,15 @@ def test_a_signal_stops_a_window_with_one_line_and_exit_130(tmp_path, sig, to_gr
     try:
         argv = ["view", "--scene", "drape", "--backend", "numpy", "--steps-per-frame", "1", "--size", "320x240",
                 "--log", str(log)]  # fmt: skip
-        viewer = subprocess.Popen([sys.executable, "-c", RUN, *argv], env=dict(os.environ, DISPLAY=display),
-                                  process_group=server.pid, preexec_fn=_default_sigint,
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+        viewer = subprocess.Popen(
+            [sys.executable, "-c", RUN, *argv],
+            env=dict(os.environ, DISPLAY=display),
+            process_group=server.pid,
+            preexec_fn=_default_sigint,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         wait_until(lambda: lines_in(log) >= 2, viewer, "the window's frames")
         if to_group:
             os.killpg(server.pid, sig)
@@ -371,7 +442,7 @@ def test_a_refusal_wider_than_the_window_is_wrapped_inside_it():
         assert all(len(text) <= chars for text, _ in lines), (w, h)
         said = [text for text, colour in lines if colour == WARN]
         assert " ".join(said).split() == refusal.split(), (w, h)  # every word, in order, in its colour
-        [(x, y, image)] = layout([("bottom-left", [(refusal, WARN), (hint, DIM)])], (w, h), glyphs)
+        [(_, x, y, image)] = layout([("bottom-left", [(refusal, WARN), (hint, DIM)])], (w, h), glyphs)
         ph, pw = image.shape[:2]
         assert GAP <= x and x + pw <= w - GAP and GAP <= y and y + ph <= h - GAP, (w, h)
         assert ph == len(lines) * glyphs.height + 2 * PAD, (w, h)  # a row for every line: none cut off

@@ -22,18 +22,18 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
-import re
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
-from clothbench.analysis.convergence import AccuracyRow, model_name
+from clothbench.analysis.convergence import AccuracyRow
 from clothbench.backends import BACKENDS, BackendOptions, availability
 from clothbench.environment import cpu_model
 from clothbench.errors import ClothbenchError
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.scene import Setup
 from clothbench.solver import Solver
+from clothbench.variant_names import Mode, model_name, option_flags
 
 METRICS = {"max": "disc_max", "rms": "disc_rms"}  # --metric -> the accuracy CSV's column
 DEFAULT_METRIC = "max"  # "stays under E": every particle, not the average one
@@ -194,19 +194,7 @@ class Configuration:
                 "--solver", s.name, "--dt", repr(s.dt), "--steps", str(self.steps)]  # fmt: skip
         if s.name == "pbd":
             args += ["--pbd-method", s.method, "--iterations", str(s.iterations), "--substeps", str(s.substeps)]
-        o, default = self.options, BackendOptions()
-        if o.precision != default.precision:
-            args += ["--precision", o.precision]
-        if o.strict:
-            args.append("--strict")
-        for flag, value in (("--transfer", o.transfer), ("--local-size", o.local_size), ("--device", o.device)):
-            if value is not None:
-                args += [flag, str(value)]
-        if o.gl != default.gl:
-            args += ["--gl", o.gl]
-        if o.generic:
-            args.append("--generic")
-        return args
+        return args + option_flags(self.options)
 
 
 @lru_cache(maxsize=None)
@@ -216,16 +204,15 @@ def _planned(backend: str, solver: Solver) -> tuple[Variant, ...]:
 
 def _agrees(mode: str, v: Variant) -> bool:
     """Whether a mode string from a CSV says what `v`'s options are."""
-    words = set(re.split(r"[/\s]+", mode))
+    said = Mode.parse(mode)
     o, caps = v.options, v.capabilities
-    if ("f64" in words) != (o.precision == "f64") or ("generic" in words) != o.generic:
+    if (said.precision == "f64") != (o.precision == "f64") or said.generic != o.generic:
         return False
-    if ("strict" in words and not o.strict) or ("fast" in words and o.strict):
+    if said.strict is not None and said.strict != o.strict:
         return False
     if caps.transfers:
-        named = words & set(caps.transfers)
-        transfer = o.transfer or caps.transfers[0]
-        return transfer in named if named else transfer == caps.transfers[0]
+        named = said.transfer if said.transfer in caps.transfers else caps.transfers[0]
+        return (o.transfer or caps.transfers[0]) == named
     return True
 
 

@@ -32,6 +32,7 @@ from clothbench.harness.simulate import position_error, reference, simulate
 from clothbench.harness.timing import run_timed
 from clothbench.scene import Scene
 from clothbench.solver import Solver, as_verlet
+from clothbench.variant_names import model_name
 
 F64 = BackendOptions(precision="f64")
 EARLY_LEVELS = 4  # levels 0..3: what converged_reference always runs before it can stop
@@ -201,16 +202,6 @@ class AccuracyRow:
             if d[k] is None:
                 d[k] = ""
         return d
-
-
-def model_name(solver: Solver) -> str:
-    """The model a converged reference is of: 'verlet', or 'pbd-jacobi/10it, relaxation 1.5'."""
-    if solver.name != "pbd":
-        return "verlet"
-    sub = f"x{solver.substeps}" if solver.substeps > 1 else ""
-    relax = f", relaxation {solver.relaxation:g}" if solver.method == "jacobi" else ""
-    comp = "" if solver.compliance is None else f", compliance {list(solver.compliance)}"
-    return f"{solver.spec}/{solver.iterations}it{sub}{relax}{comp}"
 
 
 def model_key(scene: Scene, solver: Solver) -> tuple[Scene, Solver]:
@@ -504,7 +495,6 @@ __all__ = [
     "AccuracyResult",
     "DOMINANCE",
     "discretisation_dominates",
-    "model_name",
     "model_key",
     "ModelDifference",
     "model_difference",

@@ -36,7 +36,7 @@ class BackendEntry:
     display: str = field(kw_only=True)  # its name in tables and figure legends
     platform: str = field(kw_only=True)  # its figures' panel (PLATFORMS); every peer's is PEERS
     gpu_style: bool = field(kw_only=True)  # a GPGPU platform the chapter compares (the peer table's own side)
-    view_key: str = field(kw_only=True)  # the viewer's key for it (reports/viewer/keys.py BACKEND_KEY_NAMES)
+    view_key: str = field(kw_only=True)  # the viewer's key for it (clothbench/viewer/keys.py BACKEND_KEY_NAMES)
     # a forked child may run it: it touches no driver state a parent could hold half-made
     # (numpy's steppers only); any other gets a clean process (harness/executor.py)
     fork_safe: bool = field(kw_only=True)

@@ -7,7 +7,8 @@ synchronise before reading the clock, read back only when asked, close.
 
 What a backend can do is declared once, as `capabilities` on its class; the registry checks
 the options against it before a backend is built (one wording for every refusal), the sweep
-plans its variants from it, and `Backend.mode` names a run from it (one spelling).
+plans its variants from it, and `Backend.mode` names a run from it (one spelling:
+clothbench/variant_names.py).
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver
+from clothbench.variant_names import AUTO, GL_PROVIDERS, PRECISIONS, SEPARATOR, Mode, mesh_word
 
-GL_PROVIDERS = ("egl", "osmesa")
 # how a kernel finds a particle's closest mesh triangle (docs/semantics.md, "Triangle mesh"):
 # every triangle in index order, or a host-built BVH traversed in the kernel; same bits
 MESH_COLLISIONS = ("naive", "accelerated")
@@ -32,12 +33,12 @@ MESH_COLLISIONS = ("naive", "accelerated")
 class BackendOptions:
     """Run options. Each is checked against the backend's Capabilities before it is built."""
 
-    precision: str = "f32"  # "f32" everywhere; "f64" only on numpy (the reference)
+    precision: str = PRECISIONS[0]  # PRECISIONS: f32 everywhere, f64 where Capabilities.precisions has it
     strict: bool = False  # bit-exact with the numpy f32 reference: no contraction, no fast math
-    transfer: str | None = None  # opencl: resident|per-step; cuda: swap|copy (None = default)
+    transfer: str | None = None  # one of Capabilities.transfers (variant_names.TRANSFERS); None = default
     local_size: int | None = None  # work-group / block size (None = let the runtime choose)
     device: str | None = None  # device selector where a backend has several
-    gl: str = "egl"  # GL context provider for the GL backends: egl|osmesa
+    gl: str = GL_PROVIDERS[0]  # GL context provider for the GL backends (GL_PROVIDERS)
     normals: bool = False  # compute normals (rendering, --save-normals)
     generic: bool = False  # one kernel for every scene instead of a specialised one
     shape: str | None = None  # kernel shape by name (backends/tuning.py); None = the tuned one
@@ -53,7 +54,7 @@ class BackendOptions:
 class Capabilities:
     """What one backend class can do, declared once."""
 
-    precisions: tuple[str, ...] = ("f32",)
+    precisions: tuple[str, ...] = PRECISIONS[:1]
     strict: bool = True  # has a strict (bit-exact) and a fast mode; False: one mode, always exact
     transfers: tuple[str, ...] = ()  # transfer modes; the first is the default
     local_size: bool = False  # options.local_size means a work-group / block size
@@ -105,7 +106,7 @@ class Capabilities:
             return no("--device", options.device, "its one device")
         if options.gl not in GL_PROVIDERS:
             return no("--gl", options.gl, ", ".join(GL_PROVIDERS))
-        if options.gl != "egl" and not self.gl:
+        if options.gl != GL_PROVIDERS[0] and not self.gl:
             return no("--gl", options.gl, "no GL context")
         if options.shape is not None and not self.shapes:
             return no("--shape", options.shape, "one kernel shape")
@@ -153,29 +154,25 @@ class Capabilities:
             generic=options.generic and self.generic,
             normals=options.normals and self.normals,
             device=options.device if self.device else None,
-            gl=options.gl if self.gl else "egl",
+            gl=options.gl if self.gl else GL_PROVIDERS[0],
             shape=options.shape if self.shapes else None,
             retune=options.retune and self.shapes,
             mesh_collision=options.mesh_collision if options.mesh_collision in self.mesh_collisions else None,
         )
 
-    def mode(self, options: BackendOptions, solver: Solver, local_size: int | None = None) -> str:
-        """The settings that change speed or results, one spelling for every backend:
-        precision (where there are several), strict|fast, pbd-method, normals, generic,
-        transfer, ls=work-group size."""
-        parts = []
-        if len(self.precisions) > 1:
-            parts.append(options.precision)
-        if self.strict:
-            parts.append("strict" if options.strict else "fast")
-        if solver.name == "pbd":
-            parts.append(solver.spec)
-        parts += ["normals"] * options.normals + ["generic"] * options.generic
-        if self.transfers:
-            parts.append(options.transfer or self.transfers[0])
-        if self.local_size:
-            parts.append(f"ls={local_size or options.local_size or 'auto'}")
-        return "/".join(parts) or "default"
+    def mode_words(self, options: BackendOptions, solver: Solver, local_size: int | None = None) -> Mode:
+        """The settings that change speed or results, one spelling for every backend
+        (variant_names.Mode): precision (where there are several), strict|fast, pbd-method,
+        normals, generic, transfer, ls=work-group size."""
+        return Mode(
+            precision=options.precision if len(self.precisions) > 1 else None,
+            strict=options.strict if self.strict else None,
+            pbd=solver.spec if solver.name == "pbd" else None,
+            normals=options.normals,
+            generic=options.generic,
+            transfer=(options.transfer or self.transfers[0]) if self.transfers else None,
+            local_size=(local_size or options.local_size or AUTO) if self.local_size else None,
+        )
 
 
 def _takers(feature: str, solver: str) -> str:
@@ -243,13 +240,11 @@ class Backend(ABC):
     @property
     def mode(self) -> str:
         """The settings that change speed or results, for tables and CSV rows."""
-        shape = f"/{self.shape}" if self.shape else ""
-        return (
-            self.capabilities.mode(self.options, self.solver, self.effective_local_size)
-            + shape
-            + self.mesh_mode
-            + self.mode_suffix
-        )
+        shape = self.shape.split(SEPARATOR) if self.shape else []
+        mesh = [mesh_word(self.mesh_collision)] if self.mesh_collision else []
+        suffix = self.mode_suffix.split(SEPARATOR)[1:]
+        words = self.capabilities.mode_words(self.options, self.solver, self.effective_local_size)
+        return replace(words, rest=(*shape, *mesh, *suffix)).spell()
 
     @property
     def mesh_collision(self) -> str | None:
@@ -258,11 +253,6 @@ class Backend(ABC):
         if not self.scene.meshes or not self.capabilities.mesh_collisions:
             return None
         return self.options.mesh_collision or self.capabilities.mesh_collisions[0]
-
-    @property
-    def mesh_mode(self) -> str:
-        """'/mesh=naive' or '/mesh=accelerated' in the mode of a scene with meshes."""
-        return f"/mesh={self.mesh_collision}" if self.mesh_collision else ""
 
     @classmethod
     def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
@@ -297,7 +287,8 @@ class Backend(ABC):
 
     # the work-group size the backend chose where options.local_size is None
     effective_local_size: int | None = None
-    # a backend-specific part of the mode (e.g. a slower read path it fell back to)
+    # a backend-specific part of the mode (e.g. a slower read path it fell back to), each
+    # word after a "/": "/osmesa", "/eager"
     mode_suffix: str = ""
     # whether its arithmetic flushes subnormal floats to zero (NumPy keeps them): a strict
     # run there is watched against NumPy and says where they part (harness/strict_watch.py)

@@ -147,7 +147,8 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def cmd_accuracy(args) -> int:
-    from clothbench.analysis.convergence import dt_levels, model_name, run_accuracy, steps_for
+    from clothbench.analysis.convergence import dt_levels, run_accuracy, steps_for
+    from clothbench.variant_names import model_name
     from clothbench.reports.accuracy_plots import plot_convergence, plot_speed_vs_error
     from clothbench.progress import LazyProgress
     from clothbench.harness.executor import executor_for

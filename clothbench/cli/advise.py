@@ -20,6 +20,7 @@ import tempfile
 from pathlib import Path
 
 from clothbench.errors import ClothbenchError
+from clothbench.variant_names import iterations_display, model_display
 
 NONE_QUALIFIES = 1  # the exit status when nothing measured stays under E
 
@@ -179,10 +180,11 @@ def fmt_dt(dt: float) -> str:
 
 
 def solver_text(row) -> str:
+    """'Verlet', 'PBD jacobi 10 it x2 substeps'."""
     if row.solver != "pbd":
-        return "Verlet"
+        return model_display(row.solver, None)
     sub = f" x{row.substeps} substeps" if row.substeps and row.substeps > 1 else ""
-    return f"PBD {row.pbd_method} {row.iterations} it{sub}"
+    return f"{model_display(row.solver, row.pbd_method)} {iterations_display(row.iterations)}{sub}"
 
 
 def _line(p, metric: str, width: int, against=None) -> str:

@@ -7,6 +7,7 @@ import re
 
 from clothbench.errors import ClothbenchError
 from clothbench.solver import PBD_METHODS, SOLVER_SPECS, SOLVERS
+from clothbench.variant_names import GL_PROVIDERS, PRECISIONS, transfers_help
 
 
 # what argparse should read as a (negative) number, not an option: its own matcher takes
@@ -72,18 +73,18 @@ def setup_from_args(args):
 def add_backend_args(p: argparse.ArgumentParser) -> None:
     from clothbench.backends.base import MESH_COLLISIONS
 
-    p.add_argument("--precision", choices=["f32", "f64"], default="f32")
+    p.add_argument("--precision", choices=PRECISIONS, default=PRECISIONS[0])
     p.add_argument(
         "--strict", action="store_true", help="bit-exact with the numpy f32 reference (no FMA, no fast math)"
     )
-    p.add_argument("--transfer", help="opencl: resident|per-step; cuda: swap|copy")
+    p.add_argument("--transfer", help=transfers_help())
     p.add_argument("--local-size", type=int, help="work-group / block size (default: the runtime's)")
     add_device_args(p)
     p.add_argument("--save-normals", action="store_true", help="compute normals and save them with --save")
     p.add_argument("--generic", action="store_true", help="one kernel for every scene (no specialisation)")
     p.add_argument(
         "--shape",
-        help="run this kernel shape (as the mode names it, e.g. v8/ls=64) instead of the one tuned for this device",
+        help="run this kernel shape (as the mode names it, e.g. v8/wg=64) instead of the one tuned for this device",
     )
     p.add_argument(
         "--mesh-collision",
@@ -95,7 +96,7 @@ def add_backend_args(p: argparse.ArgumentParser) -> None:
 
 def add_device_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", help="device selector (opencl: 'platform:device' index, like PYOPENCL_CTX)")
-    p.add_argument("--gl", choices=["egl", "osmesa"], default="egl", help="GL context provider")
+    p.add_argument("--gl", choices=GL_PROVIDERS, default=GL_PROVIDERS[0], help="GL context provider")
     p.add_argument(
         "--retune",
         action="store_true",

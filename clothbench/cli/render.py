@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 
 from clothbench.cli.args import add_scene_args, setup_from_args
+from clothbench.errors import ClothbenchError
+from clothbench.variant_names import GL_PROVIDERS
 
 EPILOG = """\
 A frame is drawn after every --every steps, --frames times: frame f shows the cloth after
@@ -63,11 +65,25 @@ def register(subparsers) -> None:
     p.add_argument("--fps", type=float, default=d.fps, help=f"GIF frames per second (default {d.fps:g})")
     p.add_argument("--strict", action="store_true", help="simulate bit-exact with the numpy f32 reference")
     p.add_argument("--generic", action="store_true", help="GL backends: one kernel for every scene")
-    p.add_argument("--gl", choices=["egl", "osmesa"], default="egl", help="GL context provider")
-    p.set_defaults(func=cmd_render)
+    p.add_argument("--gl", choices=GL_PROVIDERS, default=GL_PROVIDERS[0], help="GL context provider")
+    p.add_argument(
+        "--from",
+        dest="from_usd",
+        metavar="FILE.usd",
+        help="draw the frames a `run --export` USD holds instead of simulating: its scene, grid and colliders "
+        "(a .png: one frame, --frame; a .gif or folder/: every frame)",
+    )
+    p.add_argument(
+        "--frame", type=int, help="with --from and a .png: the frame to draw (0 the start; default the last)"
+    )
+    p.set_defaults(func=cmd_render, default_scene=p.get_default("scene"))  # --from refuses another
 
 
 def cmd_render(args) -> int:
+    if args.from_usd is not None:
+        return render_from(args)
+    if args.frame is not None:
+        raise ClothbenchError("--frame picks a frame of --from FILE.usd: add --from")
     from clothbench.backends import BackendOptions, check_name
     from clothbench.progress import LazyProgress
     from clothbench.harness.preflight import check_memory, check_writable
@@ -98,6 +114,40 @@ def cmd_render(args) -> int:
         f"wrote {where}: {scene.name} on {args.backend}, n={scene.grid}, {settings.frames} frames "
         f"x {settings.every} steps ({simulated:.3g} s simulated), {w}x{h}; "
         f"simulate {report.simulate_s:.2f} s, draw {report.draw_s:.2f} s, write {report.write_s:.2f} s"
+    )
+    return 0
+
+
+def render_from(args) -> int:
+    """`render --from FILE.usd`: the file's frames drawn, nothing simulated."""
+    from clothbench.harness.preflight import check_writable
+    from clothbench.reports.export import read_usd, usd_file
+    from clothbench.reports.render import RenderSettings, check_settings, output_kind, render_exported
+
+    d = RenderSettings()
+    simulating = {
+        "--scene": args.scene != args.default_scene, "--grid": args.grid is not None, "--dt": args.dt is not None,
+        "--backend": args.backend is not None, "--strict": args.strict, "--generic": args.generic,
+        "--solver": args.solver is not None, "--frames": args.frames != d.frames, "--every": args.every != d.every,
+    }  # fmt: skip
+    if given := [option for option, used in simulating.items() if used]:
+        raise ClothbenchError(f"{given[0]} sets up a simulation, and --from draws the file's frames: leave it out")
+    kind = output_kind(args.out)
+    if args.frame is not None and kind != "png":
+        raise ClothbenchError(f"--frame draws one frame into a .png, and --out {args.out} is a {kind}")
+    settings = RenderSettings(size=args.size, fps=args.fps)
+    check_settings(settings)
+    first = Path(args.out) / "frame_0000.png" if kind == "folder" else Path(args.out)
+    check_writable(first, "--out", new_folder=kind == "folder")
+    exported = read_usd(usd_file(args.from_usd))
+    if args.frame is not None:
+        exported.check_frame(args.frame)
+    report = render_exported(exported, settings.size, args.out, args.frame, settings.fps, args.gl)
+    w, h = settings.size
+    where = args.out if len(report.files) == 1 else f"{len(report.files)} PNGs in {args.out}"
+    print(
+        f"wrote {where}: {report.frames} of the {exported.frames} frames of {exported.path} "
+        f"({exported.scene.name}, n={exported.scene.grid}, last drawn after step {report.steps}), {w}x{h}"
     )
     return 0
 

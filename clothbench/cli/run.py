@@ -30,9 +30,38 @@ def register(subparsers) -> None:
         help="write pos, prev (and normals) to this .npz file, in a folder that exists, and say where "
         "(a folder or another suffix is refused)",
     )
+    add_export_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
     p.set_defaults(func=cmd_run)
+
+
+def default_export_every() -> int:
+    """One exported frame per viewer frame, so that `view --from` shows each once."""
+    from clothbench.viewer import ViewSettings
+
+    return ViewSettings().steps_per_frame
+
+
+def add_export_args(p) -> None:
+    from clothbench.reports.export import FRAME_FORMATS
+
+    every = default_export_every()
+    p.add_argument(
+        "--export",
+        metavar="FILE.usd|FOLDER/",
+        help="also write the run's frames, read back in a second, untimed run of the same steps (docs/export.md): "
+        "a .usd, .usda or .usdc stage (cloth mesh with normals, colliders as their own prims), or a folder of "
+        "one OBJ or PLY per frame",
+    )
+    p.add_argument(
+        "--export-every",
+        type=int,
+        metavar="K",
+        help=f"steps between exported frames (default {every}, the viewer's steps per frame); the first frame "
+        "is the start, the last the final step",
+    )
+    p.add_argument("--export-format", choices=FRAME_FORMATS, help="a folder's frames: obj (default) or ply")
 
 
 def cmd_run(args) -> int:
@@ -46,6 +75,7 @@ def cmd_run(args) -> int:
     from clothbench.progress import LazyProgress, waiting
 
     from clothbench.harness.preflight import check_memory, check_writable
+    from clothbench.reports.export import export_target
 
     sigterm_interrupts()
     check_name(args.backend)
@@ -55,6 +85,7 @@ def cmd_run(args) -> int:
     check_strict(args.backend, solver.name, options)
     check_mesh_collision(options.mesh_collision, scene)
     save = _npz(check_writable(args.save, "--save")) if args.save is not None else None  # before the run, not after
+    export = export_target(args.export, args.export_every, args.export_format)
     check_memory([scene.grid], [args.precision])
     if warning := predicted_fast_impact(scene, solver):
         print(f"clothbench: warning: {warning}", file=sys.stderr)
@@ -74,6 +105,7 @@ def cmd_run(args) -> int:
         if args.profile and result.blowup is None:
             backend.upload(*backend.initial_state())
             stages = backend.profile_stages(steps)
+        exported = _export(args, export, setup, backend, result) if export is not None else None
     for warning in result.warnings:
         print(f"clothbench: warning: {warning}", file=sys.stderr)
     if backend.run_note:
@@ -91,6 +123,8 @@ def cmd_run(args) -> int:
         partial.replace(save)
         if args.json or result.blowup is not None:  # stdout is one JSON object, or there is no table
             print(f"wrote {save}", file=sys.stderr)
+    if exported is not None and (args.json or result.blowup is not None):
+        print(exported, file=sys.stderr)
     if result.blowup is not None:
         raise result.blowup
     summary = {
@@ -133,7 +167,40 @@ def cmd_run(args) -> int:
             print(line)
         if save is not None:
             print(f"wrote {save}")
+        if exported is not None:
+            print(exported)
     return 0
+
+
+def _export(args, target, setup, backend, result) -> str:
+    """The frames of the run written to `target` by a replay after the timed run (the timed
+    chunks' numbers are as without --export), and the line that says so. A replay that does not
+    end on the timed run's final state (a backend that is not deterministic) is warned about."""
+    import numpy as np
+
+    from clothbench.progress import waiting
+    from clothbench.reports.export import RunInfo, export_replay, open_writer, scene_spec
+
+    every = args.export_every or default_export_every()
+    steps = result.steps if result.blowup is None else result.blowup.step - 1  # the frames before it
+    info = RunInfo(
+        scene_spec(args.scene), setup.scene.grid, setup.solver.dt, setup.solver.spec, every, steps,
+        backend.name, backend.mode,
+    )  # fmt: skip
+    with waiting(f"exporting {target.path}: the {steps} steps again, read back every {every}"):
+        writer = open_writer(target, setup.scene, info)
+        frames, last = export_replay(backend, steps, writer)
+        path = writer.close()
+    for note in writer.notes:
+        print(f"clothbench: warning: --export: {note}", file=sys.stderr)
+    if result.blowup is None and not np.array_equal(last, result.pos[:, : last.shape[1]], equal_nan=True):
+        worst = float(np.abs(last[:, :3].astype(np.float64) - result.pos[:, :3]).max())
+        print(
+            f"clothbench: warning: --export: the replay ended up to {worst:.3g} m from the timed run's final "
+            f"state ({backend.name} did not repeat its steps bit for bit)",
+            file=sys.stderr,
+        )
+    return f"exported {frames} frames to {path} (every {every} steps, read back in an untimed second run)"
 
 
 def check_strict(backend: str, solver: str, options) -> None:

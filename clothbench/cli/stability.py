@@ -14,6 +14,7 @@ from clothbench.cli.study_files import (
     add_resume_args, finish_stability, say_interrupted, stability_file, stability_key,
 )  # fmt: skip
 from clothbench.errors import ClothbenchError
+from clothbench.variant_names import solver_model
 
 STABILITY_GRID = 24  # its top frequency is within 1.4 % (omega^2) of the infinite lattice's
 
@@ -174,7 +175,7 @@ def _print_stability(rows) -> None:
 
 
 def _solver_model(r) -> str:
-    return "verlet" if r.solver != "pbd" else f"pbd-{r.pbd_method}/{r.iterations}it"
+    return solver_model(r.solver if r.solver != "pbd" else f"pbd-{r.pbd_method}", r.iterations)
 
 
 def _print_side_by_side(rows) -> None:

@@ -10,14 +10,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Motion, euler_degrees, finite, finite3, pose
+from clothbench.colliders.motion import Motion, euler_degrees, finite3, pose
+from clothbench.solver import finite_number
 from clothbench.errors import SceneError
 
 COLLIDER_OPTIONAL_KEYS = ("name", "motion")  # any collider may be named and may move
 
 
 def _positive(value, what: str) -> None:
-    if not finite(value) or value <= 0:
+    if not finite_number(value) or value <= 0:
         raise SceneError(f"{what} must be > 0, got {value!r}")
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothbench.errors import SceneError
+from clothbench.solver import finite_number
 
 _MOTION_KEYS = {"velocity", "angular_velocity", "keyframes"}
 _FRAME_KEYS = {"name", "origin", "motion"}
@@ -93,14 +94,9 @@ def pose(anchor, rotation: np.ndarray, motion: Motion | None, t: float) -> tuple
     return rm @ rotation, anchor + d
 
 
-def finite(x) -> bool:
-    """A finite int or float (not a bool): what every number of a scene file must be."""
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
 def finite3(value, what: str) -> tuple[float, float, float]:
     """Three finite numbers as floats, or one line saying what `what` must be."""
-    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(finite(v) for v in value):
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(finite_number(v) for v in value):
         raise SceneError(f"{what} must be three finite numbers, got {value!r}")
     return tuple(float(v) for v in value)
 

@@ -13,6 +13,7 @@ from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver, Verlet
+from clothbench.variant_names import mesh_word, variant_label, variant_name
 
 GENERIC_CHOICES = ("no", "yes", "both")
 
@@ -37,37 +38,25 @@ class Variant:
     @property
     def mode(self) -> str:
         """The mode the backend will report (Backend.mode), known before it is built."""
-        mesh = f"/mesh={self.options.mesh_collision}" if self.options.mesh_collision else ""
-        return self.capabilities.mode(self.options, self.solver) + mesh
+        return self.mode_words.spell()
+
+    @property
+    def mode_words(self):
+        """The mode's words (variant_names.Mode): the options' and the mesh algorithm's."""
+        words = self.capabilities.mode_words(self.options, self.solver)
+        mesh = (mesh_word(self.options.mesh_collision),) if self.options.mesh_collision else ()
+        return replace(words, rest=mesh)
 
     @property
     def name(self) -> str:
         """'backend mode', a PBD one with its iterations (and substeps when more than one):
-        'numpy f32/pbd-jacobi/10it'."""
-        if self.solver.name != "pbd":
-            return f"{self.backend} {self.mode}"
-        sub = f"x{self.solver.substeps}" if self.solver.substeps > 1 else ""
-        return f"{self.backend} {self.mode}/{self.solver.iterations}it{sub}"
+        'numpy f32/pbd-jacobi/10it' (variant_names.VariantName)."""
+        return variant_name(self.backend, self.mode_words, self.solver)
 
     @property
     def is_reference(self) -> bool:
         """The numpy float64 run: its final state is every other row's reference."""
         return self.backend == "numpy" and self.options.precision == "f64" and self.options.local_size is None
-
-
-def variant_label(overrides: dict, options: BackendOptions) -> str:
-    """A mode name from a variant's option overrides, e.g. 'strict per-step' or 'f64'."""
-    parts = []
-    for k, v in overrides.items():
-        if isinstance(v, bool):
-            parts.append(k if v else ("fast" if k == "strict" else f"no-{k}"))
-        elif v is not None:
-            parts.append(str(v))
-    if options.generic and "generic" not in overrides:
-        parts.append("generic")
-    if options.mesh_collision:
-        parts.append(f"mesh={options.mesh_collision}")
-    return " ".join(parts) or "default"
 
 
 def plan_variants(

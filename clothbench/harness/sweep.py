@@ -33,7 +33,6 @@ from clothbench.harness.sweep_csv import (
     BUDGET_NOTE,
     COLUMNS,
     RETRY_STATUSES,
-    PER_STEP_TRANSFERS,
     SweepFile,
     fmt,
     fmt_chunks,
@@ -43,6 +42,7 @@ from clothbench.harness.sweep_csv import (
 from clothbench.harness.sweep_settings import SweepSettings
 from clothbench.harness.timing import run_timed
 from clothbench.scene import Setup
+from clothbench.variant_names import PER_STEP_TRANSFERS
 from clothbench.solver import Solver
 
 

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Iterable
 
 from clothbench.errors import ClothbenchError
+from clothbench.variant_names import transfers_help
 
-PER_STEP_TRANSFERS = frozenset({"per-step"})  # transfer modes that move the state host<->device every step
 BUDGET_NOTE = "time budget"  # how the note of a row its per-row time budget shortened begins
 
 # The columns of the machine's limits (harness/bounds.py), with what each means.
@@ -52,7 +52,7 @@ COLUMN_DOCS: dict[str, str] = {
     "mode": "the backend's own name for the settings that change speed or results",
     "precision": "working precision: f32, or f64 (the reference precision; runs on: {f64_backends})",
     "strict": "the strict option: bit-exact with numpy f32 (no FMA contraction, no fast math)",
-    "transfer": "transfer mode (opencl resident|per-step, cuda swap|copy); empty = the backend's default",
+    "transfer": f"transfer mode ({transfers_help(' ', ', ')}); empty = the backend's default",
     "local_size": "work-group / block size; empty = the runtime chooses",
     "generic": "true = one kernel for every scene; false = the backend's default (specialised where it has one)",
     "specialised_speedup": "generic rows only: ms/step of this generic kernel / ms/step of the same backend's specialised kernel (same grid, mode and sweep)",

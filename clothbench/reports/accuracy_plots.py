@@ -34,6 +34,7 @@ from clothbench.reports.figures_common import (
     small_multiples, titled_figure,
 )  # fmt: skip
 from clothbench.scene import Scene
+from clothbench.variant_names import model_display, model_short
 
 DPI = 110
 SOLVER_MARKERS = {"verlet": "o", "jacobi": "s", "coloured": "D"}
@@ -41,7 +42,7 @@ FOOTER_WIDTH = 130  # characters of a machine line (6.5 pt) to a line: what fits
 
 
 def _model(r) -> str:
-    return "Verlet" if r.solver != "pbd" else f"PBD {r.pbd_method}"
+    return model_display(r.solver, r.pbd_method)
 
 
 def _label(r) -> str:
@@ -171,7 +172,7 @@ def _every_run_key(rows) -> list[Line2D]:
     ]  # fmt: skip
     if len(solvers) > 1:
         handles += [Line2D([], [], color="0.45", marker=SOLVER_MARKERS[s], linestyle="none",
-                           label="Verlet" if s == "verlet" else f"PBD {s}") for s in solvers]  # fmt: skip
+                           label=model_display("pbd" if s != "verlet" else s, s)) for s in solvers]  # fmt: skip
     handles.append(Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8,
                           label=FRONT_LEGEND))  # fmt: skip
     return handles
@@ -184,17 +185,12 @@ def _model_differences(ax, differences, annotate: bool) -> list:
     for i, d in enumerate(differences):
         line = ax.axvline(d.rms, color="grey", lw=1, alpha=0.6, linestyle=(0, (1, 2 + i)))
         if annotate:
-            line.set_label(f"{_model_name(d.b)}: its converged answer is {d.rms * 1e3:.2g} mm (RMS) from Verlet's")
-            ax.annotate(_model_name(d.b), (d.rms, 0.98), xycoords=("data", "axes fraction"), xytext=(2, 0),
+            line.set_label(f"{model_short(d.b)}: its converged answer is {d.rms * 1e3:.2g} mm (RMS) from Verlet's")
+            ax.annotate(model_short(d.b), (d.rms, 0.98), xycoords=("data", "axes fraction"), xytext=(2, 0),
                         textcoords="offset points", fontsize=6.5, alpha=0.75, ha="left", va="top",
                         rotation=90)  # fmt: skip
             labelled.append(line)
     return labelled
-
-
-def _model_name(model: str) -> str:
-    """'pbd-jacobi/10it, relaxation 1.5' -> 'pbd-jacobi/10it'."""
-    return model.split(",")[0]
 
 
 def plot_speed_vs_error(result, path: Path) -> None:

@@ -27,6 +27,7 @@ from clothbench.reports.figures_common import FRONT_TOLERANCE, is_peer, pareto_f
 from clothbench.reports.results_files import (
     ACCURACY, ARTEFACTS, STABILITY, SWEEP, WHAT, ResultsFile, accuracy_result, analysis_rows,
 )  # fmt: skip
+from clothbench.variant_names import iterations_display, model_display
 
 STYLE = """
 :root { color-scheme: light; --line: #d0d4da; --soft: #f4f6f8; --ink: #1d232a; --dim: #5b6570; }
@@ -457,7 +458,7 @@ def ms_per_step_section(ok: list[dict], parent: str) -> Section:
         lines.setdefault(key, {})[int(r["grid"])] = r
     body, classes = [], []
     for (backend, solver, iterations, mode, scene, device), at in lines.items():
-        label = f"{backend} {mode}" + (f", {iterations} it" if solver == "pbd" and iterations else "")
+        label = f"{backend} {mode}" + (f", {iterations_display(iterations)}" if solver == "pbd" and iterations else "")
         label += f" [{scene}]" if len(scenes) > 1 else ""
         body.append([label, device] + [float(at[g]["ms_median"]) if g in at else None for g in grids])
         classes.append("peer" if is_peer(backend) or at[min(at)]["peer"] == "true" else "")
@@ -504,7 +505,7 @@ def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
     """Verlet against PBD on each backend and grid: the cheapest f32 mode of each solver model."""
 
     def model(r) -> str:
-        return "Verlet" if (r.get("solver") or "verlet") != "pbd" else f"PBD {r['pbd_method']}, {r['iterations']} it"
+        return model_display(r.get("solver") or "verlet", r["pbd_method"], r["iterations"])
 
     cost: dict[tuple, dict[str, float]] = {}
     for r in ok:
@@ -622,7 +623,7 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
     sec.body += _inline_all(figures, folder, STABILITY_FIGURES)
 
     def model(r) -> str:
-        return "Verlet" if r.solver != "pbd" else f"PBD {r.pbd_method}, {r.iterations} it"
+        return model_display(r.solver, r.pbd_method, r.iterations)
 
     def ms(seconds: float | None) -> float | None:
         return None if seconds is None else 1e3 * seconds

@@ -14,6 +14,7 @@ import sys
 
 from clothbench.backends import BACKENDS, check_name
 from clothbench.reports.tables import gpu_style
+from clothbench.variant_names import TRANSFERS, base_mode
 
 
 def _ok(rows: list[dict], grid: int) -> list[dict]:
@@ -81,13 +82,6 @@ def limits_markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def base_mode(mode: str) -> str:
-    """The mode without the kernel shape tuned for the grid (from the first ls= or threads=
-    on): 'fast/resident' of 'fast/resident/ls=32/rows/v16/wg=32'. A sweep's rows of one
-    variant then share a line whatever shape won on each grid."""
-    return re.sub(r"/(ls|threads)=.*$", "", mode)
-
-
 def ms_markdown(rows: list[dict]) -> str:
     """ms/step of every backend and mode (f32 and f64, default local size) at every grid, in
     registry order, with each row's ratio to the c line at the largest grid it reached. The
@@ -117,7 +111,7 @@ def runtime_cells(rows: list[dict]) -> dict[int, tuple[float, float]]:
         here = _ok(rows, grid)
         native = _fastest([r for r in here if r["backend"] == "c" and r["strict"] == "false"])
         ocl = _fastest([r for r in here if r["backend"] == "opencl" and r["strict"] == "false" and r["generic"] != "true"
-                        and (r["transfer"] or "resident") == "resident"])  # fmt: skip
+                        and (r["transfer"] or TRANSFERS["opencl"][0]) == TRANSFERS["opencl"][0]])  # fmt: skip
         if native and ocl:
             out[grid] = (float(ocl["ms_median"]), float(ocl["ms_median"]) / float(native["ms_median"]))
     return out

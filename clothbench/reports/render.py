@@ -420,6 +420,44 @@ def render(
     return report
 
 
+def render_exported(exported, size: tuple[int, int], out: str, frame: int | None, fps: float, gl: str = "egl"):
+    """Draw the frames of a USD `run --export` wrote (reports/export.py's Exported) into `out`:
+    a .png is one frame (`frame`, default the last), a .gif or a folder every frame (a folder's
+    files named by frame index, as the export's are). Each frame is drawn from the file's points
+    and normals, its colliders where they were at the frame's time."""
+    kind = output_kind(out)
+    path = Path(out)
+    _writable(path if kind == "folder" else path.parent)
+    chosen = [exported.check_frame(frame if frame is not None else exported.frames - 1)] if kind == "png" else None
+    frames = chosen or list(range(exported.frames))
+    report = RenderReport([], len(frames), exported.step(frames[-1]))
+    duration = exported.time(exported.frames - 1)
+    renderer = Renderer(gl_context.get_device(gl), exported.scene, size, duration)
+    images = []
+    try:
+        for f in frames:
+            t0 = time.perf_counter()
+            renderer.time = exported.time(f)  # the state after step s is x(s dt), its colliders then
+            image = renderer.draw_arrays(exported.points[f], exported.normals[f])
+            t1 = time.perf_counter()
+            report.draw_s += t1 - t0
+            if kind == "folder":
+                report.files.append(_save_png(image, path / f"frame_{f:04d}.png"))
+                report.write_s += time.perf_counter() - t1
+            else:
+                images.append(image)
+    finally:
+        renderer.close()
+    t0 = time.perf_counter()
+    if kind == "png":
+        report.files.append(_save_png(images[-1], path))
+    elif kind == "gif":
+        report.merged = _written(path, lambda: write_gif(images, path, fps))
+        report.files.append(path)
+    report.write_s += time.perf_counter() - t0
+    return report
+
+
 def _writable(folder: Path) -> None:
     try:
         folder.mkdir(parents=True, exist_ok=True)

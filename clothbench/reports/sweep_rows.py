@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BUDGET_NOTE, read_sweep
 from clothbench.reports.figures_common import display_name, machine_line, platform_of, series_style
+from clothbench.variant_names import model_display
 
 # Columns the figures need; a CSV without them is refused with their names.
 REQUIRED = (
@@ -54,7 +55,7 @@ class Row:
     @property
     def model(self) -> str:
         """'Verlet', 'PBD jacobi', ...: the solver model, what a panel may be split by."""
-        return "Verlet" if self.solver != "pbd" else f"PBD {self.pbd_method}".rstrip()
+        return model_display(self.solver, self.pbd_method)
 
     @property
     def cost(self) -> float:
@@ -134,7 +135,7 @@ def _variant(r: Row, precisions: set[str], stricts: set[bool]) -> str:
     backend's lines apart in this file (and a precision other than f32) is named."""
     parts = []
     if r.solver == "pbd":
-        parts.append(f"PBD {r.pbd_method}".rstrip())
+        parts.append(model_display(r.solver, r.pbd_method))
     if precisions != {"f32"}:
         parts.append(r.precision)
     if r.strict:

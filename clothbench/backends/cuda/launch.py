@@ -28,11 +28,12 @@ from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver
+from clothbench.variant_names import TRANSFERS as ALL_TRANSFERS
 from clothbench.backends.kernel_inputs import (
     MeshConstants, VerletConstants, collider_rows, pin_targets, pose_rows,
 )  # fmt: skip
 
-TRANSFERS = ("swap", "copy")  # the first is the default
+TRANSFERS = ALL_TRANSFERS["cuda"]  # the first is the default
 STEP_KERNEL = "verlet_step"
 STEPS_KERNEL = "verlet_steps"
 AUTO_BLOCK = 256  # threads per block of verlet_step when neither --local-size nor tuning says

@@ -11,11 +11,11 @@ import shlex
 import subprocess
 from functools import lru_cache
 
+from clothbench.environment import CUPY_PACKAGES  # noqa: F401 (cuda/verlet.py takes it from here with the rest)
+
 # The extra that installs CuPy and NVRTC for each CUDA major (pyproject.toml)
 EXTRAS = {12: "cuda", 13: "cuda13"}
 INSTALL_HINT = "cupy not installed (pip install 'clothbench[cuda]' for CUDA 12, 'clothbench[cuda13]' for CUDA 13)"
-# CuPy's wheels for each CUDA major, and a source build ("cupy"): which one is imported
-CUPY_PACKAGES = ("cupy-cuda13x", "cupy-cuda12x", "cupy-cuda11x", "cupy")
 
 
 def version_string(number: int) -> str:

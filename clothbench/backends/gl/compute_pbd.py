@@ -63,6 +63,7 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
         sweep_variants=({"strict": True}, {"strict": False}),
         meshes=("pbd",),
         moving_colliders=("pbd",),
+        boxes=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # compute.py's default, the same bits
     )
 

@@ -32,7 +32,7 @@ from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.gl.driver import GLDriverInfo, gl_driver
 from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_context.X)
-    COLLIDER_KINDS, MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
+    MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
     GLBodies, MeshBuffers, body_defines, collider_kinds, collider_source, mesh_layout, motion_offsets,
     motion_rows, pin_slots, pose_block,
 )  # fmt: skip
@@ -257,7 +257,7 @@ class GLClock:
 
     Timestamps (glQueryCounter), not a GL_TIME_ELAPSED query: only one GL_TIME_ELAPSED query
     may be active in a context, and the viewer's profiler holds one around advance()
-    (reports/viewer/profiler.py). The pair of query objects goes back to the context's pool
+    (clothbench/viewer/profiler.py). The pair of query objects goes back to the context's pool
     when the clock is collected: backends share the context, and not every one closes its
     clock (the PBD solver's close() is its own)."""
 
@@ -356,6 +356,22 @@ def get_device(gl: str = "egl") -> GLDevice:
     if gl == "osmesa":
         raise GLUnavailable(f"no OSMesa context: {_failures['osmesa']} ({INSTALL_HINT})")
     raise GLUnavailable(f"no EGL display ({_failures['egl']}) and no OSMesa ({_failures['osmesa']}) ({INSTALL_HINT})")
+
+
+@contextmanager
+def lend_device(device: GLDevice):
+    """Within the block, `device` is what get_device() gives for `--gl egl` (the default): a
+    context an application made (the viewer's window) lent to the GL backends, so that they
+    compute where it draws. The context there was before, if any, comes back after."""
+    saved = _devices.get("egl")
+    _devices["egl"] = device
+    try:
+        yield device
+    finally:
+        if saved is None:
+            _devices.pop("egl", None)
+        else:
+            _devices["egl"] = saved
 
 
 def probe(min_version: int = 330) -> Availability:

@@ -36,6 +36,7 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
     capabilities = Capabilities(
         generic=True, normals=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}),
         meshes=("verlet",), moving_colliders=("verlet",),  # on GL 4.3: storage buffers in the shader
+        boxes=("verlet",),  # kernels/collide_box.glsl
         mesh_collisions=("accelerated", "naive"),  # kernels/collide_mesh.glsl, as glsl-compute's
     )  # fmt: skip
     shader_stage = "fragment"

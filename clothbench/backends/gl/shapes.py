@@ -20,6 +20,7 @@ from __future__ import annotations
 import ctypes
 from dataclasses import dataclass
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.backends.base import BackendOptions
@@ -124,7 +125,7 @@ def tuning_key(backend) -> dict[str, str]:
     return {
         "driver": backend.driver,
         "grid": str(scene.grid),
-        "colliders": f"{len(scene.spheres)}s{len(scene.cylinders)}c{len(scene.planes)}p",
+        "colliders": collider_counts(scene),
         "arithmetic": "strict" if options.strict else "fast",
         "generic": str(options.generic),
         "normals": str(options.normals),
@@ -133,6 +134,14 @@ def tuning_key(backend) -> dict[str, str]:
         **({"meshes": f"{triangles}t/{backend.mesh_collision}"} if scene.meshes else {}),
         **({"motion": "moving"} if scene.has_motion else {}),
     }
+
+
+def collider_counts(scene) -> str:
+    """'1s0c2p': the scene's colliders per kind (colliders/kinds.py), by the kind's initial; a
+    kind not every backend takes (a box) only where the scene has one, so that the choices
+    measured before that kind existed stay valid."""
+    counts = ((kind, len(getattr(scene, kind.plural))) for kind in KINDS)
+    return "".join(f"{count}{kind.name[0]}" for kind, count in counts if count or kind.capability is None)
 
 
 def time_shape(backend, name: str) -> float:

@@ -19,6 +19,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.opencl import runtimes
+from clothbench.backends.opencl.bodies import collider_counts
 from clothbench.backends.opencl.build_log import compiler_log
 from clothbench.backends.opencl.isolated import in_child_per_device
 from clothbench.backends.opencl.runtimes import INTEL_EXTRA
@@ -399,10 +400,9 @@ def build_program(context, source: str, options: tuple[str, ...]):
 def shape_options(scene, vector_width: int) -> tuple[str, ...]:
     """The build options that specialise a program to the scene's shape: the grid side, the
     count of each collider kind it has, and the particles per work item."""
-    counts = (("SPHERES", len(scene.spheres)), ("CYLINDERS", len(scene.cylinders)), ("PLANES", len(scene.planes)))
     return (
         f"-DCLOTH_N={scene.grid}",
-        *(f"-DCLOTH_{kind}={count}" for kind, count in counts if count),
+        *(f"-D{kind.count_name('opencl')}={count}" for kind, count in collider_counts(scene) if count),
         f"-DCLOTH_VECTOR_WIDTH={vector_width}",
     )
 

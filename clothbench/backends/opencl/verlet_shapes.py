@@ -22,6 +22,7 @@ import re
 from dataclasses import dataclass
 
 from clothbench.errors import ClothbenchError
+from clothbench.backends.opencl.bodies import collider_counts
 
 # Floats before and after the x, y, z planes of a state buffer (CLOTH_PAD in the kernel): the
 # rows kernels' masked loads reach one float past either end. 16 keeps the planes 64-byte aligned.
@@ -107,7 +108,7 @@ def tuning_key(device, scene, options, source: str, mesh_collision: str | None =
     """What a shape's speed depends on: the device and its driver, the scene's shape (its
     meshes, their search and whether anything moves included), the arithmetic, what else the
     step does, and the kernel source (an edit measures again)."""
-    bodies = {}
+    bodies, counts = {}, collider_counts(scene)
     if scene.meshes:
         bodies["meshes"] = f"{'/'.join(str(m.geometry.triangles) for m in scene.meshes)} {mesh_collision}"
     if scene.has_motion:
@@ -117,7 +118,10 @@ def tuning_key(device, scene, options, source: str, mesh_collision: str | None =
         "platform": device.platform.version,
         "driver": device.driver_version,
         "grid": str(scene.grid),
-        "colliders": f"{len(scene.spheres)}/{len(scene.cylinders)}/{len(scene.planes)}",
+        # the kinds every backend takes by count; a kind not every backend takes (a box) its
+        # own key, only where the scene has it: the keys measured before stay valid
+        "colliders": "/".join(str(count) for kind, count in counts if kind.capability is None),
+        **{kind.plural: str(count) for kind, count in counts if kind.capability and count},
         "arithmetic": "strict" if options.strict else "fast",
         "normals": str(bool(options.normals)),
         "transfer": options.transfer or "resident",

@@ -3,6 +3,12 @@ trackball (a drag turns the scene as if it were a ball under the pointer) and a 
 
 The camera looks at the centre of the scene's bounds from `distance` away; `orientation`
 is the world-to-camera rotation, its rows the camera's right, up and back axes.
+
+The run panel covers the window's top-left corner (the profiler, when open, its top-right),
+and `render`'s framing fills the whole window: a cloth corner would sit under the text. So
+the picture is framed in the columns between the panels (`keep_clear_of`): moved to their
+middle and made smaller only as far as the scene's width at home needs. It is a transform of
+the image, the same at every turn and zoom, so the view does not jump as the scene turns.
 """
 
 from __future__ import annotations
@@ -29,6 +35,8 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 class Trackball:
     def __init__(self, scene: Scene, size: tuple[int, int]):
         self.scene, self.size = scene, size
+        self.clear = (0, size[0])  # the pixel columns [left, right) the picture is framed in
+        self._panels = (False, False)  # whether a panel was at the left, at the right
         self.home()
 
     def home(self) -> None:
@@ -43,6 +51,26 @@ class Trackball:
         self.orientation = np.stack([right, np.cross(back, right), back])
         self.distance = float(np.linalg.norm(eye - self.centre))
         self.home_distance = self.distance
+        self._home_half_width()
+
+    def _home_half_width(self) -> None:
+        """Half the width of the scene's bounds at home, in normalised device coordinates: how
+        much of the window's width the picture needs (at most about 0.94, render's margin)."""
+        lo, hi = scene_bounds(self.scene)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        p = np.hstack([corners, np.ones((8, 1))]) @ self._view_projection().T
+        self.half_width = float(np.max(np.abs(p[:, 0] / p[:, 3])))
+
+    def keep_clear_of(self, left: int, right: int) -> None:
+        """Frame the picture in the pixel columns [left, right) (between the top panels,
+        draw.clear_span). The span only narrows while the same panels are shown, until a
+        resize: a panel that is a number narrower for a frame must not make the picture
+        jitter; a panel opened or closed places it again."""
+        panels = (left > 0, right < self.size[0])
+        if panels != self._panels:
+            self.clear, self._panels = (int(left), int(right)), panels
+        else:
+            self.clear = (max(self.clear[0], int(left)), min(self.clear[1], int(right)))
 
     def _on_ball(self, x: float, y: float) -> np.ndarray:
         """Window pixel (x right, y down) on the virtual ball, in camera coordinates."""
@@ -76,9 +104,26 @@ class Trackball:
 
     def resize(self, size: tuple[int, int]) -> None:
         self.size = size
+        self.clear, self._panels = (0, size[0]), (False, False)
+        self._home_half_width()
 
     def camera(self) -> Camera:
-        """The Camera (render.Camera) of the current view."""
+        """The Camera (render.Camera) of the current view, framed in the columns `clear`."""
+        w = self.size[0]
+        left, right = self.clear
+        if 2 * (right - left) < w:
+            # a span under half the window (a narrow window, or both panels wide) keeps the
+            # whole-window framing: the cloth shares it with the text rather than live in a strip
+            left, right = 0, w
+        scale = min(1.0, (right - left) / (w * self.half_width)) if self.half_width > 0 else 1.0
+        frame = np.eye(4)  # clip x' = scale x + shift w: the image scaled, then moved
+        frame[0, 0] = frame[1, 1] = scale
+        frame[0, 3] = (left + right) / w - 1  # NDC 0 to the middle of the span
+        back = self.orientation[2]
+        eye = self.centre + back * self.distance
+        return Camera(eye, frame @ self._view_projection(), self.size)
+
+    def _view_projection(self) -> np.ndarray:
         back = self.orientation[2]
         eye = self.centre + back * self.distance
         w, h = self.size
@@ -93,4 +138,4 @@ class Trackball:
         projection[0, 0], projection[1, 1] = 1 / tan_h, 1 / tan_v
         projection[2, 2], projection[2, 3] = (far + near) / (near - far), 2 * far * near / (near - far)
         projection[3, 2] = -1
-        return Camera(eye, projection @ view, (w, h))
+        return projection @ view

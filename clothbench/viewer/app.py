@@ -27,13 +27,13 @@ from clothbench.colliders.kinds import KINDS
 from clothbench.backends.gl import context as gl_context
 from clothbench.errors import ClothbenchError
 from clothbench.reports.render import write_gif
-from clothbench.reports.viewer.camera import WHEEL_ZOOM, KEY_ZOOM, Trackball
-from clothbench.reports.viewer.draw import Overlay, WindowRenderer
-from clothbench.reports.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, name_of, window_key_names
-from clothbench.reports.viewer.overlay_text import panels
-from clothbench.reports.viewer.profiler import FrameProfile, GLTimer, gl_timer_queries
-from clothbench.reports.viewer.session import Session
-from clothbench.reports.viewer.signals import on_lost_display, raise_if_stopped, stop_between_frames
+from clothbench.viewer.camera import WHEEL_ZOOM, KEY_ZOOM, Trackball
+from clothbench.viewer.draw import Overlay, WindowRenderer, clear_span
+from clothbench.viewer.keys import ROTATE_KEYS, ZOOM_KEYS, name_of, window_key_names
+from clothbench.viewer.overlay_text import panels
+from clothbench.viewer.profiler import FrameProfile, GLTimer, gl_timer_queries
+from clothbench.viewer.session import Session
+from clothbench.viewer.signals import on_lost_display, raise_if_stopped, stop_between_frames
 
 NO_DISPLAY = (
     "no display to open a window on ({why}): run it under a virtual display with --frames N and "
@@ -75,8 +75,15 @@ def open_window(settings: ViewSettings):
     kind, extra = ("headless", {"backend": "egl"}) if settings.headless else ("pyglet", {})
     try:  # importing pyglet's window already connects to the display
         cls = moderngl_window.get_local_window_cls(kind)
-        window = cls(title="clothbench view", size=settings.size, gl_version=(3, 3), vsync=False,
-                     resizable=not settings.headless, samples=0, **extra)  # fmt: skip
+        window = cls(
+            title="clothbench view",
+            size=settings.size,
+            gl_version=(3, 3),
+            vsync=False,
+            resizable=not settings.headless,
+            samples=0,
+            **extra,
+        )
     except Exception as e:  # a display that cannot be reached, no GL: one line
         why = f"{type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}".rstrip(": ")
         if settings.headless:
@@ -112,17 +119,10 @@ def _writing(path: str, write):
 @contextmanager
 def shared_context(window):
     """The window's context as the GL backends' device for as long as the window is open,
-    so that they compute where the window draws. The context they had is restored after."""
+    so that they compute where the window draws (gl_context.lend_device)."""
     device = gl_context.GLDevice(window.ctx, "window", _proc_address(window))
-    saved = gl_context._devices.get("egl")
-    gl_context._devices["egl"] = device  # what get_device() gives the GL backends
-    try:
+    with gl_context.lend_device(device):
         yield device
-    finally:
-        if saved is None:
-            gl_context._devices.pop("egl", None)
-        else:
-            gl_context._devices["egl"] = saved
 
 
 class Viewer:
@@ -215,17 +215,21 @@ class Viewer:
             _, prev = session.state()
             normals = session.cloth_normals(prev)
         self.source = "device" if drawable is not None else "readback"
-        self.renderer.camera = self.trackball.camera()
-        self.renderer.wireframe = self.wireframe
         last = self.settings.frames is not None and self.frame == self.settings.frames
         with profile.stage("draw"):
+            with profile.stage("overlay"):  # laid out first: the camera frames the cloth clear of it
+                placed = self.overlay.place(panels(self, profile))
+            self.trackball.keep_clear_of(*clear_span(placed, self.size[0]))
+            self.renderer.camera = self.trackball.camera()
+            self.renderer.time = session.drawn_time()
+            self.renderer.wireframe = self.wireframe
             with profile.stage("cloth"):
                 if drawable is not None:
                     self.renderer.draw_state(drawable)
                 else:
                     self.renderer.draw_arrays(prev, normals)
             with profile.stage("overlay"):
-                self.overlay.draw(self.window.fbo, panels(self, profile))
+                self.overlay.draw(self.window.fbo, placed)
             if self.settings.record or (
                 self.settings.screenshot and (last or self.quit or self.settings.frames is None)
             ):
@@ -335,19 +339,20 @@ class Viewer:
         self.overlay.release()
 
 
-def view(scene, solver, backend: str, options, settings: ViewSettings) -> ViewReport:
+def view(scene, solver, backend: str, options, settings: ViewSettings, source=None) -> ViewReport:
     """Open the window and run `scene` stepped by `solver` on `backend` in it until it closes
-    or `settings.frames` frames are drawn. Ctrl-C or SIGTERM stops it between frames."""
+    or `settings.frames` frames are drawn; with `source` (viewer/playback.py), play its frames
+    instead. Ctrl-C or SIGTERM stops it between frames."""
     with stop_between_frames():
-        return _view(scene, solver, backend, options, settings)
+        return _view(scene, solver, backend, options, settings, source)
 
 
-def _view(scene, solver, backend: str, options, settings: ViewSettings) -> ViewReport:
+def _view(scene, solver, backend: str, options, settings: ViewSettings, source=None) -> ViewReport:
     window = open_window(settings)
     try:
         with shared_context(window) as device:
             timer = GLTimer(device, gl_timer_queries(device)[0])
-            session = Session(scene, solver, backend, options, settings.steps_per_frame, timer)
+            session = Session(scene, solver, backend, options, settings.steps_per_frame, timer, source)
             try:
                 viewer = Viewer(window, device, session, settings)
                 try:

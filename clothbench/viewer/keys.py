@@ -48,8 +48,8 @@ def backend_keys() -> dict[str, str]:
 
 
 def key_of(backend: str) -> str:
-    """The viewer's key for `backend` (a registry name)."""
-    return {name: k for k, name in backend_keys().items()}[backend]
+    """The viewer's key for `backend` (a registry name); none for a playback (view --from)."""
+    return {name: k for k, name in backend_keys().items()}.get(backend, "")
 
 
 def _span(keys) -> str:

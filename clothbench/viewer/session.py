@@ -27,8 +27,8 @@ from clothbench.harness.normals import grid_normals
 from clothbench.harness.simulate import position_error
 from clothbench.scene import Scene, load_scene
 from clothbench.solver import Solver
-from clothbench.reports.viewer.keys import COLLIDER_KEYS, GRID_KEYS, backend_keys
-from clothbench.reports.viewer.profiler import FrameProfile, GLTimer
+from clothbench.viewer.keys import COLLIDER_KEYS, GRID_KEYS, backend_keys
+from clothbench.viewer.profiler import FrameProfile, GLTimer
 
 SHADOW_MAX_GRID = 128  # float64 NumPy keeps up with a frame up to here (~2 ms/step at 128)
 KINDS = {"sphere": "spheres", "cylinder": "cylinders", "plane": "planes"}
@@ -37,15 +37,25 @@ DEFAULT_SCENES = {"sphere": "sphere", "cylinder": "cylinder", "plane": "cylinder
 
 
 def has_stages(backend: Backend) -> bool:
-    """Whether the backend times the stages of its step itself (profile_stages)."""
-    return type(backend).profile_stages is not Backend.profile_stages
+    """Whether the backend times the stages of its step itself (profile_stages); a playback
+    has none."""
+    return getattr(type(backend), "profile_stages", Backend.profile_stages) is not Backend.profile_stages
 
 
 class Session:
     """The simulation behind a window: scene, solver, backend, step, and the shadow run."""
 
-    def __init__(self, scene: Scene, solver: Solver, backend: str, options: BackendOptions,
-                 steps_per_frame: int = 10, gl_timer: GLTimer | None = None):  # fmt: skip
+    def __init__(
+        self,
+        scene: Scene,
+        solver: Solver,
+        backend: str,
+        options: BackendOptions,
+        steps_per_frame: int = 10,
+        gl_timer: GLTimer | None = None,
+        source=None,
+    ):
+        """`source`: frames to play back (viewer/playback.py) in place of the backend `backend`."""
         if steps_per_frame < 1:
             raise ClothbenchError(f"--steps-per-frame must be >= 1, got {steps_per_frame}")
         self.base = scene  # the scene as loaded: what a collider toggle restores
@@ -64,6 +74,10 @@ class Session:
         self.message = ""  # the last thing that happened, until something else does
         self._cache = None  # (backend, step, state): one readback per frame at most
         self._profile = FrameProfile()
+        self.playback = source is not None
+        if source is not None:
+            self.backend_name, self.backend = source.name, source
+            return
         avail = availability(backend)
         if not avail.usable:
             raise BackendUnavailable(backend, avail.reason)
@@ -76,7 +90,9 @@ class Session:
     def press(self, key: str, profile: FrameProfile) -> bool:
         """Apply a simulation key; False if the key is not one (the window's keys)."""
         self._profile = profile
-        if key in (keys := backend_keys()):
+        if self.playback and key in (*backend_keys(), *GRID_KEYS, *COLLIDER_KEYS, "E"):
+            self.say(f"{key}: a playback's frames are the file's (R, space and N play them)")
+        elif key in (keys := backend_keys()):
             self.switch_backend(keys[key], key)
         elif key in GRID_KEYS:
             self.set_grid(GRID_KEYS[key])
@@ -230,6 +246,13 @@ class Session:
         with self._profile.stage("step"), self._profile.stage("normals"):
             normals = self.backend.read_normals()
             return normals if normals is not None else grid_normals(prev, self.scene.grid, np.float32)
+
+    def drawn_time(self) -> float:
+        """Seconds simulated at the state drawn, where the colliders are drawn: x(t), the
+        state the last step read (render.py's frame), or the playback's frame."""
+        if self.playback:
+            return self.backend.time
+        return max(self.step - 1, 0) * self.solver.dt
 
     def drawable(self):
         """The backend's device state to draw from (the window's context), or None: a readback."""

@@ -3,6 +3,6 @@ while it runs, with the hierarchical profiler. keys.py names the keys, session.p
 simulation behind the window (switching, the shadow run), profiler.py the stage tree,
 camera.py the trackball, draw.py and overlay_text.py what is drawn, app.py the window."""
 
-from clothbench.reports.viewer.app import ViewReport, ViewSettings, view
+from clothbench.viewer.app import ViewReport, ViewSettings, view
 
 __all__ = ["ViewReport", "ViewSettings", "view"]

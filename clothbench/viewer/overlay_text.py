@@ -4,9 +4,9 @@ event and the keys (bottom left)."""
 from __future__ import annotations
 
 from clothbench.colliders.kinds import KINDS
-from clothbench.reports.viewer.draw import DIM, WARN, wrap
-from clothbench.reports.viewer.keys import backend_key_span, help_lines, key_of
-from clothbench.reports.viewer.session import has_stages
+from clothbench.viewer.draw import DIM, WARN, wrap
+from clothbench.viewer.keys import backend_key_span, help_lines, key_of
+from clothbench.viewer.session import has_stages
 
 WIDTH = 58  # characters of the run panel's widest line
 PROFILER_WIDTH = 44

@@ -116,8 +116,8 @@ def fit_lines(items: list[tuple[str, tuple]], width: int) -> list[tuple[str, tup
     return [(part, colour) for text, colour in items for part in (wrap(text, width) if len(text) > width else [text])]
 
 
-def layout(panels: list[tuple[str, list]], size: tuple[int, int], g: Glyphs) -> list[tuple[int, int, np.ndarray]]:
-    """Each panel as (x, y from the top, RGBA uint8 image): `panels` are (corner, lines),
+def layout(panels: list[tuple[str, list]], size: tuple[int, int], g: Glyphs) -> list[tuple[str, int, int, np.ndarray]]:
+    """Each panel as (corner, x, y from the top, RGBA uint8 image): `panels` are (corner, lines),
     corner one of 'top-left', 'top-right', 'bottom-left'; a line is text or (text, colour).
     The bottom panel's lines (the last event, the keys) wider than the window go on below
     (fit_lines); the top panels are tables, a column to a line, cut at the window's edge
@@ -143,8 +143,17 @@ def layout(panels: list[tuple[str, list]], size: tuple[int, int], g: Glyphs) -> 
             ink[top : top + g.height] = colour
         back = np.array(PANEL, dtype=np.float32)
         panel = back + cover[..., None] * (ink - back)
-        out.append((x, y, (panel + 0.5).astype(np.uint8)))
+        out.append((corner, x, y, (panel + 0.5).astype(np.uint8)))
     return out
+
+
+def clear_span(placed: list[tuple[str, int, int, np.ndarray]], width: int) -> tuple[int, int]:
+    """The pixel columns [left, right) between the top panels (the run panel at the left, the
+    profiler at the right, where they are): the cloth is framed there, where no text covers it
+    (camera.Trackball.keep_clear_of)."""
+    left = max((x + image.shape[1] + GAP for corner, x, _, image in placed if corner == "top-left"), default=0)
+    right = min((x - GAP for corner, x, _, image in placed if corner == "top-right"), default=width)
+    return left, right
 
 
 class Overlay:
@@ -159,14 +168,18 @@ class Overlay:
             self.texture = ctx.texture(size, 4)
             self.vao = ctx.vertex_array(self.program, [])
 
-    def draw(self, target, panels) -> None:
-        """Blend `panels` over what `target` (the window's framebuffer) holds. Only the panels'
-        rectangles are written and drawn (a software rasteriser pays for every pixel)."""
+    def place(self, panels) -> list[tuple[str, int, int, np.ndarray]]:
+        """`panels` laid out in this window (layout): before the frame is drawn, so that the
+        camera can keep the cloth clear of them."""
+        return layout(panels, self.size, self.glyphs)
+
+    def draw(self, target, placed) -> None:
+        """Blend the `placed` panels over what `target` (the window's framebuffer) holds. Only
+        the panels' rectangles are written and drawn (a software rasteriser pays for every pixel)."""
         h = self.size[1]
-        placed = layout(panels, self.size, self.glyphs)
         with self.gl:
             ctx = self.gl.ctx
-            for x, y, image in placed:  # texture row r is screen row r from the top (the shader)
+            for _, x, y, image in placed:  # texture row r is screen row r from the top (the shader)
                 self.texture.write(image.tobytes(), viewport=(x, y, image.shape[1], image.shape[0]))
             self.texture.use(location=0)
             self.program["image"].value = 0
@@ -174,7 +187,7 @@ class Overlay:
             ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
             ctx.enable(ctx.BLEND)
             ctx.blend_func = ctx.SRC_ALPHA, ctx.ONE_MINUS_SRC_ALPHA
-            for x, y, image in placed:
+            for _, x, y, image in placed:
                 ph, pw = image.shape[:2]
                 ctx.scissor = (x, h - y - ph, pw, ph)
                 self.vao.render(mode=ctx.TRIANGLES, vertices=3)
