@@ -71,7 +71,6 @@ KINDS = (
         keys=("center", "half_extents"),
         optional=("rotation",),
         rows=4,
-        languages=("numpy", "c", "opencl", "glsl"),
         capability="boxes",
     ),  # fmt: skip
     ColliderKind("plane", "planes", Plane, keys=("point", "normal"), rows=2),

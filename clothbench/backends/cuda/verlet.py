@@ -285,6 +285,7 @@ class CudaBackend(Backend):
         # meshes (kernels/collide_mesh.cuh) and per-step poses (launch.py: MotionTable), both kernels
         meshes=("verlet",),
         moving_colliders=("verlet",),
+        boxes=("verlet",),  # collide_box, fixed and moving, both kernels
         mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "copy"}),
     )
@@ -339,6 +340,7 @@ class CudaBackend(Backend):
             **({"meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
                           f"{self.mesh_collision}"} if s.meshes else {}),
             **({"motion": "per-step poses"} if s.has_motion else {}),
+            **({"boxes": str(len(s.boxes))} if s.boxes else {}),
         }  # fmt: skip
 
     def _pingpong(self, shape: str) -> PingPong:
