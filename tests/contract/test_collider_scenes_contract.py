@@ -2,7 +2,8 @@
 case's sheet has reached the colliders it names by the step it is read at, and there every
 strict build is the NumPy float32 reference bit for bit, with no particle inside a collider.
 The cases are those the per-backend files ran each on their own backend (the GL backends'
-1500 steps at n = 32, CUDA's every-kind and curtain, the peers' tilted cylinder at n = 24)."""
+1500 steps at n = 32 and all kinds at n = 24, CUDA's every-kind and curtain, the peers' tilted
+cylinder at n = 24)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,14 @@ from clothbench.harness import reference, simulate
 from clothbench.harness.health import max_penetration
 from clothbench.scene import load_scene
 
-from conftest import VERLET, assert_bit_exact, every_kind, three_kinds_scene, tilted_cylinder_scene
+from conftest import (
+    VERLET,
+    assert_bit_exact,
+    every_collider_scene,
+    every_kind,
+    three_kinds_scene,
+    tilted_cylinder_scene,
+)
 from registry_variants import backend_params, options, usable
 
 # float32 rounding leaves a pushed-out particle up to a few ulp inside: measured 6e-8 m
@@ -21,7 +29,8 @@ PENETRATION_TOLERANCE = 1e-6
 FULL = pytest.mark.full
 
 # name: (scene, steps, the colliders it touches by then, tier). The quick tier reads the curtain
-# on its sphere and the tilted cylinder and floor: all three kinds, at 600 steps. The built-in
+# on its sphere and the tilted cylinder and floor (all three kinds, at 600 steps) and the
+# all-kinds sheet after 150 steps (on a cylinder only, by then). The built-in
 # cylinder's sheet reaches its floor only after seconds, so there only the cylinder counts.
 CASES = {
     "curtain-600": (lambda: load_scene("curtain").replace(grid=32), 600, ("spheres",), ()),
@@ -31,6 +40,7 @@ CASES = {
     "cylinder-1500": (lambda: load_scene("cylinder").replace(grid=32), 1500, ("cylinders",), FULL),
     "curtain-1500": (lambda: load_scene("curtain").replace(grid=32), 1500, ("spheres",), FULL),
     "three-kinds-1500": (lambda: three_kinds_scene(32), 1500, ("spheres", "cylinders", "planes"), FULL),
+    "all-kinds-24-150": (lambda: every_collider_scene(24), 150, ("cylinders",), ()),
 }
 
 

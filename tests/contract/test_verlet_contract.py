@@ -77,6 +77,33 @@ def test_strict_matches_numpy_f32_bit_for_bit_on_a_larger_grid(param, scene_name
     assert_bit_exact(prev, ref_prev, f"prev, {name} generic={generic} {scene_name} n=64 steps={steps}")
 
 
+def small_grid_cases() -> list:
+    """(param, scene, n, steps): grids with little or no interior, or a ragged one. n < 5 has no
+    interior at all (border code only, and none for the compute shader's split), 5 a 1 x 1 one;
+    6, 33, 37 and 100 leave a ragged SIMD or work-group remainder. Every collider for 200
+    steps, the sphere scene for 20. The quick tier runs clothbench's own specialised builds; the
+    generic builds and the peers run in the full tier."""
+    cases = []
+    for param in backend_params(builds=True):
+        name, generic = param.values[0]
+        heavy = generic or BACKENDS[name].peer
+        for scene_name, grids, steps in (("all-kinds", (3, 4, 5, 6, 37), 200), ("sphere", (3, 4, 5, 33, 100), 20)):
+            for n in grids:
+                cases.append(pytest.param(param.values[0], scene_name, n, steps, id=f"{param.id}-{scene_name}-{n}",
+                                          marks=pytest.mark.full if heavy else ()))  # fmt: skip
+    return cases
+
+
+@pytest.mark.parametrize("param, scene_name, n, steps", small_grid_cases())
+def test_strict_holds_on_grids_with_little_or_odd_interior(param, scene_name, n, steps):
+    name, generic = usable(param)
+    scene = scene_named(scene_name, n)
+    pos, prev = simulate(name, scene, VERLET, steps, options(name, strict=True, generic=generic))
+    ref_pos, ref_prev = reference(scene, VERLET, steps, "f32")
+    assert_bit_exact(pos, ref_pos, f"pos, {name} generic={generic} {scene_name} n={n} steps={steps}")
+    assert_bit_exact(prev, ref_prev, f"prev, {name} generic={generic} {scene_name} n={n} steps={steps}")
+
+
 # --- fast: as accurate as float32 ------------------------------------------------------------
 
 
