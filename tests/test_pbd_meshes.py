@@ -42,10 +42,11 @@ def test_every_opencl_shape_is_offered_with_bodies(name, method):
     # (Jacobi) predict the pins on the body too, the coloured vector sweep collides from its
     # planar scratch, so those are among them
     scene, solver = setup(name, method)
-    shapes = OpenCLPbdBackend.kernel_shapes(scene, BackendOptions(strict=True), solver)
     jacobi = method == "jacobi"
-    assert {"per-stage", "one-launch"} <= set(shapes)
-    assert jacobi == ("bands-8" in shapes) and jacobi != ("one-launch-vectors" in shapes), shapes
+    for search in ("naive", "accelerated") if scene.meshes else (None,):
+        shapes = OpenCLPbdBackend.kernel_shapes(scene, BackendOptions(strict=True, mesh_collision=search), solver)
+        assert {"per-stage", "one-launch"} <= set(shapes)
+        assert jacobi == ("bands-8" in shapes) and jacobi != ("one-launch-vectors" in shapes), shapes
 
 
 # --- only what the scene has is compiled -------------------------------------------------------

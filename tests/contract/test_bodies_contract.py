@@ -137,17 +137,18 @@ def test_a_backend_without_the_bodies_refuses_them_in_one_line_before_any_work(p
 
 
 @pytest.mark.parametrize("scene_name", list(CHECKPOINTS))
-def test_the_bodies_change_the_reference_by_the_last_checkpoint(scene_name):
-    # not vacuous: by the last checkpoint of each case the mesh, the motion or the pins on the
-    # bar have moved the sheet by more than 1 mm, and over a quarter of its particles differ
-    # both from the sheet without its bodies and from the sheet that meets nothing
+def test_the_bodies_change_the_reference_after_contact(scene_name):
+    # not vacuous: at each checkpoint after contact the mesh, the motion or the pins on the bar
+    # have moved the sheet by more than 1 mm, and by the last over a quarter of its particles
+    # differ both from the sheet without its bodies and from the sheet that meets nothing
     scene = scene_named(scene_name)
-    steps = CHECKPOINTS[scene_name][-1]
-    ref, _ = reference(scene, VERLET, steps, "f32")
-    for other in (without_bodies(scene), without_colliders(scene)):
+    # sweep's first checkpoint comes before its paddle is reached (step 869): it checks the rest
+    for steps in CHECKPOINTS[scene_name][-1:] if scene_name == "sweep" else CHECKPOINTS[scene_name]:
+        ref, _ = reference(scene, VERLET, steps, "f32")
+        assert position_error(ref, reference(without_bodies(scene), VERLET, steps, "f32")[0])[1] > 1e-3, steps
+    for other in (without_bodies(scene), without_colliders(scene)):  # a quarter of the sheet by the last
         bare, _ = reference(other, VERLET, steps, "f32")
         assert (ref != bare).any(axis=1).sum() > scene.particles // 4, other
-    assert position_error(ref, reference(without_bodies(scene), VERLET, steps, "f32")[0])[1] > 1e-3
 
 
 # --- strict: bit for bit --------------------------------------------------------------------
