@@ -23,6 +23,7 @@ from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.colliders.kinds import KINDS
 
 _INSTALL = "pip install 'clothbench[peers]'"
 _KERNELS: dict[bool, object] = {}  # fastmath -> the jitted step, built on first use
@@ -155,6 +156,24 @@ def particle_update(mul):
     return update
 
 
+def step_arguments(scene: Scene, solver: Verlet) -> tuple:
+    """The step's arguments after (pos, prev), as particle_update takes them: the grid, the
+    constants (kernel_inputs, rounded once), the rest lengths by offset, and every collider
+    kind's rows in the step's order (colliders/kinds.py)."""
+    c = VerletConstants.of(scene, solver)
+    colliders = collider_rows(scene)
+    return (
+        np.int64(scene.grid),
+        c.dt,
+        c.dt2,
+        c.k,
+        c.b,
+        np.array(c.g, dtype=np.float32),
+        np.array([c.rest[kind] for kind in OFFSET_KIND], dtype=np.float32),  # by offset
+        *(np.ascontiguousarray(colliders[kind.plural]) for kind in KINDS),
+    )
+
+
 def _kernel(fastmath: bool):
     """Compile lazily: numba is optional, and the JIT belongs to the warm-up."""
     if fastmath in _KERNELS:
@@ -190,18 +209,7 @@ class NumbaBackend(Backend):
         self.run_note = self._fewer_threads_if_busy()
         # fast: fastmath=True, as Numba's performance tips suggest; strict: Numba's default
         self._step = _kernel(fastmath=not options.strict)
-        c = VerletConstants.of(scene, solver)
-        colliders = collider_rows(scene)
-        self._args = (
-            scene.grid,
-            c.dt,
-            c.dt2,
-            c.k,
-            c.b,
-            np.array(c.g, dtype=np.float32),
-            np.array([c.rest[kind] for kind in OFFSET_KIND], dtype=np.float32),  # by offset
-            *(colliders[kind.plural] for kind in self.capabilities.collider_kinds()),  # its step's arguments
-        )
+        self._args = step_arguments(scene, solver)
         n2 = scene.particles
         self.pos = np.zeros((n2, 4), dtype=np.float32)
         self.prev = np.zeros((n2, 4), dtype=np.float32)

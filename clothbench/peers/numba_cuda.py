@@ -21,12 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.scene import OFFSET_KIND, Scene
+from clothbench.scene import Scene
 from clothbench.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
-from clothbench.colliders.kinds import KINDS
-from clothbench.peers.numba import particle_update
+from clothbench.peers.numba import particle_update, step_arguments
 
 _INSTALL = "pip install numba-cuda, with an NVIDIA driver"
 THREADS_PER_BLOCK = 128
@@ -118,20 +116,9 @@ class NumbaCudaBackend(Backend):
         super().__init__(scene, solver, options)
         self._cuda = _cuda()
         self._step = _kernel(strict=options.strict)
-        c = VerletConstants.of(scene, solver)
-        colliders = collider_rows(scene)
-        self._args = (
-            np.int64(scene.grid),
-            c.dt,
-            c.dt2,
-            c.k,
-            c.b,
-            cuda.to_device(np.array(c.g, dtype=np.float32)),
-            cuda.to_device(np.array([c.rest[kind] for kind in OFFSET_KIND], dtype=np.float32)),  # by offset
-            # every kind the shared step takes: one this peer does not declare is refused before
-            # here (Capabilities.scene_refusal), so its rows are empty
-            *(cuda.to_device(np.ascontiguousarray(colliders[kind.plural])) for kind in KINDS),
-        )
+        # every kind the shared step takes: one this peer does not declare is refused before
+        # here (Capabilities.scene_refusal), so its rows are empty
+        self._args = tuple(cuda.to_device(a) if isinstance(a, np.ndarray) else a for a in step_arguments(scene, solver))
         n2 = scene.particles
         self._blocks = -(-n2 // THREADS_PER_BLOCK)
         self.pos = cuda.device_array((n2, 4), dtype=np.float32)
