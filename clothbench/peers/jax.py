@@ -27,7 +27,7 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.numpy.verlet import neighbour_regions
 from clothbench.peers.array_colliders import COLLIDE, collider_tensors, dot3
@@ -52,12 +52,8 @@ def probe() -> Availability:
     and a strict backend may still need to set them (module docstring)."""
     try:
         jax = _import_jax()
-    except ModuleNotFoundError as e:
-        if e.name in ("jax", "jaxlib"):
-            return Availability(False, f"{e.name} not installed ({_INSTALL})")
-        return Availability(False, f"jax does not import: {e}")
-    except Exception as e:  # e.g. a jaxlib that does not match this jax
-        return Availability(False, f"jax does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. a jaxlib that does not match this jax
+        return import_failure(e, "jax", _INSTALL, packages=("jax", "jaxlib"))
     return Availability(True, device=f"jax {jax.__version__}")
 
 

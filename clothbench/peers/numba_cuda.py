@@ -23,7 +23,7 @@ import numpy as np
 
 from clothbench.scene import Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.peers.numba import particle_update, step_arguments
 
 _INSTALL = "pip install numba-cuda, with an NVIDIA driver"
@@ -47,12 +47,8 @@ def _cuda():
 def probe() -> Availability:
     try:
         _cuda()
-    except ModuleNotFoundError as e:
-        if e.name == "numba":
-            return Availability(False, f"numba not installed ({_INSTALL})")
-        return Availability(False, f"numba.cuda does not import: {e}")
-    except Exception as e:  # e.g. "Numba needs NumPy 2.3 or less" (an ImportError)
-        return Availability(False, f"numba.cuda does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. "Numba needs NumPy 2.3 or less" (an ImportError)
+        return import_failure(e, "numba.cuda", _INSTALL, packages=("numba",))
     if _simulated():
         return Availability(True, device="numba CUDA simulator (NUMBA_ENABLE_CUDASIM=1, on the CPU)")
     try:

@@ -25,7 +25,7 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.numpy.verlet import neighbour_regions
 from clothbench.peers.array_colliders import COLLIDE, collider_tensors, dot3
@@ -45,12 +45,8 @@ def _import_torch():
 def probe() -> Availability:
     try:
         _import_torch()
-    except ModuleNotFoundError as e:
-        if e.name == "torch":
-            return Availability(False, f"torch not installed ({_INSTALL})")
-        return Availability(False, f"torch does not import: {e}")
-    except Exception as e:  # e.g. a CUDA build whose libraries are missing here
-        return Availability(False, f"torch does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. a CUDA build whose libraries are missing here
+        return import_failure(e, "torch", _INSTALL)
     return Availability(True, device=f"torch {torch.__version__} ({_default_device(torch)})")
 
 
