@@ -224,3 +224,16 @@ def machine() -> dict[str, str]:
 def collect() -> dict[str, str]:
     """The environment columns of a sweep row, timestamped now."""
     return {**machine(), "timestamp": timestamp()}
+
+
+COLUMNS = ("cpu", "cores", "python", "packages", "env", "git_commit", "timestamp")  # collect()'s keys, in order
+
+
+def with_columns(row_class):
+    """A row class given COLUMNS as its last fields (str, '' where unknown): where and when its
+    row was measured, as a sweep row has them. Put it under @dataclass, which then takes them
+    as fields declared after the class's own, so the CSV's columns keep that order."""
+    for name in COLUMNS:
+        row_class.__annotations__[name] = "str"  # as `from __future__ import annotations` spells a type
+        setattr(row_class, name, "")
+    return row_class

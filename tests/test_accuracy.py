@@ -129,6 +129,19 @@ def _assert_measured_here(rows: list[dict], since: str) -> None:
     assert all(since <= r["timestamp"] <= environment.timestamp() for r in rows)
 
 
+def test_the_row_classes_end_with_the_columns_environment_collects():
+    # environment.with_columns declares them once: a row writes what collect() returns
+    from dataclasses import fields
+
+    from clothbench.analysis.convergence import AccuracyRow
+    from clothbench.analysis.stability import StabilityRow
+
+    assert tuple(environment.collect()) == environment.COLUMNS
+    for row_class in (AccuracyRow, StabilityRow):
+        names = tuple(f.name for f in fields(row_class))
+        assert names[-len(environment.COLUMNS) :] == environment.COLUMNS, row_class.__name__
+
+
 def test_numpy_variants_are_f32_and_f64():
     variants, _ = plan_variants(["numpy"])
     assert [v.options.precision for v in variants] == ["f64", "f32"]  # the float64 reference first

@@ -151,6 +151,7 @@ def fit_order(dts, errors, floor=None) -> float:
 
 
 @dataclass
+@environment.with_columns  # then where and when it was measured
 class AccuracyRow:
     scene: str
     grid: int
@@ -187,14 +188,6 @@ class AccuracyRow:
     in_fit: bool = False  # whether this row is one of them
     stiffness: float = float("nan")  # k of the scene (N/m): the model a row's cost and error are of
     driver: str = ""  # the runtime that ran it (Backend.driver); '' where none, or in files older than the column
-    # where and when the cost was measured: environment.collect()'s columns, as a sweep row has them
-    cpu: str = ""
-    cores: str = ""
-    python: str = ""
-    packages: str = ""
-    env: str = ""
-    git_commit: str = ""
-    timestamp: str = ""
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)

@@ -156,6 +156,7 @@ def is_stable(
 
 
 @dataclass
+@environment.with_columns  # then where and when it was measured
 class StabilityRow:
     kind: str
     stiffness: float
@@ -177,14 +178,6 @@ class StabilityRow:
     capped: bool = False  # stable at the cap: the true limit is at least dt_stable
     cap: float | None = None  # the largest dt tried (PBD); None: no cap
     at_60hz: str = ""  # "stable" or "unstable (step <= N: ...)" at dt = 1/60 s, same steps
-    # where and when it was measured: environment.collect()'s columns, as a sweep row has them
-    cpu: str = ""
-    cores: str = ""
-    python: str = ""
-    packages: str = ""
-    env: str = ""
-    git_commit: str = ""
-    timestamp: str = ""
 
     @property
     def ratio(self) -> float | None:

@@ -210,6 +210,17 @@ class Availability:
     driver: str = ""
 
 
+def import_failure(e: Exception, what: str, install: str, packages: tuple = (), broken: str = "does not import"):
+    """The Availability of `what` whose import raised `e`: a missing package of `packages`
+    (default: `what` itself) names the command that installs it; anything else says what
+    failed, as `what` `broken` (does not import, does not initialise)."""
+    if isinstance(e, ModuleNotFoundError):
+        if e.name in (packages or (what,)):
+            return Availability(False, f"{e.name} not installed ({install})")
+        return Availability(False, f"{what} does not import: {e}")
+    return Availability(False, f"{what} {broken}: {type(e).__name__}: {e}")
+
+
 class Backend(ABC):
     """One simulation on one device. Subclasses supply the device-specific parts only."""
 

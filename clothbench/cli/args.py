@@ -26,6 +26,14 @@ class Parser(argparse.ArgumentParser):
         raise ClothbenchError(f"{where}: {message}" if where else message)
 
 
+def add_documented_command(subparsers, name: str, help: str, doc: str, epilog: str) -> argparse.ArgumentParser:
+    """The parser of a command whose --help is its module docstring `doc` then `epilog` (its
+    examples), both shown as written: line breaks and indentation kept."""
+    return subparsers.add_parser(
+        name, help=help, description=doc, epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+
+
 def add_scene_args(
     p: argparse.ArgumentParser, default: str = "sphere", run_length: bool = True, solver: bool = True
 ) -> None:

@@ -7,7 +7,7 @@ import re
 import sys
 from pathlib import Path
 
-from clothbench.cli.args import add_scene_args, setup_from_args
+from clothbench.cli.args import add_documented_command, add_scene_args, setup_from_args
 from clothbench.errors import ClothbenchError
 from clothbench.variant_names import GL_PROVIDERS
 
@@ -39,12 +39,12 @@ def register(subparsers) -> None:
     from clothbench.reports.render import RenderSettings
 
     d = RenderSettings()
-    p = subparsers.add_parser(
+    p = add_documented_command(
+        subparsers,
         "render",
-        help="draw the cloth and colliders offscreen into a PNG, PNG frames or an animated GIF",
-        description=__doc__,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "draw the cloth and colliders offscreen into a PNG, PNG frames or an animated GIF",
+        __doc__,
+        EPILOG,
     )
     add_scene_args(p, run_length=False)
     p.add_argument(

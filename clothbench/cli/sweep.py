@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
 from clothbench.cli.args import (
     add_device_args,
+    add_documented_command,
     add_row_args,
     check_row_args,
     choice_list,
@@ -41,12 +41,12 @@ def register(subparsers) -> None:
     from clothbench.backends.base import MESH_COLLISIONS
     from clothbench.harness.plan import MOTION_CHOICES
 
-    p = subparsers.add_parser(
+    p = add_documented_command(
+        subparsers,
         "sweep",
-        help="time every usable backend over grid sizes into a CSV (rows kept as measured)",
-        description=__doc__,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "time every usable backend over grid sizes into a CSV (rows kept as measured)",
+        __doc__,
+        EPILOG,
     )
     p.add_argument(
         "--backends",

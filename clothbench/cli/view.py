@@ -3,10 +3,9 @@ change by key while it runs, with a text overlay and a hierarchical profiler."""
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
-from clothbench.cli.args import add_scene_args, setup_from_args
+from clothbench.cli.args import add_documented_command, add_scene_args, setup_from_args
 from clothbench.cli.render import size
 from clothbench.errors import ClothbenchError
 
@@ -35,12 +34,12 @@ def register(subparsers) -> None:
     from clothbench.viewer import ViewSettings
 
     d = ViewSettings()
-    p = subparsers.add_parser(
+    p = add_documented_command(
+        subparsers,
         "view",
-        help="the cloth live in a window: switch backend and grid by key, with the profiler",
-        description=__doc__,
-        epilog=_epilog(),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "the cloth live in a window: switch backend and grid by key, with the profiler",
+        __doc__,
+        _epilog(),
     )
     add_scene_args(p, run_length=False)
     p.add_argument("--backend", default="glsl", help="the backend it starts on (default glsl)")

@@ -27,10 +27,10 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.numpy.verlet import neighbour_regions
-from clothbench.peers.torch import collider_tensors
+from clothbench.peers.array_colliders import COLLIDE, collider_tensors, dot3
 
 _INSTALL = "pip install 'clothbench[peers]'"
 NO_FMA = "--xla_cpu_max_isa=AVX"  # the newest x86 ISA XLA can target without FMA instructions
@@ -52,12 +52,8 @@ def probe() -> Availability:
     and a strict backend may still need to set them (module docstring)."""
     try:
         jax = _import_jax()
-    except ModuleNotFoundError as e:
-        if e.name in ("jax", "jaxlib"):
-            return Availability(False, f"{e.name} not installed ({_INSTALL})")
-        return Availability(False, f"jax does not import: {e}")
-    except Exception as e:  # e.g. a jaxlib that does not match this jax
-        return Availability(False, f"jax does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. a jaxlib that does not match this jax
+        return import_failure(e, "jax", _INSTALL, packages=("jax", "jaxlib"))
     return Availability(True, device=f"jax {jax.__version__}")
 
 
@@ -84,11 +80,6 @@ def _require_cpu_without_fma() -> None:
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {NO_FMA}".strip()
 
 
-def dot3(a, b):
-    """(a.x*b.x + a.y*b.y) + a.z*b.z, the association every kernel uses."""
-    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
-
-
 def step(pos, prev, w, c: dict, springs, colliders):
     """x(t + dt) from x(t) = pos and x(t - dt) = prev, (3, n, n) planes (docs/semantics.md).
     `springs` (slices) and the colliders' kinds are static; every number is an argument."""
@@ -109,58 +100,8 @@ def step(pos, prev, w, c: dict, springs, colliders):
     new = (2 * pos - prev) + acc * c["dt2"]
     new = jnp.where(free, new, pos)  # pinned particles do not move
     for kind, k in zip(colliders, c["colliders"]):  # spheres, cylinders, boxes, then planes
-        new = COLLIDE[kind](new, free, **k)
+        new = COLLIDE[kind](new, free, jnp, jnp.sqrt, **k)
     return new
-
-
-def _collide_sphere(x, free, c, r, top):
-    d = x - c
-    length2 = dot3(d, d)
-    length = jnp.sqrt(length2)
-    inside = (length < r) & free
-    pushed = c + d * (r / length)
-    pushed = jnp.where(length2 == 0, top, pushed)  # exactly at the centre: straight up
-    return jnp.where(inside, pushed, x)
-
-
-def _collide_cylinder(x, free, a, u, length, r, radial_r):
-    d = x - a
-    t = dot3(d, u)  # axial coordinate (m) from the start cap
-    q = u * t
-    p = d - q  # radial vector
-    rho2 = dot3(p, p)
-    rho = jnp.sqrt(rho2)
-    inside = (t > 0) & (t < length) & (rho < r) & free
-    # push out the shortest way: through the side, or through the nearer cap
-    side = r - rho
-    to_end = length - t
-    through_side = (side <= t) & (side <= to_end)
-    through_start = ~through_side & (t <= to_end)
-    pushed_side = jnp.where(rho2 == 0, (a + q) + radial_r, (a + q) + p * (r / rho))  # on the axis: radial_r
-    pushed = jnp.where(through_side, pushed_side, jnp.where(through_start, x - q, x + u * to_end))
-    return jnp.where(inside, pushed, x)
-
-
-def _collide_box(x, free, c, ax0, ax1, ax2, h0, h1, h2):
-    d = x - c
-    l0, l1, l2 = dot3(d, ax0), dot3(d, ax1), dot3(d, ax2)  # the box's own coordinates
-    p0, p1, p2 = h0 - jnp.abs(l0), h1 - jnp.abs(l1), h2 - jnp.abs(l2)  # depth through each face pair
-    inside = (p0 > 0) & (p1 > 0) & (p2 > 0) & free
-    # out through the face of least penetration, ties to the lower axis, on the particle's side
-    take1 = p1 < p0
-    take2 = p2 < jnp.where(take1, p1, p0)
-    lk = jnp.where(take2, l2, jnp.where(take1, l1, l0))
-    hk = jnp.where(take2, h2, jnp.where(take1, h1, h0))
-    axis = jnp.where(take2, ax2, jnp.where(take1, ax1, ax0))
-    return jnp.where(inside, x + axis * (jnp.where(lk >= 0, hk, -hk) - lk), x)
-
-
-def _collide_plane(x, free, p0, nrm):
-    dist = dot3(x - p0, nrm)
-    return jnp.where((dist < 0) & free, x - nrm * dist, x)
-
-
-COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "box": _collide_box, "plane": _collide_plane}
 
 
 class JaxBackend(Backend):

@@ -22,7 +22,7 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Pbd
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.backends.kernel_inputs import rest_by_kind
 from clothbench.peers.warp import import_warp, init_quietly
 
@@ -44,12 +44,8 @@ def _import_newton():
 def probe() -> Availability:
     try:
         wp, newton = _import_newton()
-    except ModuleNotFoundError as e:
-        if e.name in ("newton", "warp"):
-            return Availability(False, f"{e.name} not installed ({_INSTALL})")
-        return Availability(False, f"newton does not import: {e}")
-    except Exception as e:  # e.g. a newton built for another warp
-        return Availability(False, f"newton does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. a newton built for another warp
+        return import_failure(e, "newton", _INSTALL, packages=("newton", "warp"))
     device = "cuda" if wp.is_cuda_available() else "cpu"
     return Availability(True, device=f"newton {newton.__version__} xpbd, warp {wp.__version__} ({device})")
 

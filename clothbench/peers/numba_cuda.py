@@ -1,9 +1,10 @@
 """numba-cuda (peer): the step as one `@cuda.jit` kernel, one thread per particle, as
 numba-cuda users write it.
 
-docs/semantics.md, scalar float32 code over (n*n, 4) device arrays, the same as the numba
-CPU peer (peers/numba.py): `i = cuda.grid(1)`, the 12 neighbours in the documented order,
-the scene's colliders (spheres, then cylinders, then planes) as float4 rows
+docs/semantics.md, scalar float32 code over (n*n, 4) device arrays: the numba CPU peer's
+particle step (peers/numba.py, particle_update) as a device function, called by thread
+`i = cuda.grid(1)`: the 12 neighbours in the documented order, the scene's colliders
+(spheres, then cylinders, then planes; boxes are not declared here yet) as float4 rows
 (kernel_inputs.collider_rows). Ping-pong without copies: particle i reads prev[i] only
 itself, so it writes x_new there, and the two arrays swap roles.
 
@@ -18,14 +19,12 @@ numba's CUDA simulator (NUMBA_ENABLE_CUDASIM=1) against NumPy.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.scene import Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
+from clothbench.peers.numba import particle_update, step_arguments
 
 _INSTALL = "pip install numba-cuda, with an NVIDIA driver"
 THREADS_PER_BLOCK = 128
@@ -48,12 +47,8 @@ def _cuda():
 def probe() -> Availability:
     try:
         _cuda()
-    except ModuleNotFoundError as e:
-        if e.name == "numba":
-            return Availability(False, f"numba not installed ({_INSTALL})")
-        return Availability(False, f"numba.cuda does not import: {e}")
-    except Exception as e:  # e.g. "Numba needs NumPy 2.3 or less" (an ImportError)
-        return Availability(False, f"numba.cuda does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. "Numba needs NumPy 2.3 or less" (an ImportError)
+        return import_failure(e, "numba.cuda", _INSTALL, packages=("numba",))
     if _simulated():
         return Availability(True, device="numba CUDA simulator (NUMBA_ENABLE_CUDASIM=1, on the CPU)")
     try:
@@ -80,9 +75,6 @@ def _kernel(strict: bool):
     if strict in _KERNELS:
         return _KERNELS[strict]
     _cuda()
-    d_row = np.array([dr for dr, _ in OFFSETS], dtype=np.int64)
-    d_col = np.array([dc for _, dc in OFFSETS], dtype=np.int64)
-    zero = np.float32(0.0)
 
     if strict and not _simulated():  # the simulator's libdevice is stubs; its float32 products are IEEE
         from numba.cuda import libdevice
@@ -97,93 +89,15 @@ def _kernel(strict: bool):
         def mul(a, b):
             return a * b
 
+    update = cuda.jit(device=True, inline=True)(particle_update(mul))
+
     @cuda.jit(fastmath=not strict)
-    def step(pos, prev, n, dt, dt2, k, b, g, rest, spheres, cylinders, planes):
+    def step(pos, prev, n, dt, dt2, k, b, g, rest, spheres, cylinders, boxes, planes):
         """One step; writes x_new into prev (see the module docstring)."""
         i = cuda.grid(1)
-        if i >= n * n:
-            return
-        row = i // n
-        col = i - row * n
-        x0, x1, x2, w = pos[i, 0], pos[i, 1], pos[i, 2], pos[i, 3]
-        xp0, xp1, xp2 = prev[i, 0], prev[i, 1], prev[i, 2]
-        # Listing 22.1 step 3: velocity from the two positions; damping uses it per spring
-        bv0 = mul(b, (x0 - xp0) / dt)
-        bv1 = mul(b, (x1 - xp1) / dt)
-        bv2 = mul(b, (x2 - xp2) / dt)
-        f0, f1, f2 = zero, zero, zero
-        for o in range(12):  # step 5: the 12 neighbours, in the documented order
-            r = row + d_row[o]
-            c = col + d_col[o]
-            if r < 0 or r >= n or c < 0 or c >= n:
-                continue  # outside the grid: no spring
-            j = r * n + c
-            d0 = pos[j, 0] - x0
-            d1 = pos[j, 1] - x1
-            d2 = pos[j, 2] - x2
-            l2 = (mul(d0, d0) + mul(d1, d1)) + mul(d2, d2)
-            s = zero
-            if l2 > zero:  # coincident particles: no direction, no spring force
-                length = math.sqrt(l2)
-                s = mul(k, length - rest[o]) / length
-            f0 += mul(s, d0) - bv0
-            f1 += mul(s, d1) - bv1
-            f2 += mul(s, d2) - bv2
-        if w == zero:  # pinned: does not move
-            prev[i, 0], prev[i, 1], prev[i, 2], prev[i, 3] = x0, x1, x2, w
-            return
-        # step 6: Verlet, acceleration = gravity + force * inverse mass
-        n0 = ((x0 + x0) - xp0) + mul(g[0] + mul(f0, w), dt2)
-        n1 = ((x1 + x1) - xp1) + mul(g[1] + mul(f1, w), dt2)
-        n2 = ((x2 + x2) - xp2) + mul(g[2] + mul(f2, w), dt2)
-        for m in range(spheres.shape[0]):  # colliders, in scene order
-            c0, c1, c2, radius = spheres[m, 0], spheres[m, 1], spheres[m, 2], spheres[m, 3]
-            e0, e1, e2 = n0 - c0, n1 - c1, n2 - c2
-            l2 = (mul(e0, e0) + mul(e1, e1)) + mul(e2, e2)
-            length = math.sqrt(l2)
-            if length < radius:
-                if l2 > zero:
-                    s = radius / length
-                    n0, n1, n2 = c0 + mul(e0, s), c1 + mul(e1, s), c2 + mul(e2, s)
-                else:  # exactly at the centre: straight up
-                    n0, n1, n2 = c0, c1 + radius, c2
-        for m in range(cylinders.shape[0] // 3):  # then cylinders, in scene order
-            j = 3 * m  # rows: (start, length), (unit axis, radius), (radial_r, 0)
-            a0, a1, a2 = cylinders[j, 0], cylinders[j, 1], cylinders[j, 2]
-            u0, u1, u2 = cylinders[j + 1, 0], cylinders[j + 1, 1], cylinders[j + 1, 2]
-            cyl_len, radius = cylinders[j, 3], cylinders[j + 1, 3]
-            e0, e1, e2 = n0 - a0, n1 - a1, n2 - a2
-            t = (mul(e0, u0) + mul(e1, u1)) + mul(e2, u2)  # axial coordinate (m) from the start cap
-            q0, q1, q2 = mul(u0, t), mul(u1, t), mul(u2, t)
-            p0, p1, p2 = e0 - q0, e1 - q1, e2 - q2  # radial vector
-            rho2 = (mul(p0, p0) + mul(p1, p1)) + mul(p2, p2)
-            rho = math.sqrt(rho2)
-            if t > zero and t < cyl_len and rho < radius:
-                # push out the shortest way: through the side, or the nearer cap
-                side = radius - rho
-                to_end = cyl_len - t
-                if side <= t and side <= to_end:
-                    if rho2 > zero:
-                        s = radius / rho
-                        n0 = (a0 + q0) + mul(p0, s)
-                        n1 = (a1 + q1) + mul(p1, s)
-                        n2 = (a2 + q2) + mul(p2, s)
-                    else:  # on the axis
-                        n0 = (a0 + q0) + cylinders[j + 2, 0]
-                        n1 = (a1 + q1) + cylinders[j + 2, 1]
-                        n2 = (a2 + q2) + cylinders[j + 2, 2]
-                elif t <= to_end:
-                    n0, n1, n2 = n0 - q0, n1 - q1, n2 - q2
-                else:
-                    n0, n1, n2 = n0 + mul(u0, to_end), n1 + mul(u1, to_end), n2 + mul(u2, to_end)
-        for m in range(planes.shape[0] // 2):  # then planes, in scene order
-            j = 2 * m  # rows: (point, 0), (unit normal, 0)
-            v0, v1, v2 = planes[j + 1, 0], planes[j + 1, 1], planes[j + 1, 2]
-            e0, e1, e2 = n0 - planes[j, 0], n1 - planes[j, 1], n2 - planes[j, 2]
-            dist = (mul(e0, v0) + mul(e1, v1)) + mul(e2, v2)
-            if dist < zero:
-                n0, n1, n2 = n0 - mul(v0, dist), n1 - mul(v1, dist), n2 - mul(v2, dist)
-        prev[i, 0], prev[i, 1], prev[i, 2], prev[i, 3] = n0, n1, n2, w
+        if i < n * n:
+            row = i // n
+            update(pos, prev, i, row, i - row * n, n, dt, dt2, k, b, g, rest, spheres, cylinders, boxes, planes)
 
     _KERNELS[strict] = step
     return step
@@ -198,21 +112,9 @@ class NumbaCudaBackend(Backend):
         super().__init__(scene, solver, options)
         self._cuda = _cuda()
         self._step = _kernel(strict=options.strict)
-        c = VerletConstants.of(scene, solver)
-        colliders = collider_rows(scene)
-        self._args = (
-            np.int64(scene.grid),
-            c.dt,
-            c.dt2,
-            c.k,
-            c.b,
-            cuda.to_device(np.array(c.g, dtype=np.float32)),
-            cuda.to_device(np.array([c.rest[kind] for kind in OFFSET_KIND], dtype=np.float32)),  # by offset
-            *(
-                cuda.to_device(np.ascontiguousarray(colliders[kind.plural]))
-                for kind in self.capabilities.collider_kinds()  # its kernel's arguments
-            ),
-        )
+        # every kind the shared step takes: one this peer does not declare is refused before
+        # here (Capabilities.scene_refusal), so its rows are empty
+        self._args = tuple(cuda.to_device(a) if isinstance(a, np.ndarray) else a for a in step_arguments(scene, solver))
         n2 = scene.particles
         self._blocks = -(-n2 // THREADS_PER_BLOCK)
         self.pos = cuda.device_array((n2, 4), dtype=np.float32)

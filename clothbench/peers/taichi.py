@@ -34,7 +34,7 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 
 _INSTALL = "pip install 'clothbench[peers]'"
@@ -53,12 +53,8 @@ def _import_taichi():
 def probe() -> Availability:
     try:
         ti = _import_taichi()
-    except ModuleNotFoundError as e:
-        if e.name == "taichi":
-            return Availability(False, f"taichi not installed ({_INSTALL})")
-        return Availability(False, f"taichi does not import: {e}")
-    except Exception as e:  # e.g. a taichi build that does not match this NumPy or Python
-        return Availability(False, f"taichi does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. a taichi build that does not match this NumPy or Python
+        return import_failure(e, "taichi", _INSTALL)
     version = ".".join(map(str, ti.__version__))
     return Availability(True, device=f"taichi {version} ({_default_arch()})")
 

@@ -3,9 +3,10 @@ write it: whole-grid slicing for the 12 springs, like the NumPy reference, on th
 (cuda where a GPU is visible, else cpu); fast mode is the same function under `torch.compile`.
 
 docs/semantics.md, operation for operation in the NumPy reference's order
-(backends/numpy/verlet.py). Colliders are `torch.where` selections with no data-dependent
-branch, as GPU PyTorch code avoids host syncs (and `torch.compile` graph breaks); choosing
-the pushed value where a particle is inside gives the same bits as NumPy's `copyto(where=)`.
+(backends/numpy/verlet.py). Colliders are `torch.where` selections (peers/array_colliders.py,
+jax's too) with no data-dependent branch, as GPU PyTorch code avoids host syncs (and
+`torch.compile` graph breaks); choosing the pushed value where a particle is inside gives the
+same bits as NumPy's `copyto(where=)`.
 The constants are 0-d float32 tensors on the device, not Python floats: PyTorch's CUDA
 division by a CPU scalar multiplies by its reciprocal, which is not the IEEE quotient.
 
@@ -24,9 +25,10 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
-from clothbench.backends.numpy.verlet import ARGUMENTS, neighbour_regions
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
+from clothbench.backends.kernel_inputs import VerletConstants
+from clothbench.backends.numpy.verlet import neighbour_regions
+from clothbench.peers.array_colliders import COLLIDE, collider_tensors, dot3
 
 _INSTALL = "pip install 'clothbench[peers]'"
 torch = None  # the torch module, imported on first use: clothbench imports without it
@@ -43,22 +45,13 @@ def _import_torch():
 def probe() -> Availability:
     try:
         _import_torch()
-    except ModuleNotFoundError as e:
-        if e.name == "torch":
-            return Availability(False, f"torch not installed ({_INSTALL})")
-        return Availability(False, f"torch does not import: {e}")
-    except Exception as e:  # e.g. a CUDA build whose libraries are missing here
-        return Availability(False, f"torch does not import: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. a CUDA build whose libraries are missing here
+        return import_failure(e, "torch", _INSTALL)
     return Availability(True, device=f"torch {torch.__version__} ({_default_device(torch)})")
 
 
 def _default_device(torch) -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
-
-
-def dot3(a, b):
-    """(a.x*b.x + a.y*b.y) + a.z*b.z, the association every kernel uses."""
-    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
 
 
 def exact_sqrt(a):
@@ -87,85 +80,8 @@ def step(pos, prev, w, free, c: dict, springs, colliders, sqrt):
     new = (2 * pos - prev) + acc * c["dt2"]
     new = torch.where(free, new, pos)  # pinned particles do not move
     for kind, k in colliders:  # spheres, cylinders, boxes, then planes
-        new = COLLIDE[kind](new, free, sqrt, **k)
+        new = COLLIDE[kind](new, free, torch, sqrt, **k)
     return new
-
-
-def _collide_sphere(x, free, sqrt, c, r, top):
-    d = x - c
-    length2 = dot3(d, d)
-    length = sqrt(length2)
-    inside = (length < r) & free
-    pushed = c + d * (r / length)
-    pushed = torch.where(length2 == 0, top, pushed)  # exactly at the centre: straight up
-    return torch.where(inside, pushed, x)
-
-
-def _collide_cylinder(x, free, sqrt, a, u, length, r, radial_r):
-    d = x - a
-    t = dot3(d, u)  # axial coordinate (m) from the start cap
-    q = u * t
-    p = d - q  # radial vector
-    rho2 = dot3(p, p)
-    rho = sqrt(rho2)
-    inside = (t > 0) & (t < length) & (rho < r) & free
-    # push out the shortest way: through the side, or through the nearer cap
-    side = r - rho
-    to_end = length - t
-    through_side = (side <= t) & (side <= to_end)
-    through_start = ~through_side & (t <= to_end)
-    pushed_side = torch.where(rho2 == 0, (a + q) + radial_r, (a + q) + p * (r / rho))  # on the axis: radial_r
-    pushed = torch.where(through_side, pushed_side, torch.where(through_start, x - q, x + u * to_end))
-    return torch.where(inside, pushed, x)
-
-
-def _collide_box(x, free, sqrt, c, ax0, ax1, ax2, h0, h1, h2):
-    d = x - c
-    l0, l1, l2 = dot3(d, ax0), dot3(d, ax1), dot3(d, ax2)  # the box's own coordinates
-    p0, p1, p2 = h0 - torch.abs(l0), h1 - torch.abs(l1), h2 - torch.abs(l2)  # depth through each face pair
-    inside = (p0 > 0) & (p1 > 0) & (p2 > 0) & free
-    # out through the face of least penetration, ties to the lower axis, on the particle's side
-    take1 = p1 < p0
-    take2 = p2 < torch.where(take1, p1, p0)
-    lk = torch.where(take2, l2, torch.where(take1, l1, l0))
-    hk = torch.where(take2, h2, torch.where(take1, h1, h0))
-    axis = torch.where(take2, ax2, torch.where(take1, ax1, ax0))
-    return torch.where(inside, x + axis * (torch.where(lk >= 0, hk, -hk) - lk), x)
-
-
-def _collide_plane(x, free, sqrt, p0, nrm):
-    dist = dot3(x - p0, nrm)
-    return torch.where((dist < 0) & free, x - nrm * dist, x)
-
-
-COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "box": _collide_box, "plane": _collide_plane}
-
-
-def collider_tensors(scene: Scene, tensor) -> list[tuple[str, dict]]:
-    """(kind, constants) of every collider in the order the step applies them, from
-    kernel_inputs.collider_rows (float32, rounded once), as `tensor` makes them."""
-    rows = collider_rows(scene)
-
-    def vec(row):
-        return tensor(row[:3].reshape(3, 1, 1))
-
-    out = []
-    for s in rows["spheres"]:
-        top = s[:3].copy()
-        top[1] = top[1] + s[3]  # c + (0, r, 0) in float32, as the reference adds it
-        out.append(("sphere", {"c": vec(s), "r": tensor(s[3]), "top": vec(top)}))
-    for a, u, radial_r in rows["cylinders"].reshape(-1, 3, 4):  # (start, length), (axis, r), (radial_r, 0)
-        out.append(
-            (
-                "cylinder",
-                {"a": vec(a), "u": vec(u), "length": tensor(a[3]), "r": tensor(u[3]), "radial_r": vec(radial_r)},
-            )
-        )
-    for block in rows["boxes"].reshape(-1, 4, 4):  # (centre, 0), (axis i, half extent i): as the reference takes them
-        out.append(("box", {name: tensor(value) for name, value in ARGUMENTS["box"](*block).items()}))
-    for p, nrm in rows["planes"].reshape(-1, 2, 4):
-        out.append(("plane", {"p0": vec(p), "nrm": vec(nrm)}))
-    return out
 
 
 def _compiler_missing(torch, device) -> str:

@@ -25,7 +25,7 @@ import numpy as np
 from clothbench.errors import ClothbenchError
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
-from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
+from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 
 _INSTALL = "pip install 'clothbench[peers]'"
@@ -76,12 +76,8 @@ def probe() -> Availability:
     try:
         wp = import_warp()
         init_quietly(wp)
-    except ModuleNotFoundError as e:
-        if e.name == "warp":
-            return Availability(False, f"warp not installed ({_INSTALL})")
-        return Availability(False, f"warp does not import: {e}")
-    except Exception as e:  # e.g. a warp build that does not load here
-        return Availability(False, f"warp does not initialise: {type(e).__name__}: {e}")
+    except Exception as e:  # not installed, or e.g. a warp build that does not load here
+        return import_failure(e, "warp", _INSTALL, broken="does not initialise")
     return Availability(True, device=f"warp {wp.__version__} ({_default_device(wp)})")
 
 

@@ -405,18 +405,12 @@ def render(
                     on_frame(frame)
         finally:
             renderer.close()
-    t2 = time.perf_counter()
-    if kind == "png":
-        report.files.append(_save_png(images[-1], path))
-    elif kind == "gif":
-        report.merged = _written(path, lambda: write_gif(images, path, settings.fps))
-        report.files.append(path)
-        if report.merged:
-            report.notes.append(
-                f"{report.merged} frames were identical to the one before and were merged into it "
-                "(their time added): the GIF plays the same, with fewer frames"
-            )
-    report.write_s += time.perf_counter() - t2
+    _write_images(report, kind, images, path, settings.fps)
+    if report.merged:
+        report.notes.append(
+            f"{report.merged} frames were identical to the one before and were merged into it "
+            "(their time added): the GIF plays the same, with fewer frames"
+        )
     return report
 
 
@@ -448,6 +442,13 @@ def render_exported(exported, size: tuple[int, int], out: str, frame: int | None
                 images.append(image)
     finally:
         renderer.close()
+    _write_images(report, kind, images, path, fps)
+    return report
+
+
+def _write_images(report: RenderReport, kind: str, images: list, path: Path, fps: float) -> None:
+    """The frames kept for a PNG (the last) or a GIF (every one) written to `path`, into
+    `report` with the time it took; a folder's frames were written as they came."""
     t0 = time.perf_counter()
     if kind == "png":
         report.files.append(_save_png(images[-1], path))
@@ -455,7 +456,6 @@ def render_exported(exported, size: tuple[int, int], out: str, frame: int | None
         report.merged = _written(path, lambda: write_gif(images, path, fps))
         report.files.append(path)
     report.write_s += time.perf_counter() - t0
-    return report
 
 
 def _writable(folder: Path) -> None:

@@ -23,6 +23,7 @@ from clothbench.backends.opencl.bodies import collider_counts
 from clothbench.backends.opencl.build_log import compiler_log
 from clothbench.backends.opencl.isolated import in_child_per_device
 from clothbench.backends.opencl.runtimes import INTEL_EXTRA
+from clothbench.backends.tuning import median_seconds
 from clothbench.native import cache_dir
 
 INSTALL_HINT = "pip install pyopencl pocl-binary-distribution"  # both are clothbench's own dependencies
@@ -434,6 +435,21 @@ class OpenCLDeviceMixin:
     @property
     def local_size(self) -> int | None:
         return self.options.local_size
+
+    def _time_shape(self, name: str) -> float:
+        """Seconds per step of a short synchronised run of shape `name` from the initial state
+        (a backend tuning its shape measures on itself, then leaves the initial state
+        uploaded): _timing_steps() steps, the median of timing_repeats, both the backend's."""
+        try:
+            self._use_shape(name)
+            self.upload(*self.initial_state())
+            steps = self._timing_steps()
+            seconds = median_seconds(lambda: self.advance(steps), self.synchronize, repeats=self.timing_repeats)
+            self.upload(*self.initial_state())
+        except self._cl.Error as e:  # a shape this device cannot launch is not a candidate
+            raise ClothbenchError(f"{name}: {e}") from None
+        self._events = []  # device_elapsed_ms() is about the caller's advance(), not these
+        return seconds / steps
 
     def _read_only_buffer(self, array: np.ndarray):
         flags = self._cl.mem_flags.READ_ONLY | self._cl.mem_flags.COPY_HOST_PTR

@@ -39,7 +39,6 @@ from clothbench.backends.opencl.device import (
 )
 from clothbench.backends.opencl.verlet_shapes import tuning_key
 from clothbench.backends.pbd_device import PbdDeviceBackend
-from clothbench.backends.tuning import median_seconds
 
 KERNEL_FILE = "pbd_cloth.cl"
 # The kernel shapes, chosen per device and scene by measurement (backends/tuning.py):
@@ -188,22 +187,19 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             )
         self.substeps_local_size = self._default_substeps_local_size()
         c, f32, i32 = self.constants, np.float32, np.int32
-        make4, float4 = self._cl.cltypes.make_float4, self._cl.cltypes.float4
+        step, step_dtypes = self._step_constants()
         args = (
             self.x,
             self.v,
             self.xs[0],
             *self.band_scratch,
             self.omega_buffer,
-            c.h,
-            make4(*c.gh, 0.0),
-            make4(*c.rest, 0.0),
-            make4(*c.at, 0.0),
+            *step,
             c.relax,
             i32(self.solver.iterations),
             i32(rows),
         )
-        dtypes = [None] * 6 + [f32, float4, float4, float4, f32, i32, i32]
+        dtypes = [None] * 6 + step_dtypes + [f32, i32, i32]
         pins = self._body_args(0)[: self._per_step] + ((self._pin_slot, self._pin_target) if self._attached else ())
         k = self._kernel(("bands", rows), "pbd_jacobi_bands", dtypes, args, pins, self._planar_program())
         # the default group (the device's largest) within this kernel's limit, as for one-launch
@@ -215,18 +211,10 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             (self.stage_of(step), launch) for step in ends for launch in self._launches_of(step)
         ]
 
-    def _time_shape(self, name: str) -> float:
-        """Seconds per step of a short synchronised run of shape `name` from the initial state."""
-        try:
-            self._use_shape(name)
-            self.upload(*self.initial_state())
-            steps = max(2, min(64, (1 << 16) // self.n2))
-            seconds = median_seconds(lambda: self.advance(steps), self.synchronize, repeats=3)
-            self.upload(*self.initial_state())
-        except self._cl.Error as e:  # a shape this device cannot launch is not a candidate
-            raise ClothbenchError(f"{name}: {e}") from None
-        self._events = []  # device_elapsed_ms() is about the caller's advance(), not these
-        return seconds / steps
+    timing_repeats = 3
+
+    def _timing_steps(self) -> int:
+        return max(2, min(64, (1 << 16) // self.n2))
 
     def _split_jacobi(self) -> None:
         """The Jacobi pass's two launches: the interior (rows and columns 2 .. n-3) in vectors
@@ -267,8 +255,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         work-group size (substeps_local_size) within the kernel's limit on this device."""
         self.substeps_local_size = self._default_substeps_local_size()
         c, f32, i32 = self.constants, np.float32, np.int32
-        make4 = self._cl.cltypes.make_float4
-        float4 = self._cl.cltypes.float4
+        step, step_dtypes = self._step_constants()
         unused = self._unused = self._read_only_buffer(np.zeros(1, np.int32))  # the other method's tables: never read
         border = self.border if self.jacobi else unused
         count = len(self.border_particles) if self.jacobi else 0
@@ -284,18 +271,22 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             i32(count),
             ij,
             offsets,
-            c.h,
-            make4(*c.gh, 0.0),
-            make4(*c.rest, 0.0),
-            make4(*c.at, 0.0),
+            *step,
             c.relax,
             c.damp,
             self.colliders,
             i32(self.solver.iterations),
             i32(1),
         )  # the last: substeps, set per launch
-        dtypes = [None] * 8 + [i32, None, None, f32, float4, float4, float4, f32, f32, None, i32, i32]
+        dtypes = [None] * 8 + [i32, None, None] + step_dtypes + [f32, f32, None, i32, i32]
         return self._whole_substeps_kernel(self.program, "pbd_substeps", dtypes, args)
+
+    def _step_constants(self) -> tuple[tuple, list]:
+        """(values, dtypes) of h, g h, the rest lengths and `at`, as float, float4, float4,
+        float4: the run of constants the substep, band and vector kernels take alike."""
+        c, make4 = self.constants, self._cl.cltypes.make_float4
+        float4 = self._cl.cltypes.float4
+        return (c.h, make4(*c.gh, 0.0), make4(*c.rest, 0.0), make4(*c.at, 0.0)), [np.float32, float4, float4, float4]
 
     def _whole_substeps_kernel(self, program, name: str, dtypes, args):
         """Kernel `name` of the one-work-group shapes with `args` and the bodies' arguments set
@@ -324,7 +315,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         scratch: one planar grid and one multiplier per particle per batch."""
         self.substeps_local_size = self._default_substeps_local_size()
         cl, c, f32, i32 = self._cl, self.constants, np.float32, np.int32
-        make4, float4 = cl.cltypes.make_float4, cl.cltypes.float4
+        step, step_dtypes = self._step_constants()
         plane = planar_plane(self.n2)
         self.vector_scratch = (
             cl.Buffer(self._context, cl.mem_flags.READ_WRITE, 16 * plane),
@@ -334,16 +325,13 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             self.x,
             self.v,
             *self.vector_scratch,
-            c.h,
-            make4(*c.gh, 0.0),
-            make4(*c.rest, 0.0),
-            make4(*c.at, 0.0),
+            *step,
             c.damp,
             self.colliders,
             i32(self.solver.iterations),
             i32(1),
         )
-        dtypes = [None] * 4 + [f32, float4, float4, float4, f32, None, i32, i32]
+        dtypes = [None] * 4 + step_dtypes + [f32, None, i32, i32]
         return self._whole_substeps_kernel(self._planar_program(), "pbd_coloured_vectors", dtypes, args)
 
     def _kernel(self, key, name: str, dtypes, args, bodies: tuple = (), program=None):

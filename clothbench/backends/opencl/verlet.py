@@ -73,7 +73,6 @@ from clothbench.backends.opencl.device import (
     program_source,
     shape_options,
 )
-from clothbench.backends.tuning import median_seconds
 from clothbench.backends.opencl.device import probe  # noqa: F401  (the registry asks this module)
 
 KERNEL_FILE = "verlet_cloth.cl"
@@ -165,19 +164,10 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._launches = [(k, *self._launch_size(items), (*args, *normals)) for k, items, args in launches]
         self.effective_local_size = self._launches[0][2][0] if self._launches[0][2] else None
 
-    def _time_shape(self, name: str) -> float:
-        """Seconds of a short synchronised run of shape `name` from the initial state (a
-        backend tuning its shape measures on itself, then leaves the initial state uploaded)."""
-        try:
-            self._use_shape(name)
-            self.upload(*self.initial_state())
-            steps = shapes.timing_steps(self.n, self._shape.steps_per_launch)
-            seconds = median_seconds(lambda: self.advance(steps), self.synchronize, repeats=5)
-            self.upload(*self.initial_state())
-        except self._cl.Error as e:  # a shape this device cannot launch is not a candidate
-            raise ClothbenchError(f"{name}: {e}") from None
-        self._events = []  # device_elapsed_ms() is about the caller's advance(), not these
-        return seconds / steps
+    timing_repeats = 5
+
+    def _timing_steps(self) -> int:
+        return shapes.timing_steps(self.n, self._shape.steps_per_launch)
 
     @property
     def local_size(self) -> int | None:
