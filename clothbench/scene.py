@@ -28,6 +28,7 @@ from clothbench.colliders.analytic import (
 )
 from clothbench.colliders.mesh import Mesh
 from clothbench.colliders.motion import Frame, Motion, array_of_tables, frames_from_toml, motion_from_toml
+from clothbench.colliders.self_contact import SelfCollision, self_collision_from_toml
 from clothbench.errors import SceneError
 from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, finite_number, solver_for_spec
 
@@ -51,7 +52,9 @@ _SIM_KEYS = {"dt", "steps", "gravity", "start", "solver"}
 _PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance", "chebyshev_rho"}
 _PIN_KEYS = {"indices", "corners", "edge", "attach"}
 _MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *COLLIDER_OPTIONAL_KEYS}
-_TABLES = {"name", "description", "cloth", "sim", "pbd", "pins", *COLLIDER_TABLE_KEYS, "mesh", "frame"}
+_TABLES = {
+    "name", "description", "cloth", "sim", "pbd", "pins", *COLLIDER_TABLE_KEYS, "mesh", "frame", "self_collision",
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,8 @@ class Scene:
     meshes: tuple[Mesh, ...] = ()
     frames: tuple[Frame, ...] = ()
     pin_attach: str | None = None
+    # [self_collision] (docs/semantics.md, "Self-collision"); None: no pass, nothing compiled in
+    self_collision: SelfCollision | None = None
 
     def __post_init__(self):
         _validate(self)
@@ -216,6 +221,8 @@ def _validate(s: Scene) -> None:
     if s.pin_edge is not None and s.pin_edge not in EDGES:
         raise SceneError(f"unknown pin edge {s.pin_edge!r} (known: {', '.join(EDGES)})")
     _validate_bodies(s)
+    if s.self_collision is not None and not isinstance(s.self_collision, SelfCollision):
+        raise SceneError(f"self_collision must be a SelfCollision or None, got {s.self_collision!r}")
 
 
 def _validate_bodies(s: Scene) -> None:
@@ -412,6 +419,7 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
     colliders = {kind: _colliders(data, kind, where) for kind in COLLIDER_KINDS}
     meshes = _meshes(data, where, folder)
     frames = frames_from_toml(data.get("frame", []), where)
+    self_collision = self_collision_from_toml(data.get("self_collision"), where)
     scene_kwargs = dict(cloth)
     if "gravity" in sim:
         scene_kwargs["gravity"] = _vec3(sim.pop("gravity"), "gravity")
@@ -436,6 +444,7 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
             **({"meshes": meshes} if meshes else {}),
             **({"frames": frames} if frames else {}),
             **({"pin_attach": pins["attach"]} if "attach" in pins else {}),
+            **({"self_collision": self_collision} if self_collision else {}),
             **scene_kwargs,
         )
         pbd_settings = Pbd(**sim, **pbd)  # sim now holds dt and start only
@@ -487,6 +496,6 @@ def load_setup(name_or_path: str) -> Setup:
 
 
 __all__ = [
-    "Scene", "Setup", "Sphere", "Cylinder", "Plane", "Mesh", "Frame", "Motion", "OFFSETS",
+    "Scene", "Setup", "Sphere", "Cylinder", "Plane", "Mesh", "Frame", "Motion", "SelfCollision", "OFFSETS",
     "count_springs", "load_scene", "load_setup", "builtin_scenes",
 ]  # fmt: skip

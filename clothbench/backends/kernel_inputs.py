@@ -16,6 +16,7 @@ from functools import lru_cache
 import numpy as np
 
 from clothbench.colliders.motion import pose
+from clothbench.colliders.self_contact import rest_exclusion
 from clothbench.scene import OFFSET_KIND, Scene, body_pose
 from clothbench.solver import Pbd, Solver
 
@@ -171,4 +172,27 @@ class PbdConstants:
             damp=t(max(0.0, 1.0 - 12.0 * scene.damping * h / scene.mass)),
             relax=t(solver.relaxation),
             omega=tuple(t(w) for w in solver.chebyshev_omega()),
+        )
+
+
+@dataclass(frozen=True)
+class SelfCollisionConstants:
+    """docs/semantics.md, "Self-collision": the pass's numbers, computed in float64 from the
+    scene's [self_collision] and rounded once to the working precision."""
+
+    thickness: np.floating
+    thickness2: np.floating  # thickness * thickness in float64, rounded once
+    relax: np.floating
+    inv_cell: np.floating  # 1 / (cell * CELL_MARGIN): the grid's cell key is floor(x * inv_cell)
+    exclude2: int  # pairs dr^2 + dc^2 < exclude2 apart on the grid are excluded (closer at rest)
+
+    @classmethod
+    def of(cls, scene: Scene, dtype=np.float32) -> "SelfCollisionConstants":
+        c, t = scene.self_collision, dtype
+        return cls(
+            thickness=t(c.thickness),
+            thickness2=t(c.thickness * c.thickness),
+            relax=t(c.relaxation),
+            inv_cell=t(c.inv_cell),
+            exclude2=rest_exclusion(c.thickness, scene.spacing),
         )

@@ -97,6 +97,10 @@ COLUMN_DOCS: dict[str, str] = {
     "warmup_s": "build (kernel compile) plus warm-up steps, not timed (s)",
     "finite": "the final state is finite",
     "max_penetration_m": "deepest penetration of a particle into a collider at the end (m)",
+    "self_pairs": 'pairs of particles that are not neighbours (docs/semantics.md, "Self-collision") closer than '
+    "the scene's [self_collision] thickness at the end; empty = the scene has no [self_collision]",
+    "self_min_distance_m": "the smallest distance between two such particles at the end (m), capped at the "
+    "search's cell size; empty = the scene has no [self_collision]",
     "err_rms_m": "RMS distance of the final positions to the numpy float64 run of the same scene and S*R steps (m)",
     "err_max_m": "largest such distance (m)",
     **BOUND_COLUMN_DOCS,
@@ -130,7 +134,8 @@ KEY_COLUMNS = (
 )  # fmt: skip
 MEASUREMENT_COLUMNS = (
     "ms_median", "ms_min", "ms_max", "ms_iqr", "chunk_ms", "device_ms_median", "device_timer", "particles_per_s",
-    "ms_per_sim_s", "warmup_s", "finite", "max_penetration_m", "err_rms_m", "err_max_m",
+    "ms_per_sim_s", "warmup_s", "finite", "max_penetration_m", "self_pairs", "self_min_distance_m", "err_rms_m",
+    "err_max_m",
 )  # fmt: skip
 NOTE_MAX = 300  # characters
 RETRY_STATUSES = ("failed", "crashed", "timeout")  # what --retry-failed measures again
