@@ -11,11 +11,13 @@ import pytest
 
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.numpy.self_collision import SelfCollisionPass
-from clothbench.colliders.self_contact import CELL_MARGIN, hashed_pairs, rest_exclusion
-from clothbench.errors import SceneError
+from clothbench.colliders.self_contact import CELL_MARGIN, close_pairs, hashed_pairs, neighbour_table, rest_exclusion
+from clothbench.cli import main
+from clothbench.errors import ClothbenchError, SceneError
+from clothbench.harness.plan import scene_variants
 from clothbench.harness import reference
 from clothbench.harness.health import self_contact
-from clothbench.scene import SelfCollision, load_setup, setup_from_dict
+from clothbench.scene import OFFSETS, SelfCollision, load_setup, setup_from_dict
 from clothbench.solver import Pbd
 
 from conftest import VERLET, assert_bit_exact
@@ -52,9 +54,14 @@ def test_hashed_search_gives_the_brute_force_pairs_and_bits(n, cell):
 
 
 def test_each_pair_is_found_once_in_ascending_order():
-    _, pos = folded()
-    i, j = hashed_pairs(pos[:, :3].astype(np.float64), 1 / (0.2 * CELL_MARGIN))  # few big cells: many candidates
+    scene, pos = folded()
+    xyz = pos[:, :3].astype(np.float64)
+    i, j = hashed_pairs(xyz, 1 / (0.2 * CELL_MARGIN))  # few big cells: many candidates
+    i, j = np.concatenate([j, i]), np.concatenate([i, j])  # every candidate twice, out of order
+    c = scene.self_collision
+    i, j, _, _ = close_pairs(xyz, i, j, scene.grid, c.thickness**2, neighbour_table(OFFSETS), 1)
     key = i * len(pos) + j
+    assert len(key) > scene.grid, "the folded sheet has close pairs"
     assert np.all(np.diff(key) > 0), "pairs sorted by (i, j), none twice"
     assert not np.any(i == j)
 
@@ -177,3 +184,53 @@ def test_the_table_reads_into_the_scene_with_the_cell_defaulting_to_the_thicknes
     scene = setup_from_dict(scene_with({"thickness": 0.01})).scene
     assert scene.self_collision == SelfCollision(thickness=0.01, cell=0.01, relaxation=1.0)
     assert setup_from_dict({"cloth": {"grid": 8}}).scene.self_collision is None
+
+
+def twist(n: int):
+    """The twist scene at n x n with its thickness in the same ratio to the spacing as at 64²."""
+    setup = load_setup("twist")
+    scene = setup.scene
+    ratio = scene.self_collision.thickness / scene.spacing
+    small = scene.replace(grid=n)
+    return small.replace(self_collision=SelfCollision(thickness=ratio * small.spacing)), setup.solver
+
+
+def smallest_distance(scene, solver, steps, on=True) -> float:
+    run = scene if on else scene.replace(self_collision=None)
+    return self_contact(reference(run, solver, steps, "f32")[0], scene)[1]
+
+
+def test_the_twist_keeps_every_pair_apart_by_half_the_thickness_at_a_small_grid():
+    # 20^2 for 1.5 s: the smallest grid and time at which the twist, without the pass, brings
+    # two particles within half the thickness (docs/scenes.md, "twist")
+    scene, solver = twist(20)
+    half = scene.self_collision.thickness / 2
+    assert smallest_distance(scene, solver, 3000, on=False) < half, "without the pass the sheet meets itself"
+    assert smallest_distance(scene, solver, 3000) >= half
+
+
+@pytest.mark.full
+def test_the_twist_at_64_after_2_s_has_no_pair_within_half_the_thickness():
+    # issue 34's goal on the reference: 4000 steps of 0.5 ms at 64^2 (about 80 s here)
+    setup = load_setup("twist")
+    scene, solver = setup.scene, setup.solver
+    assert scene.grid == 64 and setup.steps * solver.dt == pytest.approx(2.0)
+    assert smallest_distance(scene, solver, setup.steps, on=False) < scene.self_collision.thickness / 2
+    assert smallest_distance(scene, solver, setup.steps) >= scene.self_collision.thickness / 2
+
+
+def test_sweep_self_collision_on_off_is_a_row_each_and_refused_without_the_table():
+    scene = load_setup("fold").scene
+    variants = scene_variants(scene, self_collision=("on", "off"))
+    assert [(v.self_collision, s.self_collision is not None) for v, s, _ in variants] == [("on", True), ("off", False)]
+    assert [v.self_collision for v, _, _ in scene_variants(scene)] == ["on"]  # the file's, in its column
+    with pytest.raises(ClothbenchError, match="scene sphere has no \\[self_collision\\] table"):
+        scene_variants(load_setup("sphere").scene, self_collision=("on",))
+    with pytest.raises(ClothbenchError, match="--self-collision takes on, off"):
+        scene_variants(scene, self_collision=("yes",))
+
+
+def test_a_backend_without_the_pass_refuses_a_self_colliding_scene_on_the_command_line(capsys):
+    code = main(["run", "--backend", "c", "--scene", "fold", "--grid", "8", "--steps", "2"])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and "[self_collision]" in err and "numpy does" in err and "\n" not in err

@@ -127,9 +127,10 @@ def _cell_id(k: np.ndarray) -> np.ndarray:
 
 
 def hashed_pairs(xyz: np.ndarray, inv_cell) -> tuple[np.ndarray, np.ndarray]:
-    """The ordered pairs (i, j), i != j, of particles in the same or adjacent cells, ascending i
-    then j, each once: a superset of the pairs closer than the cell (docs/semantics.md).
-    xyz (P, 3); a particle with a coordinate that is not finite is in no pair."""
+    """The ordered pairs (i, j) of particles in the same or adjacent cells, in the cells' order,
+    some perhaps twice or with i == j: a superset of the pairs closer than the cell
+    (docs/semantics.md); close_pairs puts the survivors in order, once each. xyz (P, 3); a
+    particle with a coordinate that is not finite is in no pair."""
     finite = np.flatnonzero(np.isfinite(xyz).all(axis=1))
     keys = cell_keys(xyz[finite], inv_cell)
     ids = _cell_id(keys)
@@ -148,19 +149,18 @@ def hashed_pairs(xyz: np.ndarray, inv_cell) -> tuple[np.ndarray, np.ndarray]:
         offset = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
         found_i.append(i)
         found_j.append(members[first + offset])
-    i, j = np.concatenate(found_i), np.concatenate(found_j)
-    pair = np.unique(i * len(xyz) + j)  # sorted by (i, j); a pair clamping found twice counts once
-    i, j = np.divmod(pair, len(xyz))
-    keep = i != j
-    return i[keep], j[keep]
+    return np.concatenate(found_i), np.concatenate(found_j)
 
 
 def close_pairs(xyz: np.ndarray, i: np.ndarray, j: np.ndarray, n: int, thickness2, table: np.ndarray, exclude2: int):
-    """Of the candidate pairs (i, j), those closer than the thickness that are not stencil
-    neighbours, in the candidates' order: (i, j, d = x_i - x_j as (3, P), L2)."""
+    """Of the candidate pairs (i, j), those closer than the thickness that are not neighbours,
+    by ascending i then j, each once whatever the search found: (i, j, d = x_i - x_j as (3, P), L2)."""
+    i, j = i[i != j], j[i != j]
     d = xyz[i].T - xyz[j].T  # per component
     length2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2]
-    keep = (length2 < thickness2) & not_neighbours(i, j, n, table, exclude2)
+    keep = np.flatnonzero((length2 < thickness2) & not_neighbours(i, j, n, table, exclude2))
+    _, once = np.unique(i[keep] * len(xyz) + j[keep], return_index=True)  # sorted by (i, j)
+    keep = keep[once]
     return i[keep], j[keep], d[:, keep], length2[keep]
 
 
@@ -171,7 +171,8 @@ def contact_measure(xyz: np.ndarray, n: int, spacing: float, contact: SelfCollis
     x = np.asarray(xyz, dtype=np.float64)
     i, j = hashed_pairs(x, 1.0 / (contact.cell * CELL_MARGIN))
     once = i < j
-    i, j = i[once], j[once]
+    _, first = np.unique(i[once] * len(x) + j[once], return_index=True)
+    i, j = i[once][first], j[once][first]
     table = neighbour_table(offsets)
     apart = not_neighbours(i, j, n, table, rest_exclusion(contact.thickness, spacing))
     d = x[i[apart]] - x[j[apart]]

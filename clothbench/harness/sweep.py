@@ -99,6 +99,7 @@ class PlannedRow:
             "mesh_triangles": fmt(self.scene_variant.mesh_triangles),
             "mesh_collision": fmt(o.mesh_collision),
             "motion": self.scene_variant.motion,
+            "self_collision": self.scene_variant.self_collision,
             "grid": str(self.grid),
             "timed_region": "steps+transfers" if o.transfer in PER_STEP_TRANSFERS else "steps",
         }

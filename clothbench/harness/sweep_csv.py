@@ -68,6 +68,9 @@ COLUMN_DOCS: dict[str, str] = {
     "motion": "on = the scene's colliders move and its pins follow a body as the file says; off = the same scene "
     "with every motion stopped (sweep --motion on,off: the cost of motion, docs/scenes.md); empty = the scene has "
     "no motion",
+    "self_collision": 'on = the scene\'s [self_collision] pass runs (docs/semantics.md, "Self-collision"); off = '
+    "the same scene without the table (sweep --self-collision on,off: the cost of the pass); empty = the scene has "
+    "no [self_collision]",
     "grid": "n, particles per side",
     "particles": "n*n",
     "springs": "springs counted per particle, each seen from both ends (the chapter's count)",
@@ -130,7 +133,7 @@ COLUMNS: tuple[str, ...] = tuple(COLUMN_DOCS)
 # What identifies a row: a sweep measures each key once, and --resume skips keys in the file.
 KEY_COLUMNS = (
     "backend", "solver", "pbd_method", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
-    "mesh_triangles", "mesh_collision", "motion",
+    "mesh_triangles", "mesh_collision", "motion", "self_collision",
 )  # fmt: skip
 MEASUREMENT_COLUMNS = (
     "ms_median", "ms_min", "ms_max", "ms_iqr", "chunk_ms", "device_ms_median", "device_timer", "particles_per_s",
