@@ -288,7 +288,7 @@ def test_tuning_chooses_a_candidate_and_remembers_it(tmp_path, monkeypatch):
 def test_gcc_vectorises_the_interior_loop(scene_name, strict, precision):
     # Not a timing: whether GCC reports the interior loop vectorised, for every collider kind.
     # It silently stops when a value is loaded only under a condition (a masked load GCC 12
-    # cannot vectorise here); the step then runs scalar, ~5x slower, with the same results.
+    # cannot vectorise here); the step then runs scalar, slower (docs/c.md), with the same results.
     import re
     import subprocess
 
@@ -316,7 +316,7 @@ def test_gcc_vectorises_the_interior_loop(scene_name, strict, precision):
     )
 
 
-# --- a busy machine: the threads the others leave free (issue 30 part 3) ---------------
+# --- a busy machine: the threads the others leave free -----------------------------------
 
 
 class _SeenLoad:

@@ -34,6 +34,7 @@ from clothbench.backends.cuda import cpu as cpu_build
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.cpu import ShimRuntime
 from clothbench.backends.cuda.verlet import PingPong, compile_options
+from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.harness import max_penetration, position_error, reference, run_timed, simulate
 from clothbench.harness.normals import grid_normals
@@ -154,7 +155,7 @@ def test_kernel_compiles_for_sm80_without_errors_or_warnings(nvcc_ptx, variant):
     assert ".entry verlet_step(" in ptx  # extern "C": the name the host looks up
     # four state buffers, a normal buffer when asked for, and the scene only when generic
     _, build, normals = variant
-    scene_parameters = 11 + 3 * 2 if BUILDS[build] else 0  # constants; (rows, count) per kind
+    scene_parameters = 11 + 2 * len(kinds_in("cuda")) if BUILDS[build] else 0  # constants; (rows, count) per kind
     assert entry_parameters(ptx) == 4 + normals + scene_parameters
 
 
@@ -513,7 +514,7 @@ def test_specialised_kernel_takes_only_the_buffers(cpu_pingpong):
     assert cpu_pingpong(every_kind(8), normals=True).runtime.signature == "ppppp"
     generic = cpu_pingpong(every_kind(8), generic=True)
     # n; dt, dt2, k, b, g (3), rest (3); (rows, count) per collider kind
-    assert generic.runtime.signature == "pppp" + "i" + "f" * 10 + "pi" * 3
+    assert generic.runtime.signature == "pppp" + "i" + "f" * 10 + "pi" * len(kinds_in("cuda"))
     with pytest.raises(TypeError, match="kernel parameters"):
         pp.runtime.launch(pp.grid, pp.block, generic.args())
 
@@ -721,7 +722,7 @@ def test_cuda_backend_host_code_matches_numpy_on_the_cpu_build(cuda_on_cpu, tran
 
 @pytest.mark.parametrize("build", BUILDS)
 def test_cuda_backend_runs_every_collider_kind(cuda_on_cpu, build):
-    # the backend no longer refuses cylinders and planes, specialised or generic
+    # the backend takes cylinders and planes, specialised or generic
     scene = every_kind(32)
     backend, runtime = cuda_on_cpu(scene, strict=True, generic=BUILDS[build], normals=True)
     assert backend.defines == cuda.kernel_defines(scene, VERLET, normals=True, generic=BUILDS[build])

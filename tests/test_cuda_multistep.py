@@ -25,6 +25,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.cuda import cpu, launch
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.launch import PingPong
+from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.harness import reference, simulate
 from clothbench.harness.normals import grid_normals
@@ -105,7 +106,7 @@ def test_multistep_kernel_compiles_for_sm80_and_fits_a_block_of_1024(nvcc_builds
     body = entry(ptx, launch.STEPS_KERNEL)
     strict, generic, normals = variant
     # four state buffers, the normal buffer when asked for, the step count, the scene if generic
-    assert body[: body.index(")")].count(".param") == 4 + normals + 1 + (11 + 3 * 2) * generic
+    assert body[: body.index(")")].count(".param") == 4 + normals + 1 + (11 + 2 * len(kinds_in("cuda"))) * generic
     assert "bar.sync" in body and ".shared" in ptx  # __syncthreads() and the dynamic shared state
     if strict:
         assert "fma." not in body and ".approx" not in body and ".ftz" not in body

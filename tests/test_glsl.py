@@ -101,7 +101,7 @@ def test_strict_is_exact_with_every_collider_kind(backend, generic):
     assert_matches_numpy_f32(backend, scene, steps, generic=generic)
 
 
-# --- colliders and specialisation (issue 7) ------------------------------------------------
+# --- colliders and specialisation ----------------------------------------------------------
 
 # A particle pushed out of a collider lands on its surface up to float32 rounding of a few
 # operations on metre-sized values (ulp(1) = 1.2e-7; measured at most 4.2e-8 m below it in
@@ -414,7 +414,7 @@ def test_each_program_holds_the_step_once(backend):
 
 @pytest.mark.parametrize("name", GL_BACKENDS)
 def test_cli_strict_run_saves_the_numpy_f32_bits(name, tmp_path, capsys):
-    """The issue's must-show: `clothbench run --backend glsl --strict --save` == numpy f32."""
+    """As a user runs it: `clothbench run --backend glsl --strict --save` == numpy f32."""
     require(name)
     common = ["run", "--scene", "sphere", "--grid", "64", "--steps", "300", "--json"]
     assert cli.main([*common, "--backend", name, "--strict", "--save", str(tmp_path / "g.npz")]) == 0

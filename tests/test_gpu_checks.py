@@ -1,4 +1,4 @@
-"""The GPU checks of issue 15 that no other test file makes: each runs only on an NVIDIA GPU
+"""The GPU checks that no other test file makes: each runs only on an NVIDIA GPU
 (tools/gpu-check runs them there) and skips elsewhere with the reason.
 
 - CUDA strict after 1 and 500 steps on every built-in scene in the copy transfer mode (the

@@ -458,7 +458,7 @@ def test_profiling_events_time_the_last_advance():
 
 
 def test_cli_strict_run_saves_the_numpy_f32_arrays(tmp_path):
-    # The must-show, at a smaller size: the saved files are identical.
+    # As a user runs it, at a smaller size: the saved files are identical.
     require("opencl")
     common = ["run", "--scene", "sphere", "--grid", "16", "--steps", "60"]
     s, n = tmp_path / "s.npz", tmp_path / "n.npz"

@@ -411,7 +411,7 @@ def test_options_that_do_not_apply_are_refused_with_a_reason(backend, options, m
 
 
 def test_cli_glsl_compute_pbd_at_60hz_stays_finite_and_profiles(capsys):
-    # the must-show, with --profile: every stage timed
+    # as a user runs it, with --profile: every stage timed
     require("glsl-compute")
     argv = [
         "run",
