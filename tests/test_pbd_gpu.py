@@ -379,22 +379,6 @@ def test_opencl_bands_edge_vectors_are_exact_in_every_lane(extra):
                 assert_bit_exact(a, r, f"n={scene.grid} rho={rho} local size {local_size} {what}")
 
 
-@pytest.mark.parametrize("grid", [4, STRICT_GRID])
-@pytest.mark.parametrize("backend", GPU)
-def test_strict_chebyshev_jacobi_matches_numpy_bit_for_bit(backend, grid):
-    # the extrapolation y = omega (y - before) + before, of the iterate and of every lambda,
-    # in the reference's order; OpenCL in both of its shapes. n = 4: the border code only
-    require(backend)
-    scene, solver = curtain("jacobi", grid=grid)
-    solver = solver.replace(chebyshev_rho=0.99)
-    ref = simulate("numpy", scene, solver, 60, F32)
-    shapes = ("per-stage", "one-launch") if backend == "opencl" else (None,)
-    for shape in shapes:
-        got = simulate(backend, scene, solver, 60, BackendOptions(strict=True, shape=shape))
-        for a, r, what in zip(got, ref, ("pos", "prev")):
-            assert_bit_exact(a, r, f"{backend} {shape} n={grid} {what}")
-
-
 @pytest.mark.parametrize(
     "options, message",
     [
