@@ -34,6 +34,7 @@ from clothbench.colliders.motion import (
     frames_from_toml,
     motion_from_toml,
 )
+from clothbench.colliders.self_contact import SelfCollision, self_collision_from_toml
 from clothbench.errors import SceneError
 from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, finite_number, solver_for_spec
 
@@ -57,7 +58,20 @@ _SIM_KEYS = {"dt", "steps", "gravity", "start", "solver"}
 _PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance", "chebyshev_rho"}
 _PIN_KEYS = {"indices", "corners", "edge", "attach"}
 _MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *COLLIDER_OPTIONAL_KEYS}
-_TABLES = {"name", "description", "cloth", "sim", "pbd", "pins", *(k.name for k in KINDS), "mesh", "frame"}
+_TABLES = {
+    "name", "description", "cloth", "sim", "pbd", "pins", *(k.name for k in KINDS), "mesh", "frame", "self_collision",
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class PinGroup:
+    """One table of a [[pins]] array: its particles (as [pins] names them) and the body they
+    follow (None: fixed where they start)."""
+
+    indices: tuple[int, ...] = ()
+    corners: tuple[str, ...] = ()
+    edge: str | None = None
+    attach: str | None = None
 
 
 @dataclass(frozen=True)
@@ -87,6 +101,11 @@ class Scene:
     meshes: tuple[Mesh, ...] = ()
     frames: tuple[Frame, ...] = ()
     pin_attach: str | None = None
+    # [[pins]]: several pinned sets, each following its own body (kernel_inputs.pin_targets);
+    # then pin_attach is the first group's body that attaches, and None stops every group
+    pin_groups: tuple[PinGroup, ...] = ()
+    # [self_collision] (docs/semantics.md, "Self-collision"); None: no pass, nothing compiled in
+    self_collision: SelfCollision | None = None
 
     def __post_init__(self):
         _validate(self)
@@ -128,25 +147,36 @@ class Scene:
         return tuple(length * h for length in OFFSET_LENGTH)
 
     def pinned(self) -> np.ndarray:
-        """Sorted indices of the pinned particles."""
+        """Sorted indices of the pinned particles ([pins] and every [[pins]] group)."""
+        idx = set().union(*(self.pinned_by(g) for g in self.pin_sets()))
+        return np.array(sorted(idx), dtype=np.int64)
+
+    def pin_sets(self) -> tuple[PinGroup, ...]:
+        """The pinned sets with the body each follows: [pins] (following pin_attach) first,
+        then the [[pins]] groups."""
+        first = PinGroup(self.pin_indices, self.pin_corners, self.pin_edge, self.pin_attach)
+        return (first, *self.pin_groups)
+
+    def pinned_by(self, group: PinGroup) -> set[int]:
+        """The particles one pinned set names."""
         n = self.grid
-        idx = set(self.pin_indices)
+        idx = set(group.indices)
         corner_index = {
             "top-left": 0,
             "top-right": n - 1,
             "bottom-left": (n - 1) * n,
             "bottom-right": n * n - 1,
         }
-        idx.update(corner_index[c] for c in self.pin_corners)
-        if self.pin_edge == "top":
+        idx.update(corner_index[c] for c in group.corners)
+        if group.edge == "top":
             idx.update(range(0, n))
-        elif self.pin_edge == "bottom":
+        elif group.edge == "bottom":
             idx.update(range((n - 1) * n, n * n))
-        elif self.pin_edge == "left":
+        elif group.edge == "left":
             idx.update(range(0, n * n, n))
-        elif self.pin_edge == "right":
+        elif group.edge == "right":
             idx.update(range(n - 1, n * n, n))
-        return np.array(sorted(idx), dtype=np.int64)
+        return idx
 
     def replace(self, **changes) -> "Scene":
         """A copy with some values changed, validated again."""
@@ -194,15 +224,24 @@ def _validate(s: Scene) -> None:
         collider.check()
     _check_float32_range(s)
     n2 = s.grid * s.grid
-    for i in s.pin_indices:
-        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < n2:
-            raise SceneError(f"pin index {i!r} is outside the grid (0 .. {n2 - 1})")
-    for c in s.pin_corners:
-        if c not in CORNERS:
-            raise SceneError(f"unknown pin corner {c!r} (known: {', '.join(CORNERS)})")
-    if s.pin_edge is not None and s.pin_edge not in EDGES:
-        raise SceneError(f"unknown pin edge {s.pin_edge!r} (known: {', '.join(EDGES)})")
+    for group in s.pin_sets():
+        for i in group.indices:
+            if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < n2:
+                raise SceneError(f"pin index {i!r} is outside the grid (0 .. {n2 - 1})")
+        for c in group.corners:
+            if c not in CORNERS:
+                raise SceneError(f"unknown pin corner {c!r} (known: {', '.join(CORNERS)})")
+        if group.edge is not None and group.edge not in EDGES:
+            raise SceneError(f"unknown pin edge {group.edge!r} (known: {', '.join(EDGES)})")
+    seen: set[int] = set()
+    for group in s.pin_sets():
+        both = seen & s.pinned_by(group)
+        if both:
+            raise SceneError(f"particle {min(both)} is pinned by two [[pins]] tables: each pins its own particles")
+        seen |= s.pinned_by(group)
     _validate_bodies(s)
+    if s.self_collision is not None and not isinstance(s.self_collision, SelfCollision):
+        raise SceneError(f"self_collision must be a SelfCollision or None, got {s.self_collision!r}")
 
 
 def _validate_bodies(s: Scene) -> None:
@@ -216,13 +255,16 @@ def _validate_bodies(s: Scene) -> None:
     for name in names:
         if not isinstance(name, str) or names.count(name) > 1:
             raise SceneError(f"collider or frame name {name!r} is used more than once")
-    if s.pin_attach is not None:
-        if s.pin_attach not in names:
+    for k, group in enumerate(s.pin_sets()):
+        if group.attach is None:
+            continue
+        if group.attach not in names:
             raise SceneError(
-                f"pins attach to {s.pin_attach!r}, which names no collider or frame "
+                f"pins attach to {group.attach!r}, which names no collider or frame "
                 f"(named: {', '.join(names) or 'none'})"
             )
-        if not (s.pin_indices or s.pin_corners or s.pin_edge):
+        gate_only = k == 0 and s.pin_groups  # with [[pins]], pin_attach only says whether the pins follow
+        if not (group.indices or group.corners or group.edge) and not gate_only:
             raise SceneError("[pins] attach needs pinned particles (indices, corners or edge)")
 
 
@@ -350,6 +392,22 @@ def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
     return tuple(out)
 
 
+def _pins(data: dict, where: str) -> tuple[dict, tuple[PinGroup, ...]]:
+    """[pins] as today's table, or [[pins]] (several tables) as groups, each following its own
+    body; then the table returned holds only the first attaching group's body (the gate)."""
+    if not isinstance(data.get("pins"), list):
+        return _table(data, "pins", _PIN_KEYS, where), ()
+    groups = []
+    for table in array_of_tables(data["pins"], "pins", "pinned sets", where):
+        pins = _table({"pins": table}, "pins", _PIN_KEYS, where)
+        indices, corners = pins.get("indices", []), pins.get("corners", [])
+        if not isinstance(indices, list) or not isinstance(corners, list):
+            raise SceneError(f"{where}: [[pins]] indices and corners must be lists")
+        groups.append(PinGroup(tuple(indices), tuple(corners), pins.get("edge"), pins.get("attach")))
+    attached = [g.attach for g in groups if g.attach is not None]
+    return ({"attach": attached[0]} if attached else {}), tuple(groups)
+
+
 @dataclass(frozen=True)
 class Setup:
     """What a scene file describes: the model, the solver that steps it, the run length, and
@@ -398,11 +456,12 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
         )
     cloth = _table(data, "cloth", _CLOTH_KEYS, where)
     sim = dict(_table(data, "sim", _SIM_KEYS, where))
-    pins = _table(data, "pins", _PIN_KEYS, where)
+    pins, pin_groups = _pins(data, where)
     pbd = _table(data, "pbd", _PBD_KEYS, where)
     colliders = {kind.plural: _colliders(data, kind, where) for kind in KINDS}
     meshes = _meshes(data, where, folder)
     frames = frames_from_toml(data.get("frame", []), where)
+    self_collision = self_collision_from_toml(data.get("self_collision"), where)
     scene_kwargs = dict(cloth)
     if "gravity" in sim:
         scene_kwargs["gravity"] = finite3(sim.pop("gravity"), "gravity")
@@ -425,6 +484,8 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
             **({"meshes": meshes} if meshes else {}),
             **({"frames": frames} if frames else {}),
             **({"pin_attach": pins["attach"]} if "attach" in pins else {}),
+            **({"pin_groups": pin_groups} if pin_groups else {}),
+            **({"self_collision": self_collision} if self_collision else {}),
             **scene_kwargs,
         )
         pbd_settings = Pbd(**sim, **pbd)  # sim now holds dt and start only
@@ -476,6 +537,7 @@ def load_setup(name_or_path: str) -> Setup:
 
 
 __all__ = [
-    "Scene", "Setup", "Sphere", "Cylinder", "Box", "Plane", "Mesh", "Frame", "Motion", "OFFSETS",
+    "Scene", "Setup", "Sphere", "Cylinder", "Box", "Plane", "Mesh", "Frame", "Motion", "PinGroup", "SelfCollision",
+    "OFFSETS",
     "count_springs", "load_scene", "load_setup", "builtin_scenes",
 ]  # fmt: skip

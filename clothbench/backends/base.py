@@ -72,6 +72,7 @@ class Capabilities:
     meshes: tuple[str, ...] = ()
     moving_colliders: tuple[str, ...] = ()
     boxes: tuple[str, ...] = ()
+    self_collision: tuple[str, ...] = ()  # the [self_collision] pass (docs/semantics.md, "Self-collision")
     # the mesh algorithms (MESH_COLLISIONS) it implements, the first its default
     mesh_collisions: tuple[str, ...] = ()
     # option overrides a sweep measures by default, one CSV row each
@@ -136,6 +137,8 @@ class Capabilities:
                 else "pins attached to a body"
             )
             return f"{who} does not take {what} yet (it takes: fixed colliders and fixed pins; {_takers('moving_colliders', solver)})"
+        if scene.self_collision is not None and solver not in self.self_collision:
+            return f"{who} does not take [self_collision] yet ({_takers('self_collision', solver)})"
         return None
 
     def collider_kinds(self, solver: str = "verlet") -> tuple:

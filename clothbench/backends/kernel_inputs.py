@@ -17,6 +17,7 @@ import numpy as np
 
 from clothbench.colliders.kinds import KINDS
 from clothbench.colliders.motion import pose
+from clothbench.colliders.self_contact import rest_exclusion
 from clothbench.scene import OFFSET_KIND, Scene, body_pose
 from clothbench.solver import Pbd, Solver
 
@@ -77,9 +78,16 @@ def pose_rows(body, time: float, dtype=np.float32) -> tuple[np.ndarray, np.ndarr
 def pin_targets(scene: Scene, time: float, dtype=np.float32) -> np.ndarray:
     """(pins, 3) positions at `time` of the pinned particles of a scene whose pins follow a
     body ([pins] attach): R(time) offset + T(time) in float64, rounded once, where offset is
-    the particle's initial position in the body's frame, R(0)^T (x0 - T(0))."""
-    rot, trans = body_pose(scene.body(scene.pin_attach), time)
-    return (pin_offsets(scene) @ rot.T + trans).astype(dtype)
+    the particle's initial position in the body's frame, R(0)^T (x0 - T(0)). With [[pins]]
+    groups each follows its own body, and a group that attaches to none stays at x0."""
+    if not scene.pin_groups:
+        rot, trans = body_pose(scene.body(scene.pin_attach), time)
+        return (pin_offsets(scene) @ rot.T + trans).astype(dtype)
+    out = scene.initial_state(np.float64)[0][scene.pinned(), :3]
+    for slots, body, offsets in group_offsets(scene):
+        rot, trans = body_pose(scene.body(body), time)
+        out[slots] = offsets @ rot.T + trans
+    return out.astype(dtype)
 
 
 @lru_cache(maxsize=16)
@@ -88,6 +96,22 @@ def pin_offsets(scene: Scene) -> np.ndarray:
     x0 = scene.initial_state(np.float64)[0][scene.pinned(), :3]
     rot0, trans0 = body_pose(scene.body(scene.pin_attach), 0.0)
     return (x0 - trans0) @ rot0  # rows: R0^T (x0 - T0)
+
+
+@lru_cache(maxsize=16)
+def group_offsets(scene: Scene) -> list[tuple[np.ndarray, str, np.ndarray]]:
+    """Per attaching pinned set: its rows among scene.pinned(), its body, and its body-frame
+    offsets (float64, taken once per scene)."""
+    pinned = scene.pinned()
+    x0 = scene.initial_state(np.float64)[0][:, :3]
+    out = []
+    for group in scene.pin_sets():
+        particles = np.array(sorted(scene.pinned_by(group)), dtype=np.int64)
+        if group.attach is None or not len(particles):
+            continue
+        rot0, trans0 = body_pose(scene.body(group.attach), 0.0)
+        out.append((np.searchsorted(pinned, particles), group.attach, (x0[particles] - trans0) @ rot0))
+    return out
 
 
 @dataclass(frozen=True)
@@ -182,4 +206,27 @@ class PbdConstants:
             damp=t(max(0.0, 1.0 - 12.0 * scene.damping * h / scene.mass)),
             relax=t(solver.relaxation),
             omega=tuple(t(w) for w in solver.chebyshev_omega()),
+        )
+
+
+@dataclass(frozen=True)
+class SelfCollisionConstants:
+    """docs/semantics.md, "Self-collision": the pass's numbers, computed in float64 from the
+    scene's [self_collision] and rounded once to the working precision."""
+
+    thickness: np.floating
+    thickness2: np.floating  # thickness * thickness in float64, rounded once
+    relax: np.floating
+    inv_cell: np.floating  # 1 / (cell * CELL_MARGIN): the grid's cell key is floor(x * inv_cell)
+    exclude2: int  # pairs dr^2 + dc^2 < exclude2 apart on the grid are excluded (closer at rest)
+
+    @classmethod
+    def of(cls, scene: Scene, dtype=np.float32) -> "SelfCollisionConstants":
+        c, t = scene.self_collision, dtype
+        return cls(
+            thickness=t(c.thickness),
+            thickness2=t(c.thickness * c.thickness),
+            relax=t(c.relaxation),
+            inv_cell=t(c.inv_cell),
+            exclude2=rest_exclusion(c.thickness, scene.spacing),
         )

@@ -147,6 +147,11 @@ def cmd_run(args) -> int:
         "warmup_s": result.warmup_s,
         "finite": result.finite,
         "max_penetration": result.max_penetration,
+        **(
+            {}
+            if (contact := result.self_contact) is None
+            else {"self_pairs": contact[0], "self_min_distance": contact[1]}
+        ),
         "busy": load.busy,  # None: not measured, or too short a run to tell
         "load": load.why,
     }

@@ -29,7 +29,9 @@ Backends that cannot run here, or cannot take the scene (a mesh or a motion they
 listed once as skipped, with the reason. A scene with meshes or motion adds dimensions:
 --mesh-collision naive,accelerated (a row per algorithm a backend has), --mesh-triangles
 (each built-in shape subdivided to the level nearest each count) and --motion on,off (the
-scene as written, and with every motion stopped: the cost of motion). Each row runs
+scene as written, and with every motion stopped: the cost of motion); a scene with a
+[self_collision] table adds --self-collision on,off (the scene with its pass, and the same
+scene without the table: the cost of the pass; refused for a scene without one). Each row runs
 in a worker process: one that crashes (a signal, an abort, out of memory) is written as
 crashed, one past --row-timeout as timeout, and the sweep goes on. Rows already in the
 file are kept whatever their status; --retry-failed measures failed, crashed and timeout
@@ -39,7 +41,7 @@ rows again. Ctrl-C or SIGTERM keeps every finished row and exits 130.
 
 def register(subparsers) -> None:
     from clothbench.backends.base import MESH_COLLISIONS
-    from clothbench.harness.plan import MOTION_CHOICES
+    from clothbench.harness.plan import MOTION_CHOICES, SELF_COLLISION_CHOICES
 
     p = add_documented_command(
         subparsers,
@@ -114,6 +116,13 @@ def register(subparsers) -> None:
         help="scenes with motion: on (as the file says), off (every collider fixed where it is placed, attached "
         "pins fixed where they start), or on,off: a row each, the cost of motion",
     )
+    p.add_argument(
+        "--self-collision",
+        type=choice_list("--self-collision", SELF_COLLISION_CHOICES),
+        default=[],
+        help="scenes with a [self_collision] table (twist, fold, pile): on (with the pass), off (the same scene "
+        "without the table), or on,off: a row each, the cost of the pass; refused for a scene without the table",
+    )
     p.add_argument("--out", default="sweep.csv", help="the CSV to write (default sweep.csv)")
     p.add_argument(
         "--json",
@@ -178,6 +187,7 @@ def cmd_sweep(args) -> int:
         mesh_collisions=tuple(args.mesh_collision),
         mesh_triangles=tuple(args.mesh_triangles),
         motion=tuple(args.motion),
+        self_collision=tuple(args.self_collision),
     )
     for note in settings.notes:
         _note(note)
@@ -294,7 +304,9 @@ def print_rows(rows: list[dict[str, str]], title: str) -> None:
     local = any(r["local_size"] for r in rows)
     # the scene's mesh size and motion, where a row has them (sweep --mesh-triangles, --motion)
     shape = {
-        c: head for c, head in (("mesh_triangles", "triangles"), ("motion", "motion")) if any(r.get(c) for r in rows)
+        c: head
+        for c, head in (("mesh_triangles", "triangles"), ("motion", "motion"), ("self_collision", "self-collision"))
+        if any(r.get(c) for r in rows)
     }
     table = Table(title=title)
     heads = ("backend", "mode") + (("local",) if local else ()) + tuple(shape.values())

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from clothbench.colliders.motion import euler_degrees
-from clothbench.scene import Scene
+from clothbench.colliders.self_contact import contact_measure
+from clothbench.scene import OFFSETS, Scene
 from clothbench.solver import Solver
 from clothbench.harness.energy import energy_problem
 
@@ -25,6 +26,14 @@ def state_problem(pos: np.ndarray, prev: np.ndarray, scene: Scene, solver: Solve
         bad = int(np.argmax(~np.isfinite(xyz).all(axis=1)))
         return f"particle {bad} is not finite (NaN or Inf)"
     return energy_problem(pos, prev, scene, solver, step)
+
+
+def self_contact(pos: np.ndarray, scene: Scene) -> tuple[int, float] | None:
+    """Of a scene with [self_collision]: the pairs of particles that are not neighbours closer
+    than the thickness, and their smallest distance (m, capped at the cell); None without it."""
+    if scene.self_collision is None:
+        return None
+    return contact_measure(pos[:, :3], scene.grid, scene.spacing, scene.self_collision, OFFSETS)
 
 
 def max_penetration(pos: np.ndarray, scene: Scene) -> float:

@@ -138,6 +138,8 @@ def plan_variants(
 SHAPE_TRIANGLES = {"box": 12, "icosphere": 20, "torus": 256}
 MAX_SUBDIVISIONS = 6  # the most Mesh.check takes
 MOTION_CHOICES = ("on", "off")  # --motion: the scene as its file says, or with every motion stopped
+# --self-collision: the scene with its [self_collision] pass, or the same scene without the table
+SELF_COLLISION_CHOICES = ("on", "off")
 
 
 def shape_triangles(shape: str, subdivisions: int) -> int:
@@ -183,6 +185,13 @@ def without_motion(scene: Scene) -> Scene:
     )  # fmt: skip
 
 
+def without_self_collision(scene: Scene) -> Scene:
+    """`scene` without its [self_collision] table: the same step less the pass."""
+    if scene.self_collision is None:
+        raise ClothbenchError(f"--self-collision: scene {scene.name} has no [self_collision] table: nothing to time")
+    return scene.replace(self_collision=None)
+
+
 def mesh_triangles(scene: Scene) -> int | None:
     """Triangles of the scene's meshes as the step sees them (after the clean-up rules), or None."""
     return sum(m.geometry.triangles for m in scene.meshes) if scene.meshes else None
@@ -191,21 +200,23 @@ def mesh_triangles(scene: Scene) -> int | None:
 @dataclass(frozen=True)
 class SceneVariant:
     """How a row's scene differs from the sweep's scene file: its meshes' triangle count (None:
-    no meshes) and its motion ('on', 'off'; '' for a scene that has none)."""
+    no meshes), its motion and its self-collision pass ('on', 'off'; '' for a scene that has none)."""
 
     mesh_triangles: int | None = None
     motion: str = ""
+    self_collision: str = ""
 
     @property
     def label(self) -> str:
         parts = [f"{self.mesh_triangles} triangles"] * (self.mesh_triangles is not None)
-        return ", ".join(parts + [f"motion {self.motion}"] * bool(self.motion))
+        parts += [f"motion {self.motion}"] * bool(self.motion)
+        return ", ".join(parts + [f"self-collision {self.self_collision}"] * bool(self.self_collision))
 
 
 def scene_variants(
-    scene: Scene, triangles: Iterable[int] = (), motion: Iterable[str] = ()
+    scene: Scene, triangles: Iterable[int] = (), motion: Iterable[str] = (), self_collision: Iterable[str] = ()
 ) -> list[tuple[SceneVariant, Scene, list[str]]]:
-    """(variant, its scene, notes) for every asked triangle count × motion, in that order,
+    """(variant, its scene, notes) for every asked triangle count × motion × self-collision, in that order,
     duplicates (two counts nearest one level) dropped; the scene as it is when neither is asked.
     A note says where a count was moved to the nearest the shape has. Everything is checked
     before anything runs: one line for what cannot be asked of this scene."""
@@ -215,6 +226,14 @@ def scene_variants(
         raise ClothbenchError(f"--motion takes {', '.join(MOTION_CHOICES)} (comma-separated), got {bad[0]!r}")
     if motion and not scene.has_motion:
         without_motion(scene)  # raises the one-line refusal
+    passes = list(dict.fromkeys(self_collision))
+    bad = [p for p in passes if p not in SELF_COLLISION_CHOICES]
+    if bad:
+        raise ClothbenchError(
+            f"--self-collision takes {', '.join(SELF_COLLISION_CHOICES)} (comma-separated), got {bad[0]!r}"
+        )
+    if passes:
+        without_self_collision(scene)  # raises the one-line refusal for a scene without the table
     sized: list[tuple[Scene, list[str]]] = []
     for t in triangles or [None]:
         s = scene if t is None else with_mesh_triangles(scene, t)
@@ -226,8 +245,11 @@ def scene_variants(
     for s, notes in sized:
         for m in motion or [""]:
             moving = "on" if s.has_motion else ""
-            key = SceneVariant(mesh_triangles(s), m or moving)
-            out.setdefault(key, (without_motion(s) if m == "off" else s, notes))
+            for p in passes or [""]:
+                contact = "on" if s.self_collision is not None else ""
+                key = SceneVariant(mesh_triangles(s), m or moving, p or contact)
+                run = without_motion(s) if m == "off" else s
+                out.setdefault(key, (without_self_collision(run) if p == "off" else run, notes))
     return [(k, s, notes) for k, (s, notes) in out.items()]
 
 

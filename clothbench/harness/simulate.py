@@ -6,7 +6,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.backends import BackendOptions, availability, create_backend
+from clothbench.backends import BackendOptions, availability, backend_class, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver
@@ -31,7 +31,7 @@ def reference(scene: Scene, solver: Solver, steps: int, precision: str = "f64") 
     run: the same operations in the same order, so NumPy float64's bits (tests/test_c_backend.py
     holds it to that), at a fraction of NumPy's time on large grids (docs/c.md). Float32
     references stay NumPy's own: they are what every strict backend is compared against."""
-    if precision == "f64" and solver.name == "verlet" and availability("c").usable:
+    if precision == "f64" and solver.name == "verlet" and availability("c").usable and c_takes(scene):
         try:
             pos, prev = simulate("c", scene, solver, steps, BackendOptions(precision="f64", strict=True))
         except ClothbenchError:  # a compiler that cannot build it: NumPy gives the same bits
@@ -41,6 +41,11 @@ def reference(scene: Scene, solver: Solver, steps: int, precision: str = "f64") 
     pos.setflags(write=False)
     prev.setflags(write=False)
     return pos, prev
+
+
+def c_takes(scene: Scene) -> bool:
+    """Whether the c backend's Verlet takes `scene` (not one it refuses, as [self_collision] today)."""
+    return backend_class("c").capabilities.scene_refusal("c", scene) is None
 
 
 def position_error(pos: np.ndarray, ref: np.ndarray) -> tuple[float, float]:

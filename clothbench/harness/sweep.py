@@ -99,6 +99,7 @@ class PlannedRow:
             "mesh_triangles": fmt(self.scene_variant.mesh_triangles),
             "mesh_collision": fmt(o.mesh_collision),
             "motion": self.scene_variant.motion,
+            "self_collision": self.scene_variant.self_collision,
             "grid": str(self.grid),
             "timed_region": "steps+transfers" if o.transfer in PER_STEP_TRANSFERS else "steps",
         }
@@ -238,6 +239,7 @@ def measure_row(
         warmup_s=fmt(result.warmup_s),
         finite=fmt(result.finite),
         max_penetration_m=fmt(result.max_penetration),
+        **self_contact_cells(result.self_contact),
     )
     if row.variant.is_reference and not result.budget_cut:  # a shortened run is not the others' reference
         references[(scene, solver)] = result.pos
@@ -258,6 +260,13 @@ def measure_row(
     out["note"] = "; ".join(n for n in (out.get("note", ""), shape_note, backend.run_note, doubt) if n)
     out.update(environment.collect())
     return out
+
+
+def self_contact_cells(contact: tuple[int, float] | None) -> dict[str, str]:
+    """The row's self_pairs and self_min_distance_m: empty for a scene without [self_collision]."""
+    if contact is None:
+        return {"self_pairs": "", "self_min_distance_m": ""}
+    return {"self_pairs": fmt(contact[0]), "self_min_distance_m": fmt(contact[1])}
 
 
 def _measure_in_child(row, setup, steps, repeats, known, on_progress=None, budget_s=None):

@@ -68,6 +68,9 @@ COLUMN_DOCS: dict[str, str] = {
     "motion": "on = the scene's colliders move and its pins follow a body as the file says; off = the same scene "
     "with every motion stopped (sweep --motion on,off: the cost of motion, docs/scenes.md); empty = the scene has "
     "no motion",
+    "self_collision": 'on = the scene\'s [self_collision] pass runs (docs/semantics.md, "Self-collision"); off = '
+    "the same scene without the table (sweep --self-collision on,off: the cost of the pass); empty = the scene has "
+    "no [self_collision]",
     "grid": "n, particles per side",
     "particles": "n*n",
     "springs": "springs counted per particle, each seen from both ends (the chapter's count)",
@@ -97,6 +100,10 @@ COLUMN_DOCS: dict[str, str] = {
     "warmup_s": "build (kernel compile) plus warm-up steps, not timed (s)",
     "finite": "the final state is finite",
     "max_penetration_m": "deepest penetration of a particle into a collider at the end (m)",
+    "self_pairs": 'pairs of particles that are not neighbours (docs/semantics.md, "Self-collision") closer than '
+    "the scene's [self_collision] thickness at the end; empty = the scene has no [self_collision]",
+    "self_min_distance_m": "the smallest distance between two such particles at the end (m), capped at the "
+    "search's cell size; empty = the scene has no [self_collision]",
     "err_rms_m": "RMS distance of the final positions to the numpy float64 run of the same scene and S*R steps (m)",
     "err_max_m": "largest such distance (m)",
     **BOUND_COLUMN_DOCS,
@@ -138,6 +145,7 @@ KEY_COLUMNS = (
     "mesh_triangles",
     "mesh_collision",
     "motion",
+    "self_collision",
 )
 MEASUREMENT_COLUMNS = (
     "ms_median",
@@ -152,6 +160,8 @@ MEASUREMENT_COLUMNS = (
     "warmup_s",
     "finite",
     "max_penetration_m",
+    "self_pairs",
+    "self_min_distance_m",
     "err_rms_m",
     "err_max_m",
 )

@@ -34,6 +34,7 @@ class SweepSettings:
     mesh_collisions: tuple[str, ...] = ()
     mesh_triangles: tuple[int, ...] = ()
     motion: tuple[str, ...] = ()
+    self_collision: tuple[str, ...] = ()  # the [self_collision] pass on/off (none: the file's)
 
     def __post_init__(self):
         if self.row_timeout is not None and not self.row_timeout > 0:
@@ -56,7 +57,7 @@ class SweepSettings:
             takes = ", ".join(MESH_COLLISIONS)
             raise ClothbenchError(f"--mesh-collision takes {takes} (comma-separated), got {bad[0]!r}")
         # (variant, scene, notes): what each row's scene is, checked now
-        self.scene_variants = scene_variants(scene, self.mesh_triangles, self.motion)
+        self.scene_variants = scene_variants(scene, self.mesh_triangles, self.motion, self.self_collision)
         self.notes = [n for _, _, notes in self.scene_variants for n in notes]
         self.setups = {
             (g, sv): dataclasses.replace(self.setup, scene=s).replace(grid=g, steps=self.steps * self.repeats)

@@ -31,7 +31,7 @@ from clothbench.errors import BlowUp
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.harness.energy import fast_impact_warning
-from clothbench.harness.health import max_penetration, state_problem
+from clothbench.harness.health import max_penetration, self_contact, state_problem
 from clothbench.harness.strict_watch import StrictWatch, needs_watch
 
 WARMUP_STEPS = 3
@@ -85,6 +85,12 @@ class RunResult:
     @property
     def max_penetration(self) -> float:
         return max_penetration(self.pos, self.scene) if self.pos is not None else float("nan")
+
+    @property
+    def self_contact(self) -> tuple[int, float] | None:
+        """(pairs closer than the thickness, smallest distance) at the end; None without
+        [self_collision] (harness/health.py)."""
+        return self_contact(self.pos, self.scene) if self.pos is not None else None
 
     def spread(self) -> dict[str, float]:
         """min, max and inter-quartile range of the per-chunk ms/step."""

@@ -238,13 +238,16 @@ class Bodies:
     def needed(cls, scene) -> bool:
         return bool(scene.meshes) or scene.has_motion or scene.pin_attach is not None
 
-    def collide(self, new: np.ndarray, free: np.ndarray) -> None:
+    def collide(self, new: np.ndarray, free: np.ndarray, before_colliders=None) -> None:
+        """`before_colliders(new)`: the self-collision pass, after the attached pins are placed."""
         self.steps += 1
         time = self.steps * self.dt  # the end of the step: x_new is the position at t + dt
         if self.scene.pin_attach is not None:
             pinned = self.scene.pinned()
             flat = new.reshape(3, -1)
             flat[:, pinned] = pin_targets(self.scene, time, self.dtype).T
+        if before_colliders is not None:
+            before_colliders(new)
         analytic = self.static
         if self.moving:
             analytic = self.analytic_constants(self.scene, self.dtype, time)

@@ -17,6 +17,7 @@ from clothbench.solver import Pbd
 from clothbench.backends.base import Backend, BackendOptions
 from clothbench.backends.kernel_inputs import PbdConstants, pin_targets
 from clothbench.backends.numpy.collide_mesh import Bodies
+from clothbench.backends.numpy.self_collision import SelfCollisionPass
 from clothbench.backends.numpy.verlet import (
     COLLIDE,
     GridPlanes,
@@ -33,7 +34,11 @@ class NumpyPbdBackend(GridPlanes, Backend):
     # the same two precisions and one mode; meshes and motion too (docs/pbd.md, "Colliders,
     # motion and attached pins")
     capabilities = replace(
-        NumpyBackend.capabilities, meshes=("verlet", "pbd"), moving_colliders=("verlet", "pbd"), boxes=("verlet", "pbd")
+        NumpyBackend.capabilities,
+        meshes=("verlet", "pbd"),
+        moving_colliders=("verlet", "pbd"),
+        boxes=("verlet", "pbd"),
+        self_collision=("verlet", "pbd"),
     )
 
     def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
@@ -62,6 +67,8 @@ class NumpyPbdBackend(GridPlanes, Backend):
         self.bodies = Bodies(colliding, self.substep_seconds, t, collider_constants, COLLIDE) if needed else None
         self.pinned = scene.pinned() if scene.pin_attach is not None else None
         self.substeps_done = 0  # since the last upload: the clock of the poses and pin targets
+        # [self_collision]: per substep after the constraint iterations, before the colliders
+        self.self_collision = SelfCollisionPass(scene, t) if scene.self_collision is not None else None
         self.pos = self.vel = np.zeros((3, n, n), dtype=t)
         self.w, self.free = np.zeros((n, n), dtype=t), np.zeros((n, n), dtype=bool)
 
@@ -94,9 +101,12 @@ class NumpyPbdBackend(GridPlanes, Backend):
             xs = self._jacobi(xs)
         else:
             xs = self._coloured(xs)
+        contact = self.self_collision_pass
         if self.bodies is not None:  # the poses at the end of the substep; meshes after the planes
-            self.bodies.collide(xs, free)
+            self.bodies.collide(xs, free, contact)
         else:
+            if contact is not None:
+                contact(xs)
             for kind, constants in self.colliders:
                 COLLIDE[kind](xs, free, **constants)
         v = (xs - x) / self.h

@@ -17,6 +17,7 @@ from clothbench.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.numpy.collide_mesh import Bodies
+from clothbench.backends.numpy.self_collision import SelfCollisionPass
 
 
 def probe() -> Availability:
@@ -50,6 +51,13 @@ class GridPlanes:
         self.w = np.ascontiguousarray(pos[:, 3].reshape(n, n), dtype=self.dtype)
         self.free = self.w != 0
 
+    @property
+    def self_collision_pass(self):
+        """The [self_collision] pass as a function of the positions (changed in place), or None."""
+        if self.self_collision is None:
+            return None
+        return lambda x: self.self_collision(x, self.w)
+
     def state(self, planes: np.ndarray) -> np.ndarray:
         """(n*n, 4) rows of `planes` with the inverse mass as w."""
         n2 = self.scene.particles
@@ -70,6 +78,7 @@ class NumpyBackend(GridPlanes, Backend):
         meshes=("verlet",),
         moving_colliders=("verlet",),  # pbd.py adds "pbd" to its copy
         boxes=("verlet",),
+        self_collision=("verlet",),
         mesh_collisions=("naive",),  # its chunked loop gives the naive loop's bits (collide_mesh.py)
     )
 
@@ -84,6 +93,8 @@ class NumpyBackend(GridPlanes, Backend):
         self.colliders = collider_constants(scene, t)
         # meshes, moving colliders, attached pins (collide_mesh.py); None: the scene has none
         self.bodies = Bodies(scene, solver.dt, t, collider_constants, COLLIDE) if Bodies.needed(scene) else None
+        # [self_collision]: after the pins are placed, before the colliders; None: no pass
+        self.self_collision = SelfCollisionPass(scene, t) if scene.self_collision is not None else None
         self.pos = self.prev = np.zeros((3, n, n), dtype=t)
         self.w, self.free = np.zeros((n, n), dtype=t), np.zeros((n, n), dtype=bool)
 
@@ -123,9 +134,12 @@ class NumpyBackend(GridPlanes, Backend):
         new -= prev
         new += force
         np.copyto(new, pos, where=~self.free)  # pinned particles do not move
+        contact = self.self_collision_pass
         if self.bodies is not None:  # per-step poses, attached pins, then every collider and mesh
-            self.bodies.collide(new, self.free)
+            self.bodies.collide(new, self.free, contact)
             return new
+        if contact is not None:
+            contact(new)
         for kind, constants in self.colliders:  # in the order of colliders/kinds.py
             COLLIDE[kind](new, self.free, **constants)
         return new

@@ -1,0 +1,59 @@
+"""The backend contract for [self_collision] (docs/semantics.md, "Self-collision"), over every
+registry entry: a backend whose capabilities declare it for a solver runs a folded sheet strict
+and matches the NumPy float32 reference bit for bit, with the pass seen to act; one that does
+not declare it refuses the scene in one line before any work."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clothbench.backends import backend_class, create_backend
+from clothbench.errors import ClothbenchError
+from clothbench.solver import Pbd
+
+from conftest import VERLET, assert_bit_exact
+from folded_sheet import folded
+from registry_variants import backend_params, options, usable
+
+SOLVERS = {"verlet": VERLET, "pbd": Pbd(dt=VERLET.dt)}
+
+
+def run(name: str, scene, solver, pos, steps: int, **values) -> np.ndarray:
+    with create_backend(name, scene, solver, options(name, solver.name, **values)) as b:
+        b.upload(pos, pos)
+        b.advance(steps)
+        return b.read()[0]
+
+
+def params() -> list:
+    return [
+        pytest.param(p.values[0], solver, id=f"{p.id}-{solver}") for solver in SOLVERS for p in backend_params(solver)
+    ]
+
+
+@pytest.mark.parametrize("steps", [1, 20])
+@pytest.mark.parametrize("param, solver_name", params())
+def test_strict_self_collision_matches_numpy_f32_bit_for_bit(param, solver_name, steps):
+    name, _ = usable(param)
+    solver = SOLVERS[solver_name]
+    if solver_name not in backend_class(name, solver_name).capabilities.self_collision:
+        pytest.skip(f"{name} {solver_name} does not declare self_collision")
+    scene, pos = folded()
+    got = run(name, scene, solver, pos, steps, strict=True)
+    expected = run("numpy", scene, solver, pos, steps)
+    assert_bit_exact(got, expected, f"{name} {solver_name} folded sheet, {steps} steps")
+    without = run("numpy", scene.replace(self_collision=None), solver, pos, steps)
+    assert not np.array_equal(expected, without), "the pass pushed no pair: the test shows nothing"
+
+
+@pytest.mark.parametrize("param, solver_name", params())
+def test_a_backend_without_self_collision_refuses_it_in_one_line_before_any_work(param, solver_name):
+    name, _ = usable(param)
+    if solver_name in backend_class(name, solver_name).capabilities.self_collision:
+        pytest.skip(f"{name} {solver_name} declares self_collision")
+    scene, _ = folded()
+    with pytest.raises(ClothbenchError) as e:
+        create_backend(name, scene, SOLVERS[solver_name], options(name, solver_name))
+    message = str(e.value)
+    assert "[self_collision]" in message and "numpy does" in message and "\n" not in message

@@ -1,0 +1,29 @@
+"""A sheet folded over onto itself, the state the self-collision tests start from
+(tests/test_self_collision.py, tests/contract/test_self_collision_contract.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clothbench.scene import SelfCollision, load_setup
+
+N = 16
+
+
+def folded(n: int = N, gap: float = 0.5, thickness: float = 0.8, pins=("top-left",)):
+    """A sheet folded over onto itself: rows n/2.. lie back over rows ..n/2 - 1, `gap`·h above
+    them, so particle (r, c) of the lower half and (n - 1 - r, c) of the upper one are `gap`·h
+    apart and not neighbours (r < n/2 - 1). Thickness and gap in units of the spacing h."""
+    setup = load_setup("drape")
+    scene = setup.scene.replace(grid=n, pin_corners=pins)
+    h = scene.spacing
+    scene = scene.replace(self_collision=SelfCollision(thickness=thickness * h))
+    pos, _ = scene.initial_state(np.float64)
+    row = np.arange(n * n) // n
+    upper = row >= n // 2
+    pos[upper, 2] = (n - 1 - row[upper]) * h
+    pos[upper, 1] += gap * h
+    rng = np.random.default_rng(34)  # off the lattice: no pair exactly symmetric, every sum's order shows
+    pos[:, :3] += 0.05 * h * rng.standard_normal((n * n, 3))
+    pos[scene.pinned(), :3] = scene.initial_state(np.float64)[0][scene.pinned(), :3]
+    return scene, pos.astype(np.float32)
