@@ -25,7 +25,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field, replace
 
-from clothbench.solver import Solver
+from clothbench.model.solver import Solver
 
 # the choices of an option, once: the CLI's argparse choices, the backends' checks and the
 # help read these

@@ -7,7 +7,7 @@
  * result must be exact (not dot(): its order is the driver's).
  *
  * The collider table (one __constant float4 array, rows rounded once from float64 on the
- * host, clothbench/backends/kernel_inputs.py collider_rows): spheres (centre, radius); then
+ * host, clothbench/model/kernel_inputs.py collider_rows): spheres (centre, radius); then
  * cylinders, three rows each: (start, length), (unit axis, radius), (radial_r, 0); then boxes,
  * four rows each: (centre, 0), (axis i, half extent i) for i = 0, 1, 2; then planes, two rows
  * each: (point, 0), (unit normal, 0).

@@ -5,7 +5,7 @@
  * Built per scene by clothbench/native.py with -D options, so the compiler folds them:
  *   CLOTH_N                grid side n: strides, bounds and the interior range are constants.
  *   CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES
- *                          collider counts (clothbench/colliders/kinds.py): each kind's loop
+ *                          collider counts (clothbench/model/colliders/kinds.py): each kind's loop
  *                          unrolls, an absent kind vanishes.
  *   CLOTH_DOUBLE           float64 (the fast reference for accuracy figures); else float32.
  *   CLOTH_STRICT           every operation in the order docs/semantics.md fixes, damping once
@@ -15,7 +15,7 @@
  *                          spring costs one 1/sqrt (a correctly rounded sqrt and divide: no
  *                          fast math, see docs/c.md), and the host lets the compiler contract.
  * The numbers (k, b, dt, dt2, g, rest lengths, the collider table) are arguments, rounded once
- * on the host (clothbench/backends/kernel_inputs.py), so a dt or stiffness sweep builds nothing.
+ * on the host (clothbench/model/kernel_inputs.py), so a dt or stiffness sweep builds nothing.
  *
  * Layout: positions as three planes x | y | z of n*n values; w (inverse mass, 0 = pinned)
  * in its own plane. Two state buffers, ping-ponged by the step count: a particle reads its

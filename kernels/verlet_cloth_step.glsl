@@ -91,7 +91,7 @@ layout(std430, binding = 10) readonly buffer PinSlots { int pin_slot[]; };
 #endif
 
 // Collisions (section 22.3): `vec3 collide(vec3 x)`, every collider in the fixed order
-// (spheres, cylinders, boxes, planes, then meshes: clothbench/colliders/kinds.py). The host
+// (spheres, cylinders, boxes, planes, then meshes: clothbench/model/colliders/kinds.py). The host
 // puts here the file of each collider kind the program handles (kernels/collide_sphere.glsl,
 // collide_cylinder.glsl, collide_box.glsl, collide_plane.glsl: only the kinds the scene has,
 // or all of them with GENERIC; and collide_mesh.glsl only where the scene has meshes) and

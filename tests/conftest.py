@@ -20,8 +20,8 @@ os.environ["CLOTHBENCH_TUNING"] = "off"
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_max_isa=AVX")
 
 from clothbench.backends import availability
-from clothbench.scene import Cylinder, Plane, Scene, Setup, Sphere, load_scene, load_setup
-from clothbench.solver import Verlet
+from clothbench.model.scene import Cylinder, Plane, Scene, Setup, Sphere, load_scene, load_setup
+from clothbench.model.solver import Verlet
 
 # the solver every built-in scene file names: Verlet at dt = 0.5 ms, from rest
 VERLET = load_setup("sphere").solver

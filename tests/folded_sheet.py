@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.scene import SelfCollision, load_setup
+from clothbench.model.scene import SelfCollision, load_setup
 
 N = 16
 

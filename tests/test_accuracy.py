@@ -26,8 +26,8 @@ from clothbench.cli import main
 from clothbench.harness import simulate
 from clothbench.harness.energy import energy_problem, total_energy
 from clothbench.harness.plan import Variant, plan_variants
-from clothbench.scene import Scene, load_scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import Scene, load_scene
+from clothbench.model.solver import Pbd
 from conftest import VERLET, require, setup
 
 F64 = Variant("numpy", BackendOptions(precision="f64"), VERLET, "f64")

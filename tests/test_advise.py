@@ -23,7 +23,7 @@ from clothbench.backends import availability
 from clothbench.cli import main
 from clothbench.cli.advise import NONE_QUALIFIES
 from clothbench.harness.simulate import position_error, simulate
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 
 REPO = Path(__file__).resolve().parents[1]
 # a frozen accuracy CSV (the AMD EPYC run of 2026-11-22, then results/accuracy-drape.csv): the

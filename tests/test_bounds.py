@@ -15,8 +15,8 @@ from clothbench import environment, native
 from clothbench.errors import ClothbenchError
 from clothbench.harness import bounds
 from clothbench.harness.sweep_csv import fmt
-from clothbench.scene import Cylinder, Plane, Sphere
-from clothbench.solver import Pbd, Verlet
+from clothbench.model.scene import Cylinder, Plane, Sphere
+from clothbench.model.solver import Pbd, Verlet
 from tests.conftest import sphere
 
 pytestmark = pytest.mark.serial  # measures the machine's limits: one xdist worker

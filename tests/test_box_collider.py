@@ -13,17 +13,17 @@ import numpy as np
 import pytest
 
 from clothbench.backends import BACKENDS, BackendOptions, backend_class, create_backend
-from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, collider_rows
+from clothbench.model.kernel_inputs import ROWS_PER_COLLIDER, collider_rows
 from clothbench.backends.numpy.verlet import ARGUMENTS, COLLIDE, collide_box
 from clothbench.cli import main
-from clothbench.colliders.analytic import COLLIDER_OPTIONAL_KEYS
-from clothbench.colliders.kinds import KINDS
-from clothbench.colliders.motion import Motion, euler_degrees
+from clothbench.model.colliders.analytic import COLLIDER_OPTIONAL_KEYS
+from clothbench.model.colliders.kinds import KINDS
+from clothbench.model.colliders.motion import Motion, euler_degrees
 from clothbench.errors import ClothbenchError, SceneError
 from clothbench.harness import max_penetration
 from clothbench.harness.bounds import step_count
-from clothbench.scene import Box, Scene, load_scene, load_setup
-from clothbench.solver import Pbd
+from clothbench.model.scene import Box, Scene, load_scene, load_setup
+from clothbench.model.solver import Pbd
 
 from conftest import VERLET, every_collider_scene
 

@@ -14,7 +14,7 @@ from clothbench.cli import main
 from clothbench.errors import ClothbenchError
 from clothbench.harness import simulate
 from clothbench.harness.simulate import position_error, reference
-from clothbench.scene import load_scene
+from clothbench.model.scene import load_scene
 
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require
 

@@ -6,7 +6,7 @@ import pytest
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.errors import SceneError
 from clothbench.harness import max_penetration, simulate
-from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
+from clothbench.model.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
 from conftest import VERLET, setup
 

@@ -34,12 +34,12 @@ from clothbench.backends.cuda import cpu as cpu_build
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.cpu import ShimRuntime
 from clothbench.backends.cuda.verlet import PingPong, compile_options
-from clothbench.colliders.kinds import kinds_in
+from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.harness import max_penetration, position_error, reference, run_timed, simulate
 from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import kernel_path
-from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
+from clothbench.model.scene import Cylinder, Plane, Scene, Sphere, load_scene
 
 from conftest import VERLET, assert_bit_exact, bent_state, every_kind, require, setup, sphere
 

@@ -24,7 +24,7 @@ from clothbench.backends.cuda.launch import PingPong
 from clothbench.harness import reference
 from clothbench.harness.plan import without_motion
 from clothbench.kernel_source import kernel_path
-from clothbench.scene import Box, Scene, load_setup
+from clothbench.model.scene import Box, Scene, load_setup
 
 from conftest import VERLET, assert_bit_exact, sphere
 from test_cuda import cuda_on_cpu, entry_body, shim_library  # noqa: F401  (fixtures: the stand-in cupy)

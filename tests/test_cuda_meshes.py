@@ -29,12 +29,12 @@ from clothbench.backends import BackendOptions, backend_class, create_backend
 from clothbench.backends.cuda import cpu, launch
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.launch import PingPong
-from clothbench.backends.kernel_inputs import pin_targets
-from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Motion
+from clothbench.model.kernel_inputs import pin_targets
+from clothbench.model.colliders.mesh import Mesh
+from clothbench.model.colliders.motion import Motion
 from clothbench.harness import reference
 from clothbench.kernel_source import kernel_path
-from clothbench.scene import Scene, load_scene
+from clothbench.model.scene import Scene, load_scene
 
 from conftest import VERLET, assert_bit_exact, sphere
 from test_cuda import assert_as_accurate_as_float32

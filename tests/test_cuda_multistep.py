@@ -26,12 +26,12 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.cuda import cpu, launch
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.launch import PingPong
-from clothbench.colliders.kinds import kinds_in
+from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.harness import reference, simulate
 from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import kernel_path
-from clothbench.scene import load_scene
+from clothbench.model.scene import load_scene
 
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, sphere
 from test_cuda import SPHERE_STEPS, assert_as_accurate_as_float32

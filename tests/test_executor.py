@@ -137,7 +137,7 @@ def test_local_executor_runs_untimed_tasks_together_and_timed_ones_alone(tmp_pat
 
 def _accuracy_inputs():
     from clothbench.harness.plan import plan_variants
-    from clothbench.scene import load_setup
+    from clothbench.model.scene import load_setup
 
     setup = load_setup("drape").replace(grid=6)
     variants, _ = plan_variants(["numpy"], [setup.solver])
@@ -161,7 +161,7 @@ def test_an_accuracy_row_that_crashes_says_so_and_the_others_are_measured(faulty
     from clothbench.analysis.convergence import run_accuracy
     from clothbench.harness.plan import plan_variants
 
-    from clothbench.scene import load_setup
+    from clothbench.model.scene import load_setup
 
     scene, _, dts = _accuracy_inputs()
     variants, _ = plan_variants(["fake-abort", "fake-fine"], [load_setup("drape").solver])

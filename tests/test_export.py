@@ -20,7 +20,7 @@ from clothbench import cli
 from clothbench.harness.normals import grid_normals
 from clothbench.reports.export import OBJ_TOLERANCE, RunInfo, UsdWriter, frame_steps, read_usd
 from clothbench.reports.meshes import cloth_indices
-from clothbench.scene import body_pose, load_setup
+from clothbench.model.scene import body_pose, load_setup
 
 from conftest import assert_bit_exact, require
 

@@ -23,7 +23,7 @@ from clothbench.errors import BackendUnavailable, ClothbenchError
 from clothbench.harness import max_penetration, position_error, reference, simulate
 from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import read_kernel
-from clothbench.scene import Scene, load_scene
+from clothbench.model.scene import Scene, load_scene
 
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, sphere, three_kinds_scene
 

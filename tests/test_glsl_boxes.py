@@ -17,8 +17,8 @@ import pytest
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.harness import position_error, reference, simulate
 from clothbench.harness.plan import without_motion
-from clothbench.scene import Box, load_scene, load_setup
-from clothbench.solver import Pbd
+from clothbench.model.scene import Box, load_scene, load_setup
+from clothbench.model.solver import Pbd
 
 from conftest import VERLET, assert_bit_exact, require, sphere
 

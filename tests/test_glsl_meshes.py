@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("trimesh", reason="the built-in mesh scenes load with trimesh (pip install trimesh)")
 
 from clothbench.backends import BackendOptions, create_backend
-from clothbench.scene import load_scene
+from clothbench.model.scene import load_scene
 
 from conftest import VERLET, require
 

@@ -21,8 +21,8 @@ import pytest
 
 from clothbench.backends import BackendOptions, availability, capabilities
 from clothbench.harness import reference, simulate
-from clothbench.scene import builtin_scenes, load_scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import builtin_scenes, load_scene
+from clothbench.model.solver import Pbd
 
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, setup
 

@@ -22,7 +22,7 @@ import pytest
 
 from clothbench.backends import BackendOptions, availability, create_backend
 from clothbench.harness import position_error, reference, simulate
-from clothbench.scene import Cylinder, Plane, Sphere, load_scene
+from clothbench.model.scene import Cylinder, Plane, Sphere, load_scene
 
 from conftest import VERLET, assert_bit_exact, require
 
@@ -122,7 +122,7 @@ def test_torch_refuses_a_device_it_lacks_in_one_line():
 _JAX_FAST_THEN_STRICT = """
     from clothbench.backends import BackendOptions, create_backend
     from clothbench.errors import ClothbenchError
-    from clothbench.scene import load_scene
+    from clothbench.model.scene import load_scene
     from conftest import VERLET
     scene = load_scene("sphere").replace(grid=8)
     with create_backend("jax", scene, VERLET, BackendOptions()) as b:
@@ -149,7 +149,7 @@ def test_jax_strict_first_starts_jax_without_fma_and_fast_then_says_so():
         import os
         from clothbench.backends import BackendOptions, create_backend
         from clothbench.harness import reference
-        from clothbench.scene import load_scene
+        from clothbench.model.scene import load_scene
         from conftest import VERLET, assert_bit_exact, every_collider_scene
         scene = every_collider_scene(32)  # no subnormal results in these 500 steps (XLA flushes them)
         with create_backend("jax", scene, VERLET, BackendOptions(strict=True)) as b:
@@ -174,7 +174,7 @@ def test_jax_fast_with_fma_stays_within_float32_rounding():
     code = """
         from clothbench.backends import BackendOptions
         from clothbench.harness import position_error, reference, simulate
-        from clothbench.scene import load_scene
+        from clothbench.model.scene import load_scene
         from conftest import VERLET
         for name in ("sphere", "drape"):
             scene = load_scene(name)

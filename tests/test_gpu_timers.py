@@ -20,7 +20,7 @@ from clothbench.harness import run_timed
 from clothbench.harness.sweep_csv import COLUMNS, read_sweep
 from clothbench.harness.timing import DEVICE_TIMERS
 from clothbench.reports import sweep_rows
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 
 from conftest import VERLET, require, sphere
 from test_sweep import read_csv, register_fake_backends

@@ -23,7 +23,7 @@ MAX_LINES = 900
 # them; analysis measures with the harness; reports draw what was measured; the viewer is an
 # application beside the CLI (it runs backends live in its own window); the CLI drives all.
 LAYERS = {
-    "scene": 0, "colliders": 0, "solver": 0, "errors": 0, "environment": 0, "constraints": 0, "kernel_source": 0,
+    "model": 0, "errors": 0, "environment": 0, "kernel_source": 0,
     "native": 0, "machine_load": 0, "machine_fitness": 0, "progress": 0, "_build_info": 0, "variant_names": 0,
     "backends": 1, "peers": 1,
     "harness": 2,

@@ -16,12 +16,12 @@ from clothbench.backends import BACKENDS, Availability, Capabilities, availabili
 from clothbench.backends.base import MESH_COLLISIONS
 from clothbench.backends.numpy.verlet import NumpyBackend
 from clothbench.cli import main
-from clothbench.colliders.mesh import mesh_geometry
+from clothbench.model.colliders.mesh import mesh_geometry
 from clothbench.harness.plan import (
     scene_variants, shape_triangles, subdivisions_for, with_mesh_triangles, without_motion,
 )  # fmt: skip
 from clothbench.harness.sweep import SweepSettings, plan_sweep, run_sweep
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 
 from conftest import VERLET, require
 from test_sweep import fake_entry

@@ -10,15 +10,15 @@ import pytest
 trimesh = pytest.importorskip("trimesh", reason="mesh colliders load with trimesh (pip install trimesh)")
 
 from clothbench.backends import BackendOptions, create_backend
-from clothbench.backends.kernel_inputs import MeshConstants, pose_rows
+from clothbench.model.kernel_inputs import MeshConstants, pose_rows
 from clothbench.backends.numpy.collide_mesh import (
     closest_triangle_bvh, closest_triangle_naive, collide_mesh,
 )  # fmt: skip
 from clothbench.cli import main
-from clothbench.colliders.mesh import Mesh
+from clothbench.model.colliders.mesh import Mesh
 from clothbench.errors import SceneError
-from clothbench.scene import Scene, Sphere, load_scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene, Sphere, load_scene
+from clothbench.model.solver import Verlet
 
 F32 = BackendOptions(precision="f32")
 VERLET = Verlet(dt=5e-4)

@@ -10,12 +10,12 @@ import pytest
 pytest.importorskip("trimesh", reason="the built-in mesh scenes load with trimesh (pip install trimesh)")
 
 from clothbench.backends import BackendOptions
-from clothbench.backends.kernel_inputs import collider_rows
-from clothbench.colliders.motion import Frame, Motion
+from clothbench.model.kernel_inputs import collider_rows
+from clothbench.model.colliders.motion import Frame, Motion
 from clothbench.errors import SceneError
 from clothbench.harness import simulate
-from clothbench.scene import Plane, Scene, Sphere, load_scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Plane, Scene, Sphere, load_scene
+from clothbench.model.solver import Verlet
 
 DT = 5e-4
 VERLET = Verlet(dt=DT)

@@ -12,14 +12,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clothbench.constraints import coloured_batches
+from clothbench.model.constraints import coloured_batches
 from clothbench.backends import BACKENDS, BackendOptions, backend_class, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.harness.health import max_penetration
 from clothbench.harness.simulate import simulate
 from clothbench.peers.newton import stencil_springs
-from clothbench.scene import load_scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import load_scene
+from clothbench.model.solver import Pbd
 
 from conftest import require
 

@@ -18,7 +18,7 @@ from clothbench.errors import BackendUnavailable, ClothbenchError
 from clothbench.harness import max_penetration, position_error, reference, simulate
 from clothbench.harness.normals import grid_normals
 from clothbench.kernel_source import read_kernel
-from clothbench.scene import Cylinder, Plane, Scene, Sphere, load_scene
+from clothbench.model.scene import Cylinder, Plane, Scene, Sphere, load_scene
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, sphere
 
 STRICT = BackendOptions(strict=True)

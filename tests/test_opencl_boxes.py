@@ -19,8 +19,8 @@ from clothbench.backends.opencl.verlet_shapes import tuning_key
 from clothbench.errors import ClothbenchError
 from clothbench.harness import reference
 from clothbench.kernel_source import read_kernel
-from clothbench.scene import Box, Scene, load_setup
-from clothbench.solver import Pbd
+from clothbench.model.scene import Box, Scene, load_setup
+from clothbench.model.solver import Pbd
 from conftest import VERLET, assert_bit_exact, require
 
 BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"

@@ -318,7 +318,7 @@ RUNTIMES = (runtimes.SYSTEM_POCL, runtimes.INTEL_CPU, runtimes.WHEEL_POCL)
 @pytest.mark.parametrize("scene_name", ["sphere", "drape"])
 @pytest.mark.parametrize("runtime", RUNTIMES)
 def test_strict_is_bit_exact_on_every_runtime_that_compiles(runtime, scene_name, n, generic):
-    from clothbench.scene import load_scene
+    from clothbench.model.scene import load_scene
 
     spec = _device_of(runtime)
     scene, steps = load_scene(scene_name).replace(grid=n), 500  # 500: after contact

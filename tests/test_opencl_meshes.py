@@ -13,7 +13,7 @@ import pytest
 
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.opencl import verlet as opencl
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 from conftest import require
 
 N = 32  # the contract's grid

@@ -17,7 +17,7 @@ from clothbench.backends.opencl import verlet_shapes as shapes
 from clothbench.backends.tuning import TUNING_ROUNDS
 from clothbench.cli import main
 from clothbench.errors import ClothbenchError
-from clothbench.scene import load_scene
+from clothbench.model.scene import load_scene
 from clothbench.harness import position_error, reference, simulate
 from clothbench.harness.normals import grid_normals
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, sphere

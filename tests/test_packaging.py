@@ -18,7 +18,7 @@ def test_installed_package_finds_every_kernel_and_scene(tmp_path):
     code = (
         "import json, sys\n"
         "from clothbench.kernel_source import read_kernel\n"
-        "from clothbench.scene import builtin_scenes, load_scene\n"
+        "from clothbench.model.scene import builtin_scenes, load_scene\n"
         "names = json.loads(sys.argv[1])\n"
         "print(json.dumps({'kernels': {n: len(read_kernel(n)) for n in names},\n"
         "                  'scenes': [load_scene(s).name for s in builtin_scenes()]}))\n"

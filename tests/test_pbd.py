@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from clothbench.backends import BackendOptions, create_backend
-from clothbench.constraints import DIRECTIONS, coloured_batches
+from clothbench.model.constraints import DIRECTIONS, coloured_batches
 from clothbench.errors import BlowUp, ClothbenchError
 from clothbench.harness import max_penetration, run_timed, simulate
-from clothbench.scene import Scene, count_springs
-from clothbench.solver import Pbd
+from clothbench.model.scene import Scene, count_springs
+from clothbench.model.solver import Pbd
 
 from conftest import setup
 
@@ -144,7 +144,7 @@ def test_chebyshev_jacobi_at_rho_095_and_10_iterations_stays_bounded():
 @pytest.mark.parametrize("rho", [1.0, -0.1, "0.9", True, float("nan")])
 def test_chebyshev_rho_outside_0_to_1_is_refused_in_one_line(rho):
     from clothbench.errors import SceneError
-    from clothbench.scene import setup_from_dict
+    from clothbench.model.scene import setup_from_dict
 
     with pytest.raises(SceneError) as err:
         setup_from_dict({"sim": {"solver": "pbd"}, "pbd": {"chebyshev_rho": rho}})

@@ -11,11 +11,11 @@ import pytest
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.tuning import TUNING_ROUNDS
 from clothbench.cli import main
-from clothbench.constraints import coloured_batches
+from clothbench.model.constraints import coloured_batches
 from clothbench.errors import ClothbenchError
 from clothbench.harness import max_penetration, position_error, reference, run_timed, simulate
-from clothbench.scene import Cylinder, Plane, Scene, Sphere
-from clothbench.solver import Pbd
+from clothbench.model.scene import Cylinder, Plane, Scene, Sphere
+from clothbench.model.solver import Pbd
 from conftest import assert_bit_exact, require, setup
 
 GPU = ["opencl", "glsl-compute"]

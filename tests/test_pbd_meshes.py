@@ -14,8 +14,8 @@ pytest.importorskip("trimesh", reason="mesh colliders load with trimesh (pip ins
 
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.opencl.pbd import OpenCLPbdBackend
-from clothbench.scene import load_setup
-from clothbench.solver import Pbd
+from clothbench.model.scene import load_setup
+from clothbench.model.solver import Pbd
 from conftest import require
 
 METHODS = ("jacobi", "coloured")

@@ -8,7 +8,7 @@ import pytest
 
 from clothbench.analysis.pbd_study import measure_pair, pairs_at, study_reference
 from clothbench.cli import main
-from clothbench.scene import load_scene
+from clothbench.model.scene import load_scene
 
 SMALL = ["--grid", "8", "--time", "0.1", "--cost-backends", "none"]  # 6 frames of 1/60 s, error only
 

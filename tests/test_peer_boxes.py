@@ -15,7 +15,7 @@ from clothbench.backends import BackendOptions, backend_class
 from clothbench.harness import reference, simulate
 from clothbench.harness.health import max_penetration
 from clothbench.harness.plan import without_motion
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 
 from conftest import assert_bit_exact, require
 

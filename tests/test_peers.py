@@ -32,7 +32,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
 from clothbench.harness.health import max_penetration
-from clothbench.scene import Sphere, load_scene
+from clothbench.model.scene import Sphere, load_scene
 
 from conftest import VERLET, assert_bit_exact, require, tilted_cylinder_scene
 
@@ -78,8 +78,8 @@ def test_taichi_leaves_numpys_floating_point_environment_alone():
     code = """if True:
         import numpy as np
         from clothbench.backends import create_backend
-        from clothbench.scene import load_scene
-        from clothbench.solver import Verlet
+        from clothbench.model.scene import load_scene
+        from clothbench.model.solver import Verlet
         def subnormal():
             return np.float32(1e-38) * np.float32(1e-3)
         assert subnormal() != 0

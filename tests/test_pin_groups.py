@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clothbench.backends.kernel_inputs import pin_targets
-from clothbench.colliders.analytic import body_pose
+from clothbench.model.kernel_inputs import pin_targets
+from clothbench.model.colliders.analytic import body_pose
 from clothbench.errors import SceneError
 from clothbench.harness import reference
 from clothbench.harness.plan import without_motion
-from clothbench.scene import load_setup, setup_from_dict
+from clothbench.model.scene import load_setup, setup_from_dict
 
 from conftest import VERLET, assert_bit_exact
 

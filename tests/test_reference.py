@@ -6,8 +6,8 @@ import pytest
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.errors import BlowUp
 from clothbench.harness import max_penetration, position_error, run_timed, simulate, state_problem
-from clothbench.scene import Scene, Sphere, load_scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene, Sphere, load_scene
+from clothbench.model.solver import Verlet
 
 from conftest import VERLET, sphere
 

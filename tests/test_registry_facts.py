@@ -23,7 +23,7 @@ from clothbench.harness.sweep_settings import SweepSettings
 from clothbench.harness.timing import DEVICE_TIMERS
 from clothbench.reports.figures_common import platform_color, platform_title
 from clothbench.viewer import keys as view_keys
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 
 ROOT = Path(__file__).resolve().parents[1]
 FACTS = ("display", "platform", "gpu_style", "view_key", "fork_safe")

@@ -22,8 +22,8 @@ from clothbench.harness import simulate
 from clothbench.reports import render as render_module
 from clothbench.reports.meshes import cloth_indices, cube_mesh
 from clothbench.reports.render import RenderSettings, frame_scene, render
-from clothbench.scene import load_scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import load_scene
+from clothbench.model.solver import Pbd
 
 from conftest import VERLET, require
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from clothbench.errors import SceneError
-from clothbench.scene import Scene, Setup, Sphere, builtin_scenes, count_springs, load_scene, load_setup
-from clothbench.solver import Pbd, Verlet
+from clothbench.model.scene import Scene, Setup, Sphere, builtin_scenes, count_springs, load_scene, load_setup
+from clothbench.model.solver import Pbd, Verlet
 
 
 def test_spring_counts_match_the_chapter():
@@ -17,7 +17,7 @@ def test_spring_counts_match_the_chapter():
 
 def test_spring_count_equals_neighbours_inside_the_grid():
     # brute force over the stencil, so count_springs cannot drift from the step's skip rule
-    from clothbench.scene import OFFSETS
+    from clothbench.model.scene import OFFSETS
 
     n = 7
     brute = sum(1 for r in range(n) for c in range(n) for dr, dc in OFFSETS if 0 <= r + dr < n and 0 <= c + dc < n)

@@ -11,14 +11,20 @@ import pytest
 
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.numpy.self_collision import SelfCollisionPass
-from clothbench.colliders.self_contact import CELL_MARGIN, close_pairs, hashed_pairs, neighbour_table, rest_exclusion
+from clothbench.model.colliders.self_contact import (
+    CELL_MARGIN,
+    close_pairs,
+    hashed_pairs,
+    neighbour_table,
+    rest_exclusion,
+)
 from clothbench.cli import main
 from clothbench.errors import ClothbenchError, SceneError
 from clothbench.harness.plan import scene_variants
 from clothbench.harness import reference
 from clothbench.harness.health import self_contact
-from clothbench.scene import OFFSETS, SelfCollision, load_setup, setup_from_dict
-from clothbench.solver import Pbd
+from clothbench.model.scene import OFFSETS, SelfCollision, load_setup, setup_from_dict
+from clothbench.model.solver import Pbd
 
 from conftest import VERLET, assert_bit_exact
 from folded_sheet import N, folded

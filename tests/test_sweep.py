@@ -23,8 +23,8 @@ from clothbench.cli import main
 from clothbench.harness import sweep as sweep_module
 from clothbench.harness.sweep_csv import COLUMNS, MEASUREMENT_COLUMNS, row_key
 from clothbench.viewer.keys import BACKEND_KEY_NAMES
-from clothbench.scene import count_springs
-from clothbench.solver import Pbd
+from clothbench.model.scene import count_springs
+from clothbench.model.solver import Pbd
 
 from conftest import VERLET, lines_in, wait_until
 

@@ -10,7 +10,7 @@ import pytest
 from clothbench.backends import availability
 from clothbench.cli import main
 from clothbench.harness.timing import MIN_BUDGET_CHUNKS, fit_budget
-from clothbench.scene import count_springs
+from clothbench.model.scene import count_springs
 
 TINY = ["--steps", "3", "--repeat", "4"]
 

@@ -18,7 +18,7 @@ from clothbench.backends.base import MESH_COLLISIONS, Availability, Capabilities
 from clothbench.cli import build_parser
 from clothbench.cli.args import options_from_args, setup_from_args
 from clothbench.harness.plan import Variant, plan_variants
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 from clothbench.variant_names import (
     GL_PROVIDERS,
     PRECISIONS,

@@ -37,7 +37,7 @@ from clothbench.viewer import overlay_text
 from clothbench.viewer.camera import Trackball
 from clothbench.viewer.draw import DIM, GAP, PAD, WARN, Glyphs, clear_span, fit_lines, layout
 from clothbench.viewer.profiler import FrameProfile, Stage, gl_timer_queries
-from clothbench.scene import load_setup
+from clothbench.model.scene import load_setup
 
 from conftest import assert_bit_exact, lines_in, require, wait_until
 

@@ -31,8 +31,8 @@ from clothbench.backends import BACKENDS, BackendOptions, availability
 from clothbench.environment import cpu_model
 from clothbench.errors import ClothbenchError
 from clothbench.harness.plan import Variant, plan_variants
-from clothbench.scene import Setup
-from clothbench.solver import Solver
+from clothbench.model.scene import Setup
+from clothbench.model.solver import Solver
 from clothbench.variant_names import Mode, model_name, option_flags
 
 METRICS = {"max": "disc_max", "rms": "disc_rms"}  # --metric -> the accuracy CSV's column

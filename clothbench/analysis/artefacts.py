@@ -16,8 +16,8 @@ import numpy as np
 from clothbench.analysis.convergence import F64, structural_strain
 from clothbench.harness.energy import total_energy
 from clothbench.harness.simulate import simulate
-from clothbench.scene import Scene
-from clothbench.solver import PBD_METHODS, Pbd, Solver, as_verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import PBD_METHODS, Pbd, Solver, as_verlet
 from clothbench.variant_names import model_name
 
 SETTLE_DAMPING = 0.005  # N s/m: near critical for the hanging sheet's swing, settled in SETTLE_S

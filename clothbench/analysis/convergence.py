@@ -30,8 +30,8 @@ from clothbench.harness.executor import fork_safe, runner
 from clothbench.harness.plan import Variant
 from clothbench.harness.simulate import position_error, reference, simulate
 from clothbench.harness.timing import run_timed
-from clothbench.scene import Scene
-from clothbench.solver import Solver, as_verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver, as_verlet
 from clothbench.variant_names import model_name
 
 F64 = BackendOptions(precision="f64")

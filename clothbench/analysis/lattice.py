@@ -9,7 +9,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.scene import OFFSETS, Scene
+from clothbench.model.scene import OFFSETS, Scene
 
 
 def _spring_block(dr: int, dc: int, stretch: float) -> np.ndarray:

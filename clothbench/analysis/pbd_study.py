@@ -20,8 +20,8 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.environment import cpu_model
 from clothbench.harness.simulate import position_error, simulate
 from clothbench.harness.timing import run_timed
-from clothbench.scene import Scene
-from clothbench.solver import Pbd, Verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Pbd, Verlet
 
 FRAME_DT = 1 / 60  # the frame PBD is stepped at: what it is used for
 REFERENCE_DT = FRAME_DT / 32  # Verlet's finest measured dt (under its 2 ms limit at k = 1000), halved below

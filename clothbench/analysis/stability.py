@@ -19,8 +19,8 @@ from clothbench.errors import ClothbenchError
 from clothbench.harness import faults
 from clothbench.harness.energy import ENERGY_GROWTH, energy_bound, energy_problem, total_energy
 from clothbench.harness.plan import Variant
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 
 STABILITY_SCENES = ("flat", "stretched", "crumpled")
 STRETCH = 1.5  # the stretched scene's strain: every spring at 1.5x its rest length

@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 from clothbench.errors import BackendUnavailable, ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import SOLVERS, Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import SOLVERS, Solver
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 
 

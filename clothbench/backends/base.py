@@ -18,10 +18,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 from clothbench.variant_names import AUTO, GL_PROVIDERS, PRECISIONS, SEPARATOR, Mode, mesh_word
 
 # how a kernel finds a particle's closest mesh triangle (docs/semantics.md, "Triangle mesh"):

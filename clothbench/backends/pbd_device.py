@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.constraints import coloured_batches
+from clothbench.model.constraints import coloured_batches
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Pbd
 from clothbench.backends.base import Backend, BackendOptions
-from clothbench.backends.kernel_inputs import PbdConstants
+from clothbench.model.kernel_inputs import PbdConstants
 
 
 def batch_stage_name(batch) -> str:

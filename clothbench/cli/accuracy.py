@@ -96,7 +96,7 @@ def solvers_from_args(args, base, pbd) -> list:
     start and the other settings of `pbd` (the scene file's [pbd]). 'pbd' runs --pbd-methods
     (default both); 'pbd-jacobi' and 'pbd-coloured' (the sweep's spelling) name one method
     each; each PBD method runs every --pbd-iterations count (default pbd's)."""
-    from clothbench.solver import PBD_METHODS, solver_for_spec
+    from clothbench.model.solver import PBD_METHODS, solver_for_spec
 
     specs = solver_specs(args.solvers)
     methods = tuple(dict.fromkeys(m.strip() for m in args.pbd_methods.split(",") if m.strip()))
@@ -153,7 +153,7 @@ def cmd_accuracy(args) -> int:
     from clothbench.progress import LazyProgress
     from clothbench.harness.executor import executor_for
     from clothbench.harness.preflight import check_memory, check_writable
-    from clothbench.scene import check_float32_step, load_setup
+    from clothbench.model.scene import check_float32_step, load_setup
 
     sigterm_interrupts()
     check_row_args(args)
@@ -224,7 +224,7 @@ def cmd_accuracy(args) -> int:
             print("--artefacts: skipped (it compares PBD with Verlet: add --solvers verlet,pbd)")
             return 0
         from clothbench.analysis.artefacts import ITERATIONS, solver_artefacts
-        from clothbench.solver import solver_for_spec
+        from clothbench.model.solver import solver_for_spec
 
         its = tuple(sorted(set(ITERATIONS) | set(args.pbd_iterations or ())))
         with LazyProgress(1 + len(methods) * (len(its) + 2), "artefacts") as progress:

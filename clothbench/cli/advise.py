@@ -61,7 +61,7 @@ def register(subparsers) -> None:
 def _checked_args(args):
     """(setup, the backends to choose among or None for all), or one line on what is wrong."""
     from clothbench.backends import resolve_names
-    from clothbench.scene import load_setup
+    from clothbench.model.scene import load_setup
 
     setup = load_setup(args.scene)
     if not (math.isfinite(args.max_error) and args.max_error > 0):

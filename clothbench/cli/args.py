@@ -6,7 +6,7 @@ import argparse
 import re
 
 from clothbench.errors import ClothbenchError
-from clothbench.solver import PBD_METHODS, SOLVER_SPECS, SOLVERS
+from clothbench.model.solver import PBD_METHODS, SOLVER_SPECS, SOLVERS
 from clothbench.variant_names import GL_PROVIDERS, PRECISIONS, transfers_help
 
 
@@ -53,7 +53,7 @@ def add_scene_args(
 
 def setup_from_args(args):
     """The scene file named by --scene with the command line's overrides applied."""
-    from clothbench.scene import load_setup
+    from clothbench.model.scene import load_setup
 
     setup = load_setup(args.scene).replace(
         grid=args.grid,

@@ -63,8 +63,8 @@ def cmd_pbd_study(args) -> int:
     from clothbench.harness.preflight import check_writable
     from clothbench.harness.study_csv import StudyFile, cell, cells, from_cells
     from clothbench.progress import LazyProgress
-    from clothbench.scene import builtin_scenes, load_scene
-    from clothbench.solver import PBD_METHODS
+    from clothbench.model.scene import builtin_scenes, load_scene
+    from clothbench.model.solver import PBD_METHODS
 
     sigterm_interrupts()
     methods = _names(args.methods, "--methods", PBD_METHODS + PEER_METHODS)

@@ -62,7 +62,7 @@ def cmd_stability(args) -> int:
     from clothbench.progress import LazyProgress
     from clothbench.harness.executor import executor_for, fork_safe
     from clothbench.harness.preflight import check_memory, check_writable
-    from clothbench.solver import Pbd, Verlet
+    from clothbench.model.solver import Pbd, Verlet
 
     sigterm_interrupts()
     check_row_args(args)

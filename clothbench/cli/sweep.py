@@ -152,7 +152,7 @@ def cmd_sweep(args) -> int:
     from clothbench.harness.sweep import SweepSettings, run_sweep
     from clothbench.harness.sweep_csv import COLUMN_DOCS, KEY_COLUMNS
     from clothbench.progress import LazyProgress
-    from clothbench.scene import load_setup
+    from clothbench.model.scene import load_setup
 
     if args.columns:
         from clothbench.backends import precision_backends

@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS, fmt
 
@@ -306,7 +306,7 @@ def step_bound_ms(
 ) -> dict | None:
     """The lower bound on one step's wall time on this machine, in ms, with its parts; None
     without measured bounds, or for the pbd solver (docs/bounds.md: not counted)."""
-    from clothbench.solver import Pbd
+    from clothbench.model.solver import Pbd
 
     if bounds is None or isinstance(solver, Pbd):
         return None

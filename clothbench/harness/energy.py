@@ -23,8 +23,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.scene import OFFSETS, Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import OFFSETS, Scene
+from clothbench.model.solver import Solver
 
 # Each spring once: the offsets pointing "forward" (the stencil lists both ends).
 FORWARD = tuple(o for o in OFFSETS if o[0] > 0 or (o[0] == 0 and o[1] > 0))

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.colliders.motion import euler_degrees
-from clothbench.colliders.self_contact import contact_measure
-from clothbench.scene import OFFSETS, Scene
-from clothbench.solver import Solver
+from clothbench.model.colliders.motion import euler_degrees
+from clothbench.model.colliders.self_contact import contact_measure
+from clothbench.model.scene import OFFSETS, Scene
+from clothbench.model.solver import Solver
 from clothbench.harness.energy import energy_problem
 
 

@@ -9,10 +9,10 @@ from dataclasses import dataclass, replace
 from typing import Iterable
 
 from clothbench.backends import BACKENDS, BackendOptions, availability, backend_class
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Solver, Verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver, Verlet
 from clothbench.variant_names import mesh_word, variant_label, variant_name
 
 GENERIC_CHOICES = ("no", "yes", "both")

@@ -72,7 +72,7 @@ def check_float32_motion(scene, solver) -> None:
 
     import numpy as np
 
-    from clothbench.solver import FLOAT32_MAX
+    from clothbench.model.solver import FLOAT32_MAX
 
     h = solver.dt / getattr(solver, "substeps", 1)
     g = [abs(c) for c in scene.gravity]

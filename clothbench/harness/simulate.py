@@ -8,8 +8,8 @@ import numpy as np
 
 from clothbench.backends import BackendOptions, availability, backend_class, create_backend
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 
 
 def simulate(

@@ -41,9 +41,9 @@ from clothbench.harness.sweep_csv import (
 )
 from clothbench.harness.sweep_settings import SweepSettings
 from clothbench.harness.timing import run_timed
-from clothbench.scene import Setup
+from clothbench.model.scene import Setup
 from clothbench.variant_names import PER_STEP_TRANSFERS
-from clothbench.solver import Solver
+from clothbench.model.solver import Solver
 
 
 NATIVE = "c"  # the backend every row's vs_c is taken against: the native CPU line

@@ -11,7 +11,7 @@ from clothbench.backends.base import MESH_COLLISIONS
 from clothbench.errors import ClothbenchError
 from clothbench.harness.executor import DEFAULT_ROW_TIMEOUT
 from clothbench.harness.plan import scene_variants
-from clothbench.scene import Setup
+from clothbench.model.scene import Setup
 
 
 @dataclass

@@ -28,8 +28,8 @@ from typing import Callable
 import numpy as np
 
 from clothbench.errors import BlowUp
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 from clothbench.harness.energy import fast_impact_warning
 from clothbench.harness.health import max_penetration, self_contact, state_problem
 from clothbench.harness.strict_watch import StrictWatch, needs_watch

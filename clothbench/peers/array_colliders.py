@@ -7,8 +7,8 @@ module (torch, jax.numpy) and `sqrt` the square root its mode takes.
 
 from __future__ import annotations
 
-from clothbench.scene import Scene
-from clothbench.backends.kernel_inputs import collider_rows
+from clothbench.model.scene import Scene
+from clothbench.model.kernel_inputs import collider_rows
 from clothbench.backends.numpy.verlet import ARGUMENTS
 
 

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.scene import Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, BackendOptions, Capabilities
 from clothbench.backends.numpy.verlet import NumpyBackend
 

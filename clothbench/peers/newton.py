@@ -20,10 +20,10 @@ from __future__ import annotations
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.model.solver import Pbd
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
-from clothbench.backends.kernel_inputs import rest_by_kind
+from clothbench.model.kernel_inputs import rest_by_kind
 from clothbench.peers.warp import import_warp, init_quietly
 
 _INSTALL = "pip install 'clothbench[peers]'"

@@ -19,11 +19,11 @@ import os
 
 import numpy as np
 
-from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.kernel_inputs import VerletConstants, collider_rows
+from clothbench.model.colliders.kinds import KINDS
 
 _INSTALL = "pip install 'clothbench[peers]'"
 _KERNELS: dict[bool, object] = {}  # fastmath -> the jitted step, built on first use

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.scene import Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.peers.numba import particle_update, step_arguments
 

@@ -32,10 +32,10 @@ import os
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.model.kernel_inputs import VerletConstants, collider_rows
 
 _INSTALL = "pip install 'clothbench[peers]'"
 _ARCHS = ("cpu", "cuda")

@@ -23,10 +23,10 @@ from __future__ import annotations
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
-from clothbench.backends.kernel_inputs import VerletConstants
+from clothbench.model.kernel_inputs import VerletConstants
 from clothbench.backends.numpy.verlet import neighbour_regions
 from clothbench.peers.array_colliders import COLLIDE, collider_tensors, dot3
 

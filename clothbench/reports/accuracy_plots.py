@@ -33,7 +33,7 @@ from clothbench.reports.figures_common import (
     panel_axes, panel_legend, pareto_front, platform_color, platform_of, platform_rank, save_figure, series_style,
     small_multiples, titled_figure,
 )  # fmt: skip
-from clothbench.scene import Scene
+from clothbench.model.scene import Scene
 from clothbench.variant_names import model_display, model_short
 
 DPI = 110

@@ -22,8 +22,8 @@ from clothbench.errors import ClothbenchError
 from clothbench.harness.normals import grid_normals
 from clothbench.reports.meshes import cloth_indices, perpendicular
 from clothbench.reports.render_bounds import scene_bounds
-from clothbench.scene import Scene, body_pose, load_setup
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene, body_pose, load_setup
+from clothbench.model.solver import Solver
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc")  # .usd is the binary crate format unless named .usda
 FRAME_FORMATS = ("obj", "ply")

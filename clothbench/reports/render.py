@@ -39,8 +39,8 @@ from clothbench.reports.meshes import (
 from clothbench.errors import ClothbenchError
 from clothbench.harness.normals import grid_normals
 from clothbench.reports.render_bounds import motion_matrix, placement_matrix, scene_bounds
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 
 BACKGROUND = (0.86, 0.89, 0.93)
 CLOTH_COLOURS = ((0.80, 0.16, 0.13), (0.97, 0.78, 0.30))  # checker: red and gold

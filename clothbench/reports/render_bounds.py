@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from clothbench.scene import Scene, body_pose
+from clothbench.model.scene import Scene, body_pose
 
 HANG = 1.5  # a sheet hanging from a pin reaches this many times its side below it
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.backends.gl import context as gl_context
 from clothbench.errors import ClothbenchError
 from clothbench.reports.render import write_gif

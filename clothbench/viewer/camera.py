@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from clothbench.reports.render import FOV_Y, Camera, frame_scene, scene_bounds
-from clothbench.scene import Scene
+from clothbench.model.scene import Scene
 
 KEY_TURN = math.radians(15)  # an arrow key turns the scene this much
 KEY_ZOOM = 0.85  # Z brings the camera this much closer, X takes it as much away

@@ -3,7 +3,7 @@ event and the keys (bottom left)."""
 
 from __future__ import annotations
 
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.viewer.draw import DIM, WARN, wrap
 from clothbench.viewer.keys import backend_key_span, help_lines, key_of
 from clothbench.viewer.session import has_stages

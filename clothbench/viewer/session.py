@@ -25,8 +25,8 @@ from clothbench.backends.base import Backend, BackendOptions
 from clothbench.errors import BackendUnavailable, ClothbenchError
 from clothbench.harness.normals import grid_normals
 from clothbench.harness.simulate import position_error
-from clothbench.scene import Scene, load_scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene, load_scene
+from clothbench.model.solver import Solver
 from clothbench.viewer.keys import COLLIDER_KEYS, GRID_KEYS, backend_keys
 from clothbench.viewer.profiler import FrameProfile, GLTimer
 

@@ -16,13 +16,13 @@ pytest.importorskip("trimesh", reason="the built-in mesh scenes load with trimes
 import trimesh
 
 from clothbench.backends import BACKENDS, availability, backend_class, create_backend
-from clothbench.backends.kernel_inputs import pin_targets
-from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Frame, Motion
+from clothbench.model.kernel_inputs import pin_targets
+from clothbench.model.colliders.mesh import Mesh
+from clothbench.model.colliders.motion import Frame, Motion
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
-from clothbench.scene import Scene, load_scene
-from clothbench.solver import PBD_METHODS, Pbd
+from clothbench.model.scene import Scene, load_scene
+from clothbench.model.solver import PBD_METHODS, Pbd
 
 from conftest import VERLET, assert_bit_exact
 from registry_variants import backend_params, options, solver_params, usable

@@ -16,8 +16,8 @@ from clothbench.backends import BACKENDS, backend_class, create_backend
 from clothbench.backends.numpy import verlet as numpy_verlet
 from clothbench.harness import reference, simulate
 from clothbench.harness.plan import without_motion
-from clothbench.scene import load_setup
-from clothbench.solver import Pbd
+from clothbench.model.scene import load_setup
+from clothbench.model.solver import Pbd
 
 from conftest import assert_bit_exact
 from registry_variants import options, usable

@@ -12,7 +12,7 @@ import pytest
 
 from clothbench.harness import reference, simulate
 from clothbench.harness.health import max_penetration
-from clothbench.scene import load_scene
+from clothbench.model.scene import load_scene
 
 from conftest import (
     VERLET,

@@ -8,8 +8,8 @@ import pytest
 
 from clothbench.backends import backend_class
 from clothbench.harness import reference, simulate
-from clothbench.scene import Cylinder, Plane, Sphere, load_scene
-from clothbench.solver import PBD_METHODS, Pbd
+from clothbench.model.scene import Cylinder, Plane, Sphere, load_scene
+from clothbench.model.solver import PBD_METHODS, Pbd
 
 from conftest import assert_bit_exact, setup
 from registry_variants import backend_params, options, usable

@@ -10,7 +10,7 @@ import pytest
 
 from clothbench.backends import backend_class, create_backend
 from clothbench.errors import ClothbenchError
-from clothbench.solver import Pbd
+from clothbench.model.solver import Pbd
 
 from conftest import VERLET, assert_bit_exact
 from folded_sheet import folded

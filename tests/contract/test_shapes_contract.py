@@ -10,7 +10,7 @@ import pytest
 from clothbench.backends import BACKENDS, backend_class, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.harness import reference, simulate
-from clothbench.scene import load_scene
+from clothbench.model.scene import load_scene
 
 from conftest import VERLET, assert_bit_exact
 from registry_variants import options, usable

@@ -13,7 +13,7 @@ import pytest
 
 from clothbench.backends import create_backend
 from clothbench.harness import reference, run_timed, simulate
-from clothbench.scene import Scene
+from clothbench.model.scene import Scene
 
 from conftest import VERLET, assert_bit_exact
 from registry_variants import backend_params, options, usable

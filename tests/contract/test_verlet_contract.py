@@ -17,7 +17,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
 from clothbench.harness.normals import grid_normals
 from clothbench.harness.plan import plan_variants
-from clothbench.scene import builtin_scenes, load_scene
+from clothbench.model.scene import builtin_scenes, load_scene
 
 from conftest import VERLET, assert_bit_exact, bent_state, every_collider_scene
 from registry_variants import backend_params, options, solver_params, usable
@@ -277,7 +277,7 @@ def lacking(caps) -> list[tuple[BackendOptions, str]]:
 
 @pytest.mark.parametrize("param", solver_params())
 def test_options_it_lacks_are_refused_in_one_line(param):
-    from clothbench.solver import Pbd
+    from clothbench.model.solver import Pbd
 
     name, solver = usable(param)
     caps = backend_class(name, solver).capabilities

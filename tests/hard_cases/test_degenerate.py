@@ -8,7 +8,7 @@ exactly on a sphere's centre is pushed straight up to c + (0, r, 0).
 import numpy as np
 
 from clothbench.harness.energy import energy_problem
-from clothbench.scene import Scene, Sphere
+from clothbench.model.scene import Scene, Sphere
 from hard_case_variants import exact_arithmetic, run_from, variant  # noqa: F401
 
 

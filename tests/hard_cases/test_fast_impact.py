@@ -10,8 +10,8 @@ is not flagged.
 import numpy as np
 
 from clothbench.harness.energy import fast_impact_warning, predicted_fast_impact
-from clothbench.scene import Scene, Sphere
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene, Sphere
+from clothbench.model.solver import Verlet
 from conftest import VERLET, setup
 from hard_case_variants import run_from, variant  # noqa: F401
 

@@ -17,7 +17,7 @@ from clothbench.analysis.lattice import finite_grid_omega2, lattice_omega2, pred
 from clothbench.backends import create_backend
 from clothbench.errors import BlowUp
 from clothbench.harness import run_timed
-from clothbench.scene import Scene
+from clothbench.model.scene import Scene
 from hard_case_variants import variant  # noqa: F401  (the parametrised fixture)
 
 STIFF = Scene(grid=12, stiffness=1e5, pin_edge="top")

@@ -27,13 +27,13 @@ import os
 import numpy as np
 
 from clothbench import environment
-from clothbench.colliders.kinds import kinds_in
+from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.native import build_library, compiler, no_compiler_reason
-from clothbench.scene import Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.model.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.tuning import median_seconds
 from clothbench.kernel_source import read_kernel
 

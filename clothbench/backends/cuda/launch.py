@@ -24,12 +24,12 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.colliders.kinds import kinds_in
+from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 from clothbench.variant_names import TRANSFERS as ALL_TRANSFERS
-from clothbench.backends.kernel_inputs import (
+from clothbench.model.kernel_inputs import (
     MeshConstants, VerletConstants, collider_rows, pin_targets, pose_rows,
 )  # fmt: skip
 

@@ -40,11 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-from clothbench.colliders.kinds import kinds_in
+from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import c_float, read_kernel, resolve_includes
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.cuda import launch
 from clothbench.backends.cuda.runtime import (  # noqa: F401 (re-exported: tests and peers use them from here)
@@ -54,7 +54,7 @@ from clothbench.backends.cuda.runtime import (  # noqa: F401 (re-exported: tests
 from clothbench.backends.cuda.launch import (
     AUTO_BLOCK, TRANSFERS, PingPong, attached_pins, kernel_constants, motion_rows,
 )  # fmt: skip
-from clothbench.backends.kernel_inputs import collider_rows
+from clothbench.model.kernel_inputs import collider_rows
 
 __all__ = ["AUTO_BLOCK", "TRANSFERS", "PingPong", "CudaBackend", "kernel_constants", "kernel_defines"]
 

@@ -18,7 +18,7 @@ import re
 import time
 
 from clothbench.errors import ClothbenchError
-from clothbench.scene import load_scene, load_setup
+from clothbench.model.scene import load_scene, load_setup
 from clothbench.backends.base import BackendOptions
 
 ROUNDS = 5

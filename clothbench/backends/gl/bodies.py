@@ -9,10 +9,10 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.colliders.kinds import KIND, KINDS, kinds_in
+from clothbench.model.colliders.kinds import KIND, KINDS, kinds_in
 from clothbench.kernel_source import glsl_float
-from clothbench.scene import Scene
-from clothbench.backends.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
+from clothbench.model.scene import Scene
+from clothbench.model.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
 
 
 def collider_kinds(scene: Scene, generic: bool) -> tuple[str, ...]:

@@ -22,8 +22,8 @@ import time
 import numpy as np
 
 from clothbench.kernel_source import glsl_float
-from clothbench.scene import Scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Pbd
 from clothbench.backends.gl import context as gl_context
 from clothbench.backends.base import BackendOptions, Capabilities
 from clothbench.backends.gl.context import open_compute_device, work_groups

@@ -23,13 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.errors import BackendUnavailable, ClothbenchError
 from clothbench.kernel_source import glsl_float, read_kernel, resolve_includes
-from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Solver
 from clothbench.backends.base import Availability, BackendOptions
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.model.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.gl.driver import GLDriverInfo, gl_driver
 from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_context.X)
     MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,

@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.gl import context as gl_context
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 

@@ -20,9 +20,9 @@ from __future__ import annotations
 import ctypes
 from dataclasses import dataclass
 
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
+from clothbench.model.scene import Scene
 from clothbench.backends.base import BackendOptions
 from clothbench.backends.tuning import median_seconds
 

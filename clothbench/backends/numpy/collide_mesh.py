@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.colliders.mesh import MeshGeometry
-from clothbench.backends.kernel_inputs import MeshConstants, pin_targets, pose_rows
+from clothbench.model.colliders.mesh import MeshGeometry
+from clothbench.model.kernel_inputs import MeshConstants, pin_targets, pose_rows
 
 TRIANGLE_CHUNK = 32  # triangles per vectorised pass of the naive loop (speed, not results)
 

@@ -11,11 +11,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from clothbench.constraints import coloured_batches
-from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
-from clothbench.solver import Pbd
+from clothbench.model.constraints import coloured_batches
+from clothbench.model.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.model.solver import Pbd
 from clothbench.backends.base import Backend, BackendOptions
-from clothbench.backends.kernel_inputs import PbdConstants, pin_targets
+from clothbench.model.kernel_inputs import PbdConstants, pin_targets
 from clothbench.backends.numpy.collide_mesh import Bodies
 from clothbench.backends.numpy.self_collision import SelfCollisionPass
 from clothbench.backends.numpy.verlet import (

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.colliders.self_contact import brute_force_pairs, close_pairs, hashed_pairs, neighbour_table
-from clothbench.scene import OFFSETS, Scene
-from clothbench.backends.kernel_inputs import SelfCollisionConstants
+from clothbench.model.colliders.self_contact import brute_force_pairs, close_pairs, hashed_pairs, neighbour_table
+from clothbench.model.scene import OFFSETS, Scene
+from clothbench.model.kernel_inputs import SelfCollisionConstants
 
 SEARCHES = ("hashed", "brute-force")  # the same pairs in the same order: the same bits
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.colliders.kinds import KINDS
+from clothbench.model.colliders.kinds import KINDS
 from clothbench.environment import cpu_model
-from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import OFFSET_KIND, OFFSETS, Scene
+from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
+from clothbench.model.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.numpy.collide_mesh import Bodies
 from clothbench.backends.numpy.self_collision import SelfCollisionPass
 

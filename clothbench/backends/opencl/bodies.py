@@ -17,9 +17,9 @@ from functools import cached_property
 
 import numpy as np
 
-from clothbench.colliders.kinds import kinds_in
+from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
-from clothbench.backends.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
+from clothbench.model.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
 
 MESH_FILE = "collide_mesh.cl"  # in the program's source only where the scene has meshes
 # Steps whose per-step constants (moving scenes) go up in one copy: a multiple of the

@@ -242,7 +242,7 @@ def _seconds_per_step(specs: list[str]) -> dict:
     from contextlib import ExitStack
 
     from clothbench.backends.opencl.verlet import OpenCLBackend
-    from clothbench.scene import load_setup
+    from clothbench.model.scene import load_setup
 
     setup = load_setup("sphere").replace(grid=TIMING_GRID)
     result: dict = {}

@@ -26,8 +26,8 @@ from __future__ import annotations
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Pbd
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Pbd
 from clothbench.backends.base import BackendOptions, Capabilities
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
 from clothbench.backends.opencl.device import (

@@ -58,11 +58,11 @@ import os
 import numpy as np
 
 from clothbench.errors import ClothbenchError
-from clothbench.scene import Scene
-from clothbench.solver import Verlet
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Verlet
 from clothbench.variant_names import TRANSFERS
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants
+from clothbench.model.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin, collider_counts
 from clothbench.backends.opencl.device import (

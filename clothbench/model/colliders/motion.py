@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothbench.errors import SceneError
-from clothbench.solver import finite_number
+from clothbench.model.solver import finite_number
 
 _MOTION_KEYS = {"velocity", "angular_velocity", "keyframes"}
 _FRAME_KEYS = {"name", "origin", "motion"}

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Motion, euler_degrees, finite3, pose
-from clothbench.solver import finite_number
+from clothbench.model.colliders.mesh import Mesh
+from clothbench.model.colliders.motion import Motion, euler_degrees, finite3, pose
+from clothbench.model.solver import finite_number
 from clothbench.errors import SceneError
 
 COLLIDER_OPTIONAL_KEYS = ("name", "motion")  # any collider may be named and may move

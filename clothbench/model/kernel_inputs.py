@@ -15,11 +15,11 @@ from functools import lru_cache
 
 import numpy as np
 
-from clothbench.colliders.kinds import KINDS
-from clothbench.colliders.motion import pose
-from clothbench.colliders.self_contact import rest_exclusion
-from clothbench.scene import OFFSET_KIND, Scene, body_pose
-from clothbench.solver import Pbd, Solver
+from clothbench.model.colliders.kinds import KINDS
+from clothbench.model.colliders.motion import pose
+from clothbench.model.colliders.self_contact import rest_exclusion
+from clothbench.model.scene import OFFSET_KIND, Scene, body_pose
+from clothbench.model.solver import Pbd, Solver
 
 # float4 rows per collider, by collider_rows' keys (colliders/kinds.py)
 ROWS_PER_COLLIDER = {kind.plural: kind.rows for kind in KINDS}

@@ -2,7 +2,7 @@
 
 Per kind, in the order the step applies them (docs/semantics.md): its scene-file table and
 keys, its dataclass (colliders/analytic.py), the Scene field and collider table key that hold
-it, the float4 rows a kernel takes per collider (backends/kernel_inputs.py lays them out), the
+it, the float4 rows a kernel takes per collider (model/kernel_inputs.py lays them out), the
 name of its response function in each language that has one, and the Capabilities field
 that says which backends take it where not every backend does. The scene reader, the
 collider table, the kernels' counts and the refusals all read this; docs/colliders.md is the
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from clothbench.colliders.analytic import Box, Cylinder, Plane, Sphere
+from clothbench.model.colliders.analytic import Box, Cylinder, Plane, Sphere
 
 # The languages a response is written in: the NumPy reference (backends/numpy/verlet.py) and
 # the kernels (kernels/verlet_cloth.c, collide.cl, collide_KIND.glsl, verlet_cloth.cu).

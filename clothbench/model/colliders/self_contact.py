@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothbench.errors import SceneError
-from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, finite_number
+from clothbench.model.solver import FLOAT32_MAX, FLOAT32_TINY, finite_number
 
 TOML_KEYS = ("thickness", "cell", "relaxation")
 # The cell key is floor(x * inv_cell) with the cell enlarged by this factor: the float32 distance

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clothbench.scene import OFFSET_KIND, OFFSETS
+from clothbench.model.scene import OFFSET_KIND, OFFSETS
 
 # (dr, dc) of each undirected constraint direction, in batch order, and the kind of
 # spring it is (0 structural, 1 shear, 2 bend: the index of its compliance)

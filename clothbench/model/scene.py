@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clothbench.colliders.analytic import (
+from clothbench.model.colliders.analytic import (
     COLLIDER_OPTIONAL_KEYS,
     Box,
     Cylinder,
@@ -24,9 +24,9 @@ from clothbench.colliders.analytic import (
     Sphere,
     body_pose,  # noqa: F401 (re-exported)
 )
-from clothbench.colliders.kinds import KINDS, ColliderKind
-from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import (
+from clothbench.model.colliders.kinds import KINDS, ColliderKind
+from clothbench.model.colliders.mesh import Mesh
+from clothbench.model.colliders.motion import (
     Frame,
     Motion,
     array_of_tables,
@@ -34,9 +34,18 @@ from clothbench.colliders.motion import (
     frames_from_toml,
     motion_from_toml,
 )
-from clothbench.colliders.self_contact import SelfCollision, self_collision_from_toml
+from clothbench.model.colliders.self_contact import SelfCollision, self_collision_from_toml
 from clothbench.errors import SceneError
-from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, finite_number, solver_for_spec
+from clothbench.model.solver import (
+    FLOAT32_MAX,
+    FLOAT32_TINY,
+    SOLVERS,
+    Pbd,
+    Solver,
+    Verlet,
+    finite_number,
+    solver_for_spec,
+)
 
 # The 12-spring stencil as (d_row, d_col), in the order every backend sums it.
 STRUCTURAL = ((0, -1), (0, 1), (-1, 0), (1, 0))

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from clothbench.errors import SceneError
-from clothbench.colliders.motion import Motion, euler_degrees, pose
+from clothbench.model.colliders.motion import Motion, euler_degrees, pose
 
 SHAPES = ("box", "icosphere", "torus")
 MESH_SUFFIXES = (".obj", ".stl", ".ply")
