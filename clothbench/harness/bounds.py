@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
+from clothbench.solver import ITERATIVE
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS, fmt
 
@@ -287,10 +288,8 @@ def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: 
 def step_bound_ms(scene, precision: str, bounds: MachineBounds | None, *, strict: bool = False,
                   normals: bool = False, solver=None, layout: str = BOUND_LAYOUT) -> dict | None:  # fmt: skip
     """The lower bound on one step's wall time on this machine, in ms, with its parts; None
-    without measured bounds, or for the pbd solver (docs/bounds.md: not counted)."""
-    from clothbench.solver import Pbd
-
-    if bounds is None or isinstance(solver, Pbd):
+    without measured bounds, or for the pbd and vbd solvers (docs/bounds.md: not counted)."""
+    if bounds is None or (solver is not None and solver.name in ITERATIVE):
         return None
     work = step_count(scene, precision, strict=strict, normals=normals, layout=layout)
     r = bounds.rates(precision)
