@@ -180,8 +180,8 @@ def fmt_dt(dt: float) -> str:
 
 
 def solver_text(row) -> str:
-    """'Verlet', 'PBD jacobi 10 it x2 substeps'."""
-    if row.solver != "pbd":
+    """'Verlet', 'PBD jacobi 10 it x2 substeps', 'VBD 10 it'."""
+    if row.solver == "verlet":
         return model_display(row.solver, None)
     sub = f" x{row.substeps} substeps" if row.substeps and row.substeps > 1 else ""
     return f"{model_display(row.solver, row.pbd_method)} {iterations_display(row.iterations)}{sub}"

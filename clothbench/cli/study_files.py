@@ -14,6 +14,7 @@ import sys
 from types import SimpleNamespace
 
 from clothbench.harness.study_csv import StudyFile, cell, cells, from_cells
+from clothbench.solver import ITERATIVE
 
 ACCURACY_KEY = ("backend", "label", "solver", "pbd_method", "iterations", "substeps", "dt")
 ACCURACY_DERIVED = ("order", "order_points", "in_fit")
@@ -37,10 +38,10 @@ def say_interrupted(f: StudyFile) -> None:
 
 
 def _pbd_cells(solver, substeps: bool = True) -> dict[str, str]:
-    pbd = solver.name == "pbd"
-    d = {"pbd_method": solver.method if pbd else "", "iterations": cell(solver.iterations) if pbd else ""}
+    pbd, iterative = solver.name == "pbd", solver.name in ITERATIVE
+    d = {"pbd_method": solver.method if pbd else "", "iterations": cell(solver.iterations) if iterative else ""}
     if substeps:
-        d["substeps"] = cell(solver.substeps) if pbd else ""
+        d["substeps"] = cell(solver.substeps) if iterative else ""
     return d
 
 
