@@ -271,7 +271,7 @@ def stability_map_chart(rows) -> Chart:
     kk = [ks[0] / 1.6, ks[-1] * 1.6]
     m = Scene().mass  # every stability scene uses the default particle mass
     beta = damping_rate(Scene(damping=r0.damping))
-    caps = sorted({r.cap for r in rows if r.solver == "pbd" and r.cap})
+    caps = sorted({r.cap for r in rows if r.solver != "verlet" and r.cap})
     for ax, kind in zip(axes, kinds):
         mine = [r for r in rows if r.kind == kind]
         if kind == "stretched":
@@ -302,7 +302,7 @@ def stability_map_chart(rows) -> Chart:
 def _stability_points(ax, rows) -> list[str]:
     """Verlet: every backend mode a hollow marker in its platform's colour, a platform's
     modes side by side around k; PBD: per method the smallest limit over the backends."""
-    verlet = [r for r in rows if r.solver != "pbd"]
+    verlet = [r for r in rows if r.solver == "verlet"]
     platforms = _platforms(verlet)
     drawn = []
     for j, platform in enumerate(platforms):
@@ -323,16 +323,16 @@ def _stability_points(ax, rows) -> list[str]:
             linestyle="none",
         )
         drawn.append(label)
-    pbd = [r for r in rows if r.solver == "pbd"]
-    for method, marker, color in (("jacobi", "P", "tab:purple"), ("coloured", "X", "tab:brown")):
-        mine = [r for r in pbd if r.pbd_method == method]
+    iterative = [r for r in rows if r.solver != "verlet"]
+    for key, marker, color, shift in (("jacobi", "P", "tab:purple", 1 / 1.12), ("coloured", "X", "tab:brown", 1.12),
+                                      ("vbd", "v", "tab:olive", 1.0)):  # fmt: skip
+        mine = [r for r in iterative if _solver_key(r) == key]
         if not mine:
             continue
         worst = [min((r for r in mine if r.stiffness == k), key=lambda r: r.dt_stable)
                  for k in sorted({r.stiffness for r in mine})]  # fmt: skip
-        shift = 1.12 if method == "coloured" else 1 / 1.12
         its = "/".join(map(str, sorted({r.iterations for r in mine})))
-        label = f"PBD {method} ({its} it): smallest of {len({r.label for r in mine})} backend modes"
+        label = f"{_key_display(key)} ({its} it): smallest of {len({r.label for r in mine})} backend modes"
         ax.loglog([r.stiffness * shift for r in worst], [r.dt_stable for r in worst], marker, color=color,
                   markersize=8, alpha=0.85, label=label, linestyle="none")  # fmt: skip
         for r in worst:
