@@ -57,7 +57,7 @@ def accuracy_file(path, planned, scene, time_s, verlet_start: str, pbd_start: st
     settings = {
         "scene": scene.name, "grid": cell(scene.grid), "damping": cell(scene.damping), "time_s": cell(time_s),
         "stiffness": cell(scene.stiffness),
-        "start": lambda row: pbd_start if row.get("solver") == "pbd" else verlet_start,
+        "start": lambda row: pbd_start if row.get("solver") in ITERATIVE else verlet_start,
     }  # fmt: skip
     return StudyFile(
         path, tuple(f.name for f in _fields(AccuracyRow)), ACCURACY_KEY, settings, "accuracy",
@@ -111,7 +111,7 @@ def stability_file(path, cases, grid: int, steps: int, damping: float, cap: floa
 
     settings = {
         "grid": cell(grid), "steps": cell(steps), "damping": cell(damping),
-        "cap": lambda row: cell(cap) if row.get("solver") == "pbd" else "",
+        "cap": lambda row: cell(cap) if row.get("solver") in ITERATIVE else "",
     }  # fmt: skip
     columns = tuple(f.name for f in _fields(StabilityRow)) + STABILITY_COLUMNS_EXTRA
     return StudyFile(
