@@ -229,11 +229,20 @@ def collect() -> dict[str, str]:
 COLUMNS = ("cpu", "cores", "python", "packages", "env", "git_commit", "timestamp")  # collect()'s keys, in order
 
 
-def with_columns(row_class):
+def with_columns(row_class=None, *, after: tuple[str, ...] = ()):
     """A row class given COLUMNS as its last fields (str, '' where unknown): where and when its
     row was measured, as a sweep row has them. Put it under @dataclass, which then takes them
-    as fields declared after the class's own, so the CSV's columns keep that order."""
-    for name in COLUMNS:
-        row_class.__annotations__[name] = "str"  # as `from __future__ import annotations` spells a type
-        setattr(row_class, name, "")
-    return row_class
+    as fields declared after the class's own, so the CSV's columns keep that order. `after`
+    names fields of the class's own that go after them (columns added since, last so that an
+    older file lacks only its final columns): `@with_columns(after=("a", "b"))`."""
+
+    def declare(cls):
+        annotations = cls.__annotations__
+        moved = {name: annotations.pop(name) for name in after}
+        for name in COLUMNS:
+            annotations[name] = "str"  # as `from __future__ import annotations` spells a type
+            setattr(cls, name, "")
+        annotations.update(moved)
+        return cls
+
+    return declare(row_class) if row_class is not None else declare

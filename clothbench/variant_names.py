@@ -1,5 +1,5 @@
 """A variant's names, spelled and read back in one place: its mode (the CSV's mode column,
-every table and legend), its name ('backend mode', with a PBD run's iterations), its model key
+every table and legend), its name ('backend mode', with a PBD or VBD run's iterations), its model key
 (the converged reference it is measured against), and the command-line flags that run it.
 
 Every writer spells through here and every reader parses through here, so a name cannot
@@ -11,6 +11,7 @@ A mode is its option words, in this order, then what the run adds after them:
     precision  where the backend has several (f32, f64)
     strict|fast  where the backend has both (Capabilities.strict)
     pbd-METHOD  a PBD run
+    vbd        a VBD run
     normals, generic  where asked for
     transfer   where the backend has transfer modes (its default named too)
     ls=N|auto  where the backend has a work-group size
@@ -38,6 +39,7 @@ PER_STEP_TRANSFERS = frozenset({"per-step"})  # those that move the state host<-
 
 SEPARATOR = "/"
 DEFAULT = "default"  # the mode's head where no option word applies
+VBD = "vbd"  # the mode's word for a VBD run (solver.Vbd.name)
 AUTO = "auto"  # ls=auto: the runtime chooses the work-group size
 _ALL_TRANSFERS = frozenset(t for modes in TRANSFERS.values() for t in modes)
 _ITERATIONS = re.compile(r"^(\d+)it(?:x(\d+))?$")
@@ -54,7 +56,8 @@ class Mode:
 
     precision: str | None = None
     strict: bool | None = None  # None: the backend has one mode
-    pbd: str | None = None  # the PBD solver's spec ('pbd-jacobi'); None: Verlet
+    pbd: str | None = None  # the PBD solver's spec ('pbd-jacobi'); None: Verlet or VBD
+    vbd: bool = False  # a VBD run
     normals: bool = False
     generic: bool = False
     transfer: str | None = None
@@ -69,6 +72,8 @@ class Mode:
             head.append("strict" if self.strict else "fast")
         if self.pbd is not None:
             head.append(self.pbd)
+        if self.vbd:
+            head.append(VBD)
         head += ["normals"] * self.normals + ["generic"] * self.generic
         if self.transfer is not None:
             head.append(self.transfer)
@@ -92,6 +97,7 @@ class Mode:
             take("precision", lambda w: w in PRECISIONS, str)
             take("strict", lambda w: w in ("strict", "fast"), lambda w: w == "strict")
             take("pbd", lambda w: w.startswith("pbd-"), str)
+            take("vbd", lambda w: w == VBD, bool)
             take("normals", lambda w: w == "normals", bool)
             take("generic", lambda w: w == "generic", bool)
             take("transfer", lambda w: w in _ALL_TRANSFERS, str)
@@ -124,17 +130,17 @@ def mesh_word(algorithm: str) -> str:
 
 
 def iterations_word(iterations: int, substeps: int = 1) -> str:
-    """A PBD run's iterations (and substeps when more than one): '10it', '10itx2'."""
+    """A PBD or VBD run's iterations (and substeps when more than one): '10it', '10itx2'."""
     return f"{iterations}it" + (f"x{substeps}" if substeps > 1 else "")
 
 
 @dataclass(frozen=True)
 class VariantName:
-    """'backend mode', a PBD one with its iterations: 'numpy f32/pbd-jacobi/10it'."""
+    """'backend mode', a PBD or VBD one with its iterations: 'numpy f32/pbd-jacobi/10it'."""
 
     backend: str
     mode: Mode
-    iterations: int | None = None  # PBD only
+    iterations: int | None = None  # PBD and VBD only
     substeps: int = 1
 
     def spell(self) -> str:
@@ -145,7 +151,7 @@ class VariantName:
     def parse(cls, text: str) -> VariantName:
         backend, _, mode = text.partition(" ")
         parsed = Mode.parse(mode)
-        m = _ITERATIONS.match(parsed.rest[-1]) if parsed.pbd and parsed.rest else None
+        m = _ITERATIONS.match(parsed.rest[-1]) if (parsed.pbd or parsed.vbd) and parsed.rest else None
         if m is None:
             return cls(backend, parsed)
         return cls(backend, replace(parsed, rest=parsed.rest[:-1]), int(m[1]), int(m[2] or 1))
@@ -153,19 +159,25 @@ class VariantName:
 
 def variant_name(backend: str, mode: Mode, solver: Solver) -> str:
     """The name of `backend` run in `mode` by `solver` (VariantName)."""
-    pbd = solver.name == "pbd"
-    return VariantName(backend, mode, solver.iterations if pbd else None, solver.substeps if pbd else 1).spell()
+    iterative = solver.name != "verlet"
+    return VariantName(
+        backend, mode, solver.iterations if iterative else None, solver.substeps if iterative else 1
+    ).spell()
 
 
 def solver_model(spec: str, iterations: int | None = None, substeps: int = 1) -> str:
-    """A solver model without its constants: 'verlet', 'pbd-jacobi/10it'."""
-    if not spec.startswith("pbd"):
+    """A solver model without its constants: 'verlet', 'pbd-jacobi/10it', 'vbd/10it'."""
+    if not spec.startswith(("pbd", VBD)):
         return "verlet"
     return f"{spec}{SEPARATOR}{iterations_word(iterations, substeps)}"
 
 
 def model_name(solver: Solver) -> str:
-    """The model a converged reference is of: 'verlet', or 'pbd-jacobi/10it, relaxation 1.5'."""
+    """The model a converged reference is of: 'verlet', 'pbd-jacobi/10it, relaxation 1.5', or
+    'vbd/10it' (with ', chebyshev_rho R' where it extrapolates)."""
+    if solver.name == VBD:
+        rho = f", chebyshev_rho {solver.chebyshev_rho:g}" if solver.chebyshev_rho > 0 else ""
+        return f"{solver_model(solver.spec, solver.iterations, solver.substeps)}{rho}"
     if solver.name != "pbd":
         return solver_model(solver.name)
     relax = f", relaxation {solver.relaxation:g}" if solver.method == "jacobi" else ""
@@ -179,12 +191,15 @@ def model_short(model: str) -> str:
 
 
 def iterations_display(iterations) -> str:
-    """A PBD run's iterations as tables name them: '10 it'."""
+    """A PBD or VBD run's iterations as tables name them: '10 it'."""
     return f"{iterations} it"
 
 
 def model_display(solver: str, pbd_method: str | None, iterations=None) -> str:
-    """A model as tables and legends name it: 'Verlet', 'PBD jacobi', 'PBD jacobi, 10 it'."""
+    """A model as tables and legends name it: 'Verlet', 'PBD jacobi', 'PBD jacobi, 10 it',
+    'VBD', 'VBD, 10 it'."""
+    if solver == VBD:
+        return f"VBD, {iterations_display(iterations)}" if iterations is not None else "VBD"
     if solver != "pbd":
         return "Verlet"
     text = f"PBD {pbd_method or ''}".rstrip()

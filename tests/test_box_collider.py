@@ -23,7 +23,7 @@ from clothbench.errors import ClothbenchError, SceneError
 from clothbench.harness import max_penetration
 from clothbench.harness.bounds import step_count
 from clothbench.model.scene import Box, Scene, load_scene, load_setup
-from clothbench.model.solver import Pbd
+from clothbench.model.solver import Pbd, Vbd
 
 from conftest import VERLET, every_collider_scene
 
@@ -186,7 +186,7 @@ def test_a_backend_without_boxes_refuses_a_box_scene_in_one_line_before_any_work
     expected = f"{who} does not take box colliders (they run on: {', '.join(takers)})"
     cls = backend_class(name, solver)
     assert cls.capabilities.scene_refusal(name, setup.scene, solver) == expected
-    settings = VERLET if solver == "verlet" else Pbd()
+    settings = {"verlet": VERLET, "pbd": Pbd(), "vbd": Vbd()}[solver]
     with pytest.raises(ClothbenchError) as e:
         cls(setup.scene, settings, cls.capabilities.adapt(BackendOptions()))  # refused before it builds
     assert str(e.value) == expected

@@ -121,7 +121,7 @@ def test_backends_lists_the_driver_run_prints(backend, capsys):
         (["run", "--strict", "--precision", "f64"], "numpy does not take --strict"),
         (["run", "--backend", "numpy", "--strict"], "numpy does not take --strict"),
         (["run", "--pbd-method", "jacobi"], "--pbd-method applies to the pbd solver only"),
-        (["run", "--iterations", "4"], "--iterations applies to the pbd solver only"),
+        (["run", "--iterations", "4"], "--iterations applies to the pbd and vbd solvers only"),
         (["run", "--retune"], "numpy does not take --retune"),
         (["run", "--dt", "nan"], "dt must be a finite number"),
         (["run", "--scene", "nowhere.toml"], "cannot read scene file"),

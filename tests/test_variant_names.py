@@ -19,6 +19,7 @@ from clothbench.cli import build_parser
 from clothbench.cli.args import options_from_args, setup_from_args
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.model.scene import load_setup
+from clothbench.model.solver import ITERATIVE
 from clothbench.variant_names import (
     GL_PROVIDERS,
     PRECISIONS,
@@ -38,18 +39,20 @@ OWN = ("numpy", "c", "opencl", "glsl", "glsl-compute", "cuda")
 
 def every_variant(monkeypatch) -> list[tuple[str, Variant]]:
     """(scene, variant) for every registry backend whose class loads here, usable or not:
-    each solver (PBD with substeps too), local sizes, generic twins, normals, osmesa, and on a
+    each solver (PBD and VBD with substeps too), local sizes, generic twins, normals, osmesa, and on a
     mesh scene each mesh algorithm."""
     monkeypatch.setattr(plan_module, "availability", lambda name: Availability(True))
     out = []
     for scene_name, collisions in (("drape", ()), ("torus", MESH_COLLISIONS)):
         setup = load_setup(scene_name)
         solvers = [setup.solver_for("verlet"), setup.solver_for("pbd-jacobi"),
-                   setup.solver_for("pbd-coloured").replace(substeps=2)]  # fmt: skip
+                   setup.solver_for("pbd-coloured").replace(substeps=2), setup.solver_for("vbd"),
+                   setup.solver_for("vbd").replace(iterations=40, substeps=3)]  # fmt: skip
         for base in (BackendOptions(), BackendOptions(normals=True, gl="osmesa")):
             variants, _ = plan_variants(BACKENDS, solvers, base, (32,), "both", setup.scene, collisions)
             out += [(scene_name, v) for v in variants]
     assert {v.backend for _, v in out} >= set(OWN)
+    assert any(v.solver.name == "vbd" for _, v in out)
     return out
 
 
@@ -57,20 +60,27 @@ def test_every_planned_variant_reads_back_to_its_words_and_spells_back_to_its_na
     for _, v in every_variant(monkeypatch):
         assert Mode.parse(v.mode) == v.mode_words, v.mode
         assert Mode.parse(v.mode).spell() == v.mode
-        pbd = v.solver.name == "pbd"
-        words = VariantName(v.backend, v.mode_words, v.solver.iterations if pbd else None,
-                            v.solver.substeps if pbd else 1)  # fmt: skip
+        iterative = v.solver.name in ITERATIVE
+        words = VariantName(v.backend, v.mode_words, v.solver.iterations if iterative else None,
+                            v.solver.substeps if iterative else 1)  # fmt: skip
         assert VariantName.parse(v.name) == words, v.name
         assert VariantName.parse(v.name).spell() == v.name
 
 
 def test_the_model_key_without_its_constants_is_the_solver_model():
     setup = load_setup("drape")
-    for spec in ("verlet", "pbd-jacobi", "pbd-coloured"):
+    for spec in ("verlet", "pbd-jacobi", "pbd-coloured", "vbd"):
         solver = setup.solver_for(spec).replace(substeps=2) if spec != "verlet" else setup.solver_for(spec)
         iterations = getattr(solver, "iterations", None)
         assert model_short(model_name(solver)) == solver_model(spec, iterations, getattr(solver, "substeps", 1))
     assert model_name(setup.solver_for("pbd-jacobi")) == "pbd-jacobi/10it, relaxation 1.5"
+    assert model_name(setup.solver_for("vbd").replace(chebyshev_rho=0.9)) == "vbd/10it, chebyshev_rho 0.9"
+
+
+def test_a_vbd_name_reads_back_to_its_words():
+    name = VariantName.parse("numpy f32/vbd/40itx3")
+    assert name == VariantName("numpy", Mode(precision="f32", vbd=True), 40, 3)
+    assert name.spell() == "numpy f32/vbd/40itx3"
 
 
 def committed_modes() -> set[str]:

@@ -32,7 +32,7 @@ from clothbench.environment import cpu_model
 from clothbench.errors import ClothbenchError
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.model.scene import Setup
-from clothbench.model.solver import Solver
+from clothbench.model.solver import ITERATIVE, Solver
 from clothbench.variant_names import Mode, model_name, option_flags
 
 METRICS = {"max": "disc_max", "rms": "disc_rms"}  # --metric -> the accuracy CSV's column
@@ -138,6 +138,8 @@ def solver_of(row: AccuracyRow, setup: Setup) -> Solver:
     if row.solver == "pbd" and row.pbd_method:
         solver = setup.solver_for(f"pbd-{row.pbd_method}")
         return solver.replace(dt=row.dt, iterations=row.iterations, substeps=row.substeps)
+    if row.solver == "vbd":
+        return setup.solver_for("vbd").replace(dt=row.dt, iterations=row.iterations, substeps=row.substeps)
     raise ClothbenchError(f"row {row.label!r}: unknown solver {row.solver!r} {row.pbd_method!r}")
 
 
@@ -193,7 +195,9 @@ class Configuration:
         args = ["clothbench", "run", "--backend", self.backend, "--scene", scene_arg, "--grid", str(self.grid),
                 "--solver", s.name, "--dt", repr(s.dt), "--steps", str(self.steps)]  # fmt: skip
         if s.name == "pbd":
-            args += ["--pbd-method", s.method, "--iterations", str(s.iterations), "--substeps", str(s.substeps)]
+            args += ["--pbd-method", s.method]
+        if s.name in ITERATIVE:
+            args += ["--iterations", str(s.iterations), "--substeps", str(s.substeps)]
         return args + option_flags(self.options)
 
 

@@ -30,6 +30,7 @@ class BackendEntry:
     name: str
     verlet: str | None  # "module:Class" of its Verlet backend (None: PBD only); the module's probe() says if it runs
     pbd: str | None = None  # "module:Class" of its PBD backend, if it has one
+    vbd: str | None = field(default=None, kw_only=True)  # "module:Class" of its VBD backend, if it has one
     peer: bool = False  # a system users would pick instead of clothbench (not ours)
     summary: str = ""
     # the facts the reports, the viewer and the executor read, keyword-only and required:
@@ -55,7 +56,7 @@ BACKENDS: dict[str, BackendEntry] = {
     e.name: e
     for e in (
         BackendEntry("numpy", f"{_OWN}.numpy.verlet:NumpyBackend", f"{_OWN}.numpy.pbd:NumpyPbdBackend",
-                     summary="vectorised NumPy reference (CPU)",
+                     vbd=f"{_OWN}.numpy.vbd:NumpyVbdBackend", summary="vectorised NumPy reference (CPU)",
                      display="CPU (numpy)", platform="CPU", gpu_style=False, view_key="F1", fork_safe=True),
         BackendEntry("c", f"{_OWN}.c.verlet:CBackend", summary="native C with OpenMP (CPU line)",
                      display="C (OpenMP)", platform="CPU", gpu_style=False, view_key="F6", fork_safe=False),
@@ -76,7 +77,8 @@ BACKENDS: dict[str, BackendEntry] = {
         BackendEntry("numba", "clothbench.peers.numba:NumbaBackend", peer=True, summary="Numba (peer)",
                      display="Numba", platform=PEERS, gpu_style=False, view_key="F9", fork_safe=False),
         BackendEntry("newton", None, "clothbench.peers.newton:NewtonPbdBackend", peer=True,
-                     summary="NVIDIA Newton XPBD (peer, pbd only)",
+                     vbd="clothbench.peers.newton:NewtonVbdBackend",
+                     summary="NVIDIA Newton XPBD and VBD (peer, pbd and vbd)",
                      display="Newton", platform=PEERS, gpu_style=False, view_key="F10", fork_safe=False),
         BackendEntry("torch", "clothbench.peers.torch:TorchBackend", peer=True, summary="PyTorch tensors (peer)",
                      display="PyTorch", platform=PEERS, gpu_style=False, view_key="F11", fork_safe=False),
@@ -108,7 +110,7 @@ def _load(target: str):
 def availability(name: str) -> Availability:
     """Can `name` run on this machine? Never raises for a known backend."""
     entry = check_name(name)
-    target = entry.verlet or entry.pbd  # a PBD-only peer is probed through its PBD module
+    target = entry.verlet or entry.pbd or entry.vbd  # a PBD-only peer is probed through its PBD module
     try:
         return importlib.import_module(target.partition(":")[0]).probe()
     except Exception as e:  # a probe must not take the whole CLI down

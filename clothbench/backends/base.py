@@ -165,12 +165,13 @@ class Capabilities:
 
     def mode_words(self, options: BackendOptions, solver: Solver, local_size: int | None = None) -> Mode:
         """The settings that change speed or results, one spelling for every backend
-        (variant_names.Mode): precision (where there are several), strict|fast, pbd-method,
-        normals, generic, transfer, ls=work-group size."""
+        (variant_names.Mode): precision (where there are several), strict|fast, pbd-method or
+        vbd, normals, generic, transfer, ls=work-group size."""
         return Mode(
             precision=options.precision if len(self.precisions) > 1 else None,
             strict=options.strict if self.strict else None,
             pbd=solver.spec if solver.name == "pbd" else None,
+            vbd=solver.name == "vbd",
             normals=options.normals,
             generic=options.generic,
             transfer=(options.transfer or self.transfers[0]) if self.transfers else None,

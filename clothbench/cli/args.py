@@ -6,7 +6,7 @@ import argparse
 import re
 
 from clothbench.errors import ClothbenchError
-from clothbench.model.solver import PBD_METHODS, SOLVER_SPECS, SOLVERS
+from clothbench.model.solver import ITERATIVE, PBD_METHODS, SOLVER_SPECS, SOLVERS
 from clothbench.variant_names import GL_PROVIDERS, PRECISIONS, transfers_help
 
 
@@ -45,10 +45,12 @@ def add_scene_args(
     if run_length:
         p.add_argument("--steps", type=int, help="steps to simulate (default: the scene's)")
     if solver:
-        p.add_argument("--solver", choices=SOLVERS, help="mass-spring Verlet or PBD (docs/pbd.md)")
+        p.add_argument(
+            "--solver", choices=SOLVERS, help="mass-spring Verlet, PBD (docs/pbd.md) or implicit VBD (docs/vbd.md)"
+        )
         p.add_argument("--pbd-method", choices=PBD_METHODS, help="PBD: Jacobi or coloured Gauss-Seidel")
-        p.add_argument("--iterations", type=int, help="PBD: constraint passes per substep")
-        p.add_argument("--substeps", type=int, help="PBD: substeps per step")
+        p.add_argument("--iterations", type=int, help="PBD: constraint passes per substep; VBD: colour sweeps")
+        p.add_argument("--substeps", type=int, help="PBD, VBD: substeps per step")
 
 
 def setup_from_args(args):
@@ -66,10 +68,14 @@ def setup_from_args(args):
     )
     if setup.solver.name != "pbd":  # the PBD settings would be ignored: say so instead
         given = [o for o in ("pbd_method", "iterations", "substeps") if getattr(args, o, None) is not None]
+        if setup.solver.name in ITERATIVE:
+            given = [o for o in given if o == "pbd_method"]
         if given:
             option = "--" + given[0].replace("_", "-")
+            takers = ("pbd",) if given[0] == "pbd_method" else ITERATIVE
             raise ClothbenchError(
-                f"{option} applies to the pbd solver only, and this run's is {setup.solver.name}: add --solver pbd"
+                f"{option} applies to the {' and '.join(takers)} solver{'s' * (len(takers) > 1)} only, and this "
+                f"run's is {setup.solver.name}: add --solver {' or '.join(takers)}"
             )
     if getattr(args, "precision", "f32") == "f32":
         from clothbench.harness.preflight import check_float32_motion

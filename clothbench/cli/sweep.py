@@ -15,6 +15,7 @@ from clothbench.cli.args import (
     sigterm_interrupts,
     solver_specs,
 )
+from clothbench.model.solver import SOLVER_SPECS
 
 DEFAULT_GRIDS = "32,64,128,256,512,1024,2048"
 DEFAULT_ROW_BUDGET = 15.0  # seconds of timed run a row may take before it runs fewer steps
@@ -92,8 +93,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--solvers",
         default="verlet",
-        help="comma-separated: verlet (mass-spring), pbd (docs/pbd.md, the scene's method), "
-        "pbd-jacobi, pbd-coloured (default verlet)",
+        help=f"comma-separated: {', '.join(SOLVER_SPECS)}: verlet (mass-spring), pbd (docs/pbd.md, the scene's "
+        "method), vbd (implicit Euler, docs/vbd.md) (default verlet)",
     )
     p.add_argument(
         "--mesh-collision",

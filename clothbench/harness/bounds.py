@@ -28,6 +28,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from clothbench.model.colliders.kinds import KINDS
+from clothbench.model.solver import ITERATIVE
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS, fmt
 
@@ -305,10 +306,8 @@ def step_bound_ms(
     layout: str = BOUND_LAYOUT,
 ) -> dict | None:
     """The lower bound on one step's wall time on this machine, in ms, with its parts; None
-    without measured bounds, or for the pbd solver (docs/bounds.md: not counted)."""
-    from clothbench.model.solver import Pbd
-
-    if bounds is None or isinstance(solver, Pbd):
+    without measured bounds, or for the pbd and vbd solvers (docs/bounds.md: not counted)."""
+    if bounds is None or (solver is not None and solver.name in ITERATIVE):
         return None
     work = step_count(scene, precision, strict=strict, normals=normals, layout=layout)
     r = bounds.rates(precision)

@@ -24,7 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from clothbench.model.scene import OFFSETS, Scene
-from clothbench.model.solver import Solver
+from clothbench.model.solver import ITERATIVE, Solver
 
 # Each spring once: the offsets pointing "forward" (the stencil lists both ends).
 FORWARD = tuple(o for o in OFFSETS if o[0] > 0 or (o[0] == 0 and o[1] > 0))
@@ -51,8 +51,10 @@ class Energy:
     def watched(self, solver: Solver) -> float:
         """The energy the blow-up check watches. PBD's constraints are as stiff as its
         iterations make them, not k, so k*(L - rest)^2/2 is not its energy: there only
-        kinetic + gravitational energy is watched (a stable PBD step only loses it)."""
-        return self.total if solver.name != "pbd" else self.kinetic + self.gravity
+        kinetic + gravitational energy is watched (a stable PBD step only loses it). VBD's
+        too: a sweep short of convergence leaves its springs softer than k, and k times their
+        stretch is not energy it holds (docs/vbd.md, "Blow-up detection")."""
+        return self.total if solver.name not in ITERATIVE else self.kinetic + self.gravity
 
 
 def _grid(a: np.ndarray, n: int) -> np.ndarray:
@@ -97,7 +99,7 @@ def energy_scale(scene: Scene, solver: Solver, pos: np.ndarray | None = None, pr
     xyz = pos[:, :3].astype(np.float64)
     extent = max(scene.size, float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0))))
     e = total_energy(pos, prev, scene, solver.dt)
-    spring = abs(e.spring) if solver.name != "pbd" else 0.0
+    spring = abs(e.spring) if solver.name not in ITERATIVE else 0.0
     return free_mass * g * extent + abs(e.kinetic) + spring + 0.5 * free_mass * FLOOR_SPEED**2
 
 

@@ -43,7 +43,7 @@ from clothbench.harness.sweep_settings import SweepSettings
 from clothbench.harness.timing import run_timed
 from clothbench.model.scene import Setup
 from clothbench.variant_names import PER_STEP_TRANSFERS
-from clothbench.model.solver import Solver
+from clothbench.model.solver import ITERATIVE, Solver
 
 
 NATIVE = "c"  # the backend every row's vs_c is taken against: the native CPU line
@@ -81,14 +81,14 @@ class PlannedRow:
     def fields(self, scene_name: str) -> dict[str, str]:
         """The columns known before measuring (the key among them)."""
         o, s = self.options, self.solver
-        pbd = s.name == "pbd"
+        pbd, iterative = s.name == "pbd", s.name in ITERATIVE
         return {
             "backend": self.backend,
             "peer": fmt(self.variant.peer),
             "solver": s.name,
             "pbd_method": s.method if pbd else "",
-            "iterations": str(s.iterations) if pbd else "",
-            "substeps": str(s.substeps) if pbd else "",
+            "iterations": str(s.iterations) if iterative else "",
+            "substeps": str(s.substeps) if iterative else "",
             "mode": self.variant.label,
             "precision": o.precision,
             "strict": fmt(o.strict),

@@ -25,7 +25,7 @@ BUDGET_NOTE = "time budget"  # how the note of a row its per-row time budget sho
 # The columns of the machine's limits (harness/bounds.py), with what each means.
 BOUND_COLUMN_DOCS = {
     "bound_ms": "the machine's lower bound on ms per step for this scene and precision: max(memory, arithmetic), "
-    "measured in this run (docs/bounds.md); empty where there is none (no C compiler, pbd)",
+    "measured in this run (docs/bounds.md); empty where there is none (no C compiler, pbd, vbd)",
     "bound_kind": "which limit sets bound_ms: memory (bytes at the streaming rate) or arithmetic (the busiest unit)",
     "bound_fraction": "bound_ms / ms_median: the fraction of the machine's bound achieved (1 = at the bound)",
 }
@@ -45,10 +45,11 @@ MACHINE_COLUMN_DOCS = {
 COLUMN_DOCS: dict[str, str] = {
     "backend": "registry name (see `clothbench backends`)",
     "peer": "true for a peer system (taichi, warp, numba), false for clothbench's own kernels",
-    "solver": "the integrator: 'verlet' (mass-spring, docs/semantics.md) or 'pbd' (XPBD, docs/pbd.md)",
+    "solver": "the integrator: 'verlet' (mass-spring, docs/semantics.md), 'pbd' (XPBD, docs/pbd.md) or 'vbd' "
+    "(implicit Euler by Vertex Block Descent, docs/vbd.md)",
     "pbd_method": "pbd only: 'jacobi' or 'coloured' (Gauss-Seidel over 12 independent batches)",
-    "iterations": "pbd only: constraint passes per substep",
-    "substeps": "pbd only: substeps per step",
+    "iterations": "pbd: constraint passes per substep; vbd: sweeps over its 4 colours per substep",
+    "substeps": "pbd and vbd only: substeps per step",
     "mode": "the backend's own name for the settings that change speed or results",
     "precision": "working precision: f32, or f64 (the reference precision; runs on: {f64_backends})",
     "strict": "the strict option: bit-exact with numpy f32 (no FMA contraction, no fast math)",

@@ -1,4 +1,5 @@
-"""The 12-spring stencil as distance constraints, for the Position Based Dynamics solver.
+"""The 12-spring stencil as distance constraints, for the Position Based Dynamics solver, and
+as a graph of particles in 4 colours, for the Vertex Block Descent solver (vertex_colours).
 
 Each spring of docs/semantics.md is one undirected constraint between particles i and
 j = i + (dr, dc), taken once from its first endpoint along one of six directions. The
@@ -66,3 +67,21 @@ def coloured_batches(n: int) -> list[Batch]:
 def constraint_count(n: int) -> int:
     """Undirected constraints: half the springs as the chapter counts them."""
     return sum(len(b.i) for b in coloured_batches(n))
+
+
+# Vertex Block Descent (docs/vbd.md) updates particles in place, so no two particles of one
+# colour may share a spring. colour(row, col) = 2 (row mod 2) + ((col + row div 2) mod 2):
+# the structural and shear neighbours (|dr|, |dc| <= 1, not both 0) differ in row parity
+# (dr = +-1) or, in the same row, in column parity (dc = +-1); a bend neighbour (+-2, +-2)
+# has the same row parity, and col + row div 2 changes by +-2 +- 1, an odd number. So no
+# spring joins two particles of one colour. Four is the fewest possible: the four particles
+# of a 2x2 cell are joined pairwise (its four sides structural, its two diagonals shear), so
+# they need four colours. tests/test_vbd.py checks both for every n from 3 to 40.
+VERTEX_COLOURS = 4
+
+
+def vertex_colours(n: int) -> np.ndarray:
+    """The colour (0..3) of each particle of the n x n grid, (n*n,) int32: the sweep order of
+    docs/vbd.md."""
+    rows, cols = np.divmod(np.arange(n * n, dtype=np.int64), n)
+    return (2 * (rows % 2) + (cols + rows // 2) % 2).astype(np.int32)

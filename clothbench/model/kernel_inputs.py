@@ -1,6 +1,6 @@
 """What every kernel takes from the scene and solver, as every backend passes it, the
 peers included: the numbers, computed in float64 and rounded once to the working precision
-(float32, or float64 for the NumPy reference; docs/semantics.md and docs/pbd.md,
+(float32, or float64 for the NumPy reference; docs/semantics.md, docs/pbd.md and docs/vbd.md,
 "Constants"), and the collider table.
 
 A backend chooses only how they reach its kernel: arguments (opencl, cuda --generic),
@@ -19,7 +19,7 @@ from clothbench.model.colliders.kinds import KINDS
 from clothbench.model.colliders.motion import pose
 from clothbench.model.colliders.self_contact import rest_exclusion
 from clothbench.model.scene import OFFSET_KIND, Scene, body_pose
-from clothbench.model.solver import Pbd, Solver
+from clothbench.model.solver import Pbd, Solver, Vbd
 
 # float4 rows per collider, by collider_rows' keys (colliders/kinds.py)
 ROWS_PER_COLLIDER = {kind.plural: kind.rows for kind in KINDS}
@@ -229,4 +229,34 @@ class SelfCollisionConstants:
             relax=t(c.relaxation),
             inv_cell=t(c.inv_cell),
             exclude2=rest_exclusion(c.thickness, scene.spacing),
+        )
+
+
+@dataclass(frozen=True)
+class VbdConstants:
+    """docs/vbd.md, "Constants": computed in float64 from the scene and solver, rounded once
+    to the working precision."""
+
+    dt: np.floating
+    h: np.floating  # dt / substeps
+    gh2: tuple  # g * h^2, three components: gravity's share of the inertial target
+    mh2: np.floating  # m / h^2: the inertia's stiffness
+    bh: np.floating  # b / h: one spring's share of the implicit damping's stiffness
+    k: np.floating
+    rest: tuple  # rest lengths: structural, shear, bend
+    omega: tuple  # the Chebyshev weight of each sweep (all 1: no acceleration)
+
+    @classmethod
+    def of(cls, scene: Scene, solver: Vbd, dtype=np.float32) -> "VbdConstants":
+        t = dtype
+        h = solver.dt / solver.substeps
+        return cls(
+            dt=t(solver.dt),
+            h=t(h),
+            gh2=tuple(t(g * h * h) for g in scene.gravity),
+            mh2=t(scene.mass / (h * h)),
+            bh=t(scene.damping / h),
+            k=t(scene.stiffness),
+            rest=rest_by_kind(scene, t),
+            omega=tuple(t(w) for w in solver.chebyshev_omega()),
         )

@@ -42,6 +42,7 @@ from clothbench.model.solver import (
     SOLVERS,
     Pbd,
     Solver,
+    Vbd,
     Verlet,
     finite_number,
     solver_for_spec,
@@ -65,10 +66,11 @@ EDGES = ("top", "bottom", "left", "right")
 _CLOTH_KEYS = {"grid", "size", "height", "mass", "stiffness", "damping"}
 _SIM_KEYS = {"dt", "steps", "gravity", "start", "solver"}
 _PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance", "chebyshev_rho"}
+_VBD_KEYS = {"iterations", "substeps", "chebyshev_rho"}
 _PIN_KEYS = {"indices", "corners", "edge", "attach"}
 _MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *COLLIDER_OPTIONAL_KEYS}
 _TABLES = {
-    "name", "description", "cloth", "sim", "pbd", "pins", *(k.name for k in KINDS), "mesh", "frame", "self_collision",
+    "name", "description", "cloth", "sim", "pbd", "vbd", "pins", *(k.name for k in KINDS), "mesh", "frame", "self_collision",
 }  # fmt: skip
 
 
@@ -420,12 +422,13 @@ def _pins(data: dict, where: str) -> tuple[dict, tuple[PinGroup, ...]]:
 @dataclass(frozen=True)
 class Setup:
     """What a scene file describes: the model, the solver that steps it, the run length, and
-    the file's [pbd] settings (kept when the solver is Verlet, for commands that switch)."""
+    the file's [pbd] and [vbd] settings (kept whatever the solver is, for commands that switch)."""
 
     scene: Scene
     solver: Solver
     steps: int = 300
     pbd: Pbd = Pbd()
+    vbd: Vbd = Vbd()
 
     def __post_init__(self):
         if not isinstance(self.steps, int) or isinstance(self.steps, bool) or self.steps < 1:
@@ -435,8 +438,8 @@ class Setup:
         check_float32_step(self.scene, self.solver)
 
     def solver_for(self, spec: str) -> Solver:
-        """The solver a --solvers entry names, with this file's dt, start and [pbd] settings."""
-        return solver_for_spec(spec, self.solver, self.pbd)
+        """The solver a --solvers entry names, with this file's dt, start and [pbd] or [vbd] settings."""
+        return solver_for_spec(spec, self.solver, self.pbd, self.vbd)
 
     def replace(self, grid=None, steps=None, dt=None, solver=None, method=None, iterations=None, substeps=None):
         """A copy with command-line overrides applied (None: keep), validated again."""
@@ -444,16 +447,21 @@ class Setup:
             k: v for k, v in (("method", method), ("iterations", iterations), ("substeps", substeps)) if v is not None
         }
         pbd = self.pbd.replace(**pbd_changes)
+        vbd_changes = {k: v for k, v in pbd_changes.items() if k != "method"}  # a method is PBD's
+        vbd = self.vbd.replace(**vbd_changes)
         current = self.solver.replace(**({"dt": dt} if dt is not None else {}))
         if isinstance(current, Pbd):
             current = current.replace(**pbd_changes)
+        elif isinstance(current, Vbd):
+            current = current.replace(**vbd_changes)
         if solver is not None and solver != current.name:
-            current = solver_for_spec(solver, current, pbd)
+            current = solver_for_spec(solver, current, pbd, vbd)
         return Setup(
             self.scene.replace(grid=grid) if grid is not None else self.scene,
             current,
             steps if steps is not None else self.steps,
             pbd.replace(dt=current.dt, start=current.start),
+            vbd.replace(dt=current.dt, start=current.start),
         )
 
 
@@ -467,6 +475,7 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
     sim = dict(_table(data, "sim", _SIM_KEYS, where))
     pins, pin_groups = _pins(data, where)
     pbd = _table(data, "pbd", _PBD_KEYS, where)
+    vbd = _table(data, "vbd", _VBD_KEYS, where)
     colliders = {kind.plural: _colliders(data, kind, where) for kind in KINDS}
     meshes = _meshes(data, where, folder)
     frames = frames_from_toml(data.get("frame", []), where)
@@ -498,8 +507,9 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
             **scene_kwargs,
         )
         pbd_settings = Pbd(**sim, **pbd)  # sim now holds dt and start only
-        solver = pbd_settings if solver_name == "pbd" else Verlet(**sim)
-        return Setup(scene, solver, steps, pbd_settings)
+        vbd_settings = Vbd(**sim, **vbd)
+        solver = {"pbd": pbd_settings, "vbd": vbd_settings}.get(solver_name) or Verlet(**sim)
+        return Setup(scene, solver, steps, pbd_settings, vbd_settings)
     except SceneError as e:
         raise SceneError(f"{where}: {e}") from None
 

@@ -1,8 +1,8 @@
 """The solver settings: how a scene is stepped, kept apart from what is simulated.
 
 A `Scene` (scene.py) is the model: the cloth, its constants, colliders and pins. A solver
-is the integrator and its settings: `Verlet` (docs/semantics.md) or `Pbd` (docs/pbd.md),
-each with its time step and how the run starts. The run length (steps) is a third thing,
+is the integrator and its settings: `Verlet` (docs/semantics.md), `Pbd` (docs/pbd.md) or
+`Vbd` (docs/vbd.md), each with its time step and how the run starts. The run length (steps) is a third thing,
 passed beside both; `scene.Setup` holds all three as a scene file describes them.
 """
 
@@ -20,10 +20,12 @@ FLOAT32_MAX = 3.4028234663852886e38
 FLOAT32_TINY = 1.1754943508222875e-38  # smallest normal float32
 
 STARTS = ("rest", "second-order")
-SOLVERS = ("verlet", "pbd")
+SOLVERS = ("verlet", "pbd", "vbd")
 PBD_METHODS = ("jacobi", "coloured")
 # What --solvers accepts: a solver, or pbd with its method ("pbd" alone: the file's method).
-SOLVER_SPECS = ("verlet", "pbd", *(f"pbd-{m}" for m in PBD_METHODS))
+SOLVER_SPECS = ("verlet", "pbd", *(f"pbd-{m}" for m in PBD_METHODS), "vbd")
+# the solvers that iterate within a substep: what --iterations and --substeps apply to
+ITERATIVE = ("pbd", "vbd")
 
 
 def finite_number(x) -> bool:
@@ -116,13 +118,8 @@ class Pbd(Stepping):
         return f"pbd-{self.method}"
 
     def chebyshev_omega(self) -> tuple[float, ...]:
-        """The Chebyshev weight of each Jacobi iteration (Wang 2015), float64: 1 for the first
-        (it has no iterate before it), 2 / (2 - rho^2) for the second, then
-        4 / (4 - rho^2 omega). All 1 with chebyshev_rho = 0."""
-        rho2, omega = self.chebyshev_rho**2, []
-        for k in range(self.iterations):
-            omega.append(1.0 if k == 0 else 2.0 / (2.0 - rho2) if k == 1 else 4.0 / (4.0 - rho2 * omega[-1]))
-        return tuple(omega)
+        """The Chebyshev weight of each Jacobi iteration (chebyshev_omega)."""
+        return chebyshev_omega(self.chebyshev_rho, self.iterations)
 
     def compliance_for(self, scene) -> tuple[float, float, float]:
         """XPBD compliance (m/N) of structural, shear and bend constraints."""
@@ -133,7 +130,40 @@ class Pbd(Stepping):
         return (1.0 / scene.stiffness,) * 3
 
 
-Solver = Verlet | Pbd
+@dataclass(frozen=True)
+class Vbd(Stepping):
+    """Implicit Euler by Vertex Block Descent (docs/vbd.md): per-vertex 3x3 Newton steps on
+    the step's incremental potential, Gauss-Seidel over the grid's 4 vertex colours."""
+
+    iterations: int = 10  # sweeps over the 4 colours per substep
+    substeps: int = 1
+    chebyshev_rho: float = 0.0  # spectral radius estimate of Chebyshev acceleration; 0: off
+
+    name = "vbd"
+
+    def __post_init__(self):
+        _validate_common(self)
+        _positive_int(self.iterations, "iterations")
+        _positive_int(self.substeps, "substeps")
+        if not finite_number(self.chebyshev_rho) or not 0 <= self.chebyshev_rho < 1:
+            raise SceneError(f"chebyshev_rho must be in [0, 1) (0: no acceleration), got {self.chebyshev_rho!r}")
+
+    def chebyshev_omega(self) -> tuple[float, ...]:
+        """The Chebyshev weight of each sweep (chebyshev_omega)."""
+        return chebyshev_omega(self.chebyshev_rho, self.iterations)
+
+
+Solver = Verlet | Pbd | Vbd
+
+
+def chebyshev_omega(rho: float, iterations: int) -> tuple[float, ...]:
+    """The Chebyshev weight of each iteration (Wang 2015), float64: 1 for the first (it has no
+    iterate before it), 2 / (2 - rho^2) for the second, then 4 / (4 - rho^2 omega). All 1 with
+    rho = 0. PBD's Jacobi passes and VBD's sweeps take the same weights."""
+    rho2, omega = rho**2, []
+    for k in range(iterations):
+        omega.append(1.0 if k == 0 else 2.0 / (2.0 - rho2) if k == 1 else 4.0 / (4.0 - rho2 * omega[-1]))
+    return tuple(omega)
 
 
 def _validate_common(s: Stepping) -> None:
@@ -170,16 +200,25 @@ def as_pbd(solver: Solver, pbd: Pbd | None = None, method: str | None = None) ->
     return settings.replace(**changes)
 
 
+def as_vbd(solver: Solver, vbd: Vbd | None = None) -> Vbd:
+    """A VBD solver with `solver`'s dt and start and `vbd`'s settings (default: `solver`'s own
+    if it is one, else the defaults)."""
+    settings = vbd if vbd is not None else solver if isinstance(solver, Vbd) else Vbd()
+    return settings.replace(dt=solver.dt, start=solver.start)
+
+
 def check_spec(spec: str) -> str:
     if spec not in SOLVER_SPECS:
         raise SceneError(f"unknown solver {spec!r} (known: {', '.join(SOLVER_SPECS)})")
     return spec
 
 
-def solver_for_spec(spec: str, solver: Solver, pbd: Pbd | None = None) -> Solver:
+def solver_for_spec(spec: str, solver: Solver, pbd: Pbd | None = None, vbd: Vbd | None = None) -> Solver:
     """The solver a --solvers entry stands for, with `solver`'s dt and start; "pbd" alone
-    keeps the method of `pbd` (the scene file's [pbd] table)."""
+    keeps the method of `pbd` (the scene file's [pbd] table), "vbd" the settings of `vbd`."""
     name, _, method = check_spec(spec).partition("-")
     if name == "verlet":
         return as_verlet(solver)
+    if name == "vbd":
+        return as_vbd(solver, vbd)
     return as_pbd(solver, pbd, method or None)

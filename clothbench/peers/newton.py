@@ -13,6 +13,11 @@ scene's b is not represented). So it is compared with clothbench by physics (the
 sheet's sag and extent, pins, penetration: tests/test_newton_peer.py), never bit for bit;
 the [pbd] method (jacobi or coloured) names the clothbench model a row is compared with and
 does not change what Newton runs.
+
+Its VBD class (NewtonVbdBackend, issue 33 item 3) is the same scene stepped by `SolverVBD`:
+the same springs, particles coloured by Newton's builder (`ModelBuilder.color()`), `iterations`
+per substep. Newton's VBD is implicit Euler too (docs/vbd.md is clothbench's), with its own
+contact model and, again, no drag: compared by physics, not bit for bit.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ import numpy as np
 
 from clothbench.errors import ClothbenchError
 from clothbench.model.scene import OFFSET_KIND, OFFSETS, Scene
-from clothbench.model.solver import Pbd
+from clothbench.model.solver import Pbd, Vbd
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities, import_failure
 from clothbench.model.kernel_inputs import rest_by_kind
 from clothbench.peers.warp import import_warp, init_quietly
@@ -65,6 +70,7 @@ def stencil_springs(n: int) -> list[tuple[int, int, int]]:
 
 class NewtonPbdBackend(Backend):
     name = "newton"
+    kind = "xpbd"  # Newton's solver, as the device line names it
     device_timer = ""  # no device clock read: a peer is timed as a user would time it
     # one mode (Newton's kernels, no strict form of docs/pbd.md); --device picks Warp's device
     capabilities = Capabilities(strict=False, device=True)
@@ -83,11 +89,20 @@ class NewtonPbdBackend(Backend):
             raise ClothbenchError(f"newton has no device {name!r} here ({e}); try cpu") from None
         self.model = self._build(scene, solver)
         self.h = solver.dt / solver.substeps
-        self.xpbd = newton.solvers.SolverXPBD(self.model, iterations=solver.iterations)
+        self.newton_solver = self._newton_solver(newton, solver)
         self.state_0, self.state_1 = self.model.state(), self.model.state()
         self.control = self.model.control()
         self.pipeline = newton.CollisionPipeline(self.model, soft_contact_gap=CONTACT_GAP)
         self.contacts = self.pipeline.contacts()
+
+    def _newton_solver(self, newton, solver: Pbd):
+        return newton.solvers.SolverXPBD(self.model, iterations=solver.iterations)
+
+    def _compliance(self, scene: Scene, solver: Pbd) -> tuple[float, float, float]:
+        return solver.compliance_for(scene)
+
+    def _before_finalize(self, builder) -> None:
+        """What the solver needs of the builder before the model is made (VBD: its colours)."""
 
     def _build(self, scene: Scene, solver: Pbd):
         wp, newton = self._wp, self._newton
@@ -95,7 +110,7 @@ class NewtonPbdBackend(Backend):
         pos, _ = scene.initial_state(np.float64)
         for p in pos:  # pinned particles: mass 0, which Newton keeps where they are
             builder.add_particle(tuple(p[:3]), (0.0, 0.0, 0.0), scene.mass if p[3] != 0 else 0.0, radius=0.0)
-        compliance = solver.compliance_for(scene)
+        compliance = self._compliance(scene, solver)
         rest = rest_by_kind(scene, np.float32)
         for i, j, kind in stencil_springs(scene.grid):
             # XPBD compliance 1/ke, as clothbench's; no spring damping (clothbench's drag is not along springs)
@@ -109,6 +124,7 @@ class NewtonPbdBackend(Backend):
             nx, ny, nz = pl.unit_normal
             d = -(nx * pl.point[0] + ny * pl.point[1] + nz * pl.point[2])
             builder.add_shape_plane((nx, ny, nz, d), width=0.0, length=0.0, cfg=frictionless)
+        self._before_finalize(builder)
         model = builder.finalize(device=self._device)
         model.soft_contact_mu = 0.0
         return model
@@ -116,7 +132,8 @@ class NewtonPbdBackend(Backend):
     @property
     def device(self) -> str:
         d = self._device
-        return f"newton xpbd, warp {d.alias} (1 thread)" if d.is_cpu else f"newton xpbd, warp {d.alias} ({d.name})"
+        where = "1 thread" if d.is_cpu else d.name
+        return f"newton {self.kind}, warp {d.alias} ({where})"
 
     @property
     def driver(self) -> str:
@@ -136,7 +153,7 @@ class NewtonPbdBackend(Backend):
         for _ in range(steps * self.solver.substeps):
             self.state_0.clear_forces()
             self.pipeline.collide(self.state_0, self.contacts)
-            self.xpbd.step(self.state_0, self.state_1, self.control, self.contacts, self.h)
+            self.newton_solver.step(self.state_0, self.state_1, self.control, self.contacts, self.h)
             self.state_0, self.state_1 = self.state_1, self.state_0
 
     def synchronize(self) -> None:
@@ -152,3 +169,23 @@ class NewtonPbdBackend(Backend):
 
     def close(self) -> None:
         self.state_0 = self.state_1 = self.contacts = None
+
+
+class NewtonVbdBackend(NewtonPbdBackend):
+    """The same scene through Newton's SolverVBD (docs/newton.md): the springs' stiffness is the
+    scene's k (VBD takes stiffness, not compliance)."""
+
+    kind = "vbd"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
+    capabilities = NewtonPbdBackend.capabilities  # the same one mode and --device
+
+    def _newton_solver(self, newton, solver: Vbd):
+        return newton.solvers.SolverVBD(self.model, iterations=solver.iterations)
+
+    def _compliance(self, scene: Scene, solver: Vbd) -> tuple[float, float, float]:
+        if scene.stiffness == 0:
+            raise ClothbenchError("newton vbd needs stiffness > 0 (its springs take ke = stiffness)")
+        return (1.0 / scene.stiffness,) * 3
+
+    def _before_finalize(self, builder) -> None:
+        builder.color()  # SolverVBD solves particles colour by colour

@@ -34,6 +34,7 @@ from clothbench.reports.results_files import (
     accuracy_result,
     analysis_rows,
 )
+from clothbench.model.solver import ITERATIVE
 from clothbench.variant_names import iterations_display, model_display
 
 STYLE = """
@@ -547,7 +548,8 @@ def ms_per_step_section(ok: list[dict], parent: str) -> Section:
         lines.setdefault(key, {})[int(r["grid"])] = r
     body, classes = [], []
     for (backend, solver, iterations, mode, scene, device), at in lines.items():
-        label = f"{backend} {mode}" + (f", {iterations_display(iterations)}" if solver == "pbd" and iterations else "")
+        its = f", {iterations_display(iterations)}" if solver in ITERATIVE and iterations else ""
+        label = f"{backend} {mode}{its}"
         label += f" [{scene}]" if len(scenes) > 1 else ""
         body.append([label, device] + [float(at[g]["ms_median"]) if g in at else None for g in grids])
         classes.append("peer" if is_peer(backend) or at[min(at)]["peer"] == "true" else "")
@@ -613,7 +615,8 @@ def _sweep_cost(r: dict) -> float:
 
 
 def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
-    """Verlet against PBD on each backend and grid: the cheapest f32 mode of each solver model."""
+    """Verlet against PBD and VBD on each backend and grid: the cheapest f32 mode of each solver model."""
+    present = [s for s in ITERATIVE if any((r.get("solver") or "verlet") == s for r in ok)]
 
     def model(r) -> str:
         return model_display(r.get("solver") or "verlet", r["pbd_method"], r["iterations"])
@@ -635,7 +638,7 @@ def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
         ]
         body.append([backend, f"{grid}×{grid}", *cells])
     return Section(
-        "Verlet against PBD",
+        f"Verlet against {' and '.join(s.upper() for s in present)}",
         f"{parent}-solvers",
         [
             table(
@@ -712,7 +715,7 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
             ],
         )
     )
-    if {"verlet", "pbd"} <= set(solvers):
+    if "verlet" in solvers and set(ITERATIVE) & set(solvers):
         sec.children.append(accuracy_solvers_section(rows, ok, sec.id))
     bad = [r for r in rows if r.status != "ok"]
     if bad:
@@ -729,12 +732,13 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
 
 
 def accuracy_solvers_section(rows: list, ok: list, parent: str) -> Section:
-    """Per decade of error, the cheapest Verlet and PBD runs reaching it (PBD against its own
-    converged model and against the mass-spring answer Verlet converges to)."""
+    """Per decade of error, the cheapest Verlet, PBD and VBD runs reaching it (PBD and VBD
+    against their own converged model and against the mass-spring answer Verlet converges to)."""
+    present = [s for s in ITERATIVE if any(r.solver == s for r in ok)]
+    titles = {"disc_rms": "{}, own model", "vs_verlet_rms": "{} against Verlet's answer"}
     columns = (
         ("Verlet", "verlet", "disc_rms"),
-        ("PBD, own model", "pbd", "disc_rms"),
-        ("PBD against Verlet's answer", "pbd", "vs_verlet_rms"),
+        *((t.format(s.upper()), s, e) for s in present for e, t in titles.items()),
     )
     errors = [r.disc_rms for r in ok]
     body = []
@@ -749,7 +753,7 @@ def accuracy_solvers_section(rows: list, ok: list, parent: str) -> Section:
             )
         body.append([Html(f"≤ {num(Exact(10.0**e))}"), *cells])
     return Section(
-        "Verlet against PBD",
+        f"Verlet against {' and '.join(s.upper() for s in present)}",
         f"{parent}-solvers",
         [
             table(
