@@ -48,6 +48,13 @@ of verlet_cloth.cl), both builds, each compiled only where the scene has it:
              multi-step kernel reads one table per step of its launch).
 The generic build takes these parts as -D options too (one program per set of them).
 
+Self-collision ([self_collision], docs/semantics.md), either build, only where the scene has
+it (-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): the step's kernels leave the colliders
+out and write x_new; one more launch per step reads it, pushes the pairs apart, collides, and
+writes a fifth state buffer, which the references then rotate into the state. The search is
+the definition's brute force (every pair, ascending j), so the specialised build runs only its
+default shape there (verlet_shapes.candidates).
+
 Timings of these variants, and where the specialisation gain comes from: docs/opencl.md.
 """
 
@@ -62,7 +69,7 @@ from clothbench.scene import Scene
 from clothbench.solver import Verlet
 from clothbench.variant_names import TRANSFERS
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import VerletConstants
+from clothbench.backends.kernel_inputs import SelfCollisionConstants, VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
 from clothbench.backends.opencl.device import (
@@ -77,6 +84,7 @@ from clothbench.backends.tuning import median_seconds
 from clothbench.backends.opencl.device import probe  # noqa: F401  (the registry asks this module)
 
 KERNEL_FILE = "verlet_cloth.cl"
+SELF_COLLISION_FILE = "self_collision.cl"  # in the program's source only where the scene has it
 
 
 class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
@@ -90,6 +98,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         shapes=True,  # verlet_shapes.py; the specialised build only
         meshes=("verlet",),  # not opencl/pbd.py, whose Capabilities are its own
         moving_colliders=("verlet",),
+        self_collision=("verlet",),
         # the first is the default: faster from a few hundred triangles up (docs/opencl.md)
         mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "per-step"}),
@@ -111,7 +120,14 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._constant_dtypes = [np.float32] * 4 + [cl.cltypes.float4] * 2
         # meshes, motion, attached pins (bodies.py): step k's poses are at (k + 1) dt
         self._open_bodies(solver.dt, shapes.STEPS_PER_LAUNCH)
-        self._source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
+        # [self_collision]: its constants as the host rounded them once; None: no pass, no code
+        contact = None if scene.self_collision is None else SelfCollisionConstants.of(scene)
+        self._contact = None
+        if contact is not None:
+            exclude2 = np.int32(min(contact.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
+            self._contact = (contact.thickness, contact.thickness2, contact.relax, exclude2)
+        generated = {"mesh_colliders": self._mesh_source, "self_collision": self._self_collision_source}
+        self._source = program_source(KERNEL_FILE, generated)
 
         # State buffers, twice over: float4 per particle (generic) or x, y, z planes with
         # PAD floats before and after them (the rows kernels' masked loads reach past).
@@ -120,6 +136,9 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         state_bytes = 4 * (self.n2 * 4 if self.generic else self.n2 * 3 + 2 * self._pad)
         self._state = [cl.Buffer(context, mf.READ_WRITE, state_bytes) for _ in range(4)]
         self._host = [np.zeros(state_bytes // 4, np.float32) for _ in range(2)]  # per-step copy
+        # the self-collision pass's output: it reads the step's x_new, so it cannot write there
+        self._pushed = cl.Buffer(context, mf.READ_WRITE, state_bytes) if self._contact else None
+        self._pass = None  # (kernel, global size, local size, arguments after the buffers)
         self._w = np.zeros(self.n2, np.float32)  # inverse mass, as uploaded
         self._w_prev = self._w
         self._inv_mass = None if self.generic else cl.Buffer(context, mf.READ_ONLY, self.n2 * 4)
@@ -163,6 +182,31 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         normals = (self._normals,) if self.normals else ()
         self._launches = [(k, *self._launch_size(items), (*args, *normals)) for k, items, args in launches]
         self.effective_local_size = self._launches[0][2][0] if self._launches[0][2] else None
+        if self._contact is not None:
+            self._pass = self._self_collision_launch(self._shape.width if not self.generic else 1)
+
+    def _self_collision_source(self) -> str:
+        """The text of `#include <self_collision>`: self_collision.cl where the scene has it."""
+        return f'#include "{SELF_COLLISION_FILE}"\n' if self._contact else ""
+
+    def _self_collision_launch(self, vector_width: int):
+        """The pass's kernel, from the program of the step's (its options: no build of its
+        own), one work item per particle."""
+        i32 = np.int32
+        program = build_program(self._context, self._source, self.build_options(vector_width))
+        k = self._cl.Kernel(program, "self_collision")
+        self._check_local_size(k, "self_collision")
+        constants = [np.float32] * 3 + [i32]
+        if self.generic:
+            s = self.scene
+            dtypes = [None, None, i32, *constants, None, i32, i32, i32]
+            args = (i32(self.n), *self._contact, self._colliders)
+            args += (i32(len(s.spheres)), i32(len(s.cylinders)), i32(len(s.planes)))
+        else:
+            dtypes = [None, None, None, *constants, None]
+            args = (*self._contact, self._colliders)
+        k.set_scalar_arg_dtypes([*dtypes, *self._body_dtypes()])
+        return (k, *self._launch_size(self.n2), args)
 
     def _time_shape(self, name: str) -> float:
         """Seconds of a short synchronised run of shape `name` from the initial state (a
@@ -189,6 +233,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         program cache is keyed by it). Generic: one key for every scene with the same
         meshes-and-motion options."""
         arithmetic = arithmetic_options(self.strict) + ("-DCLOTH_NORMALS",) * self.normals
+        arithmetic += ("-DCLOTH_SELF_COLLISION",) * (self._contact is not None)
         if self.generic:
             return ("-DCLOTH_GENERIC", *self._body_options(), *arithmetic)
         shape = (*shape_options(self.scene, vector_width), *self._body_options())
@@ -241,7 +286,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         return launches
 
     def _buffers(self) -> tuple:
-        return (*self._state, self._inv_mass, self._border, self._normals, *self._body_buffers())
+        return (*self._state, self._pushed, self._inv_mass, self._border, self._normals, *self._body_buffers())
 
     # --- Backend interface -------------------------------------------------------------
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
@@ -287,6 +332,11 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             bodies = self._body_args(j)
             for kernel, global_size, local_size, args in self._launches:
                 self._events.append(kernel(queue, global_size, local_size, *state, *args, *bodies))
+            if self._pass is not None:  # x_new -> pushed apart and collided, in the spare buffer
+                kernel, global_size, local_size, args = self._pass
+                buffers = (pos_out, self._pushed) if self.generic else (pos_out, self._inv_mass, self._pushed)
+                self._events.append(kernel(queue, global_size, local_size, *buffers, *args, *bodies))
+                pos_out, self._pushed = self._pushed, pos_out
             self._state = [pos_out, prev_out, pos, prev]  # ping-pong: swap references, no copy
             if per_step:  # ... and comes back down, so the host owns the next step's input
                 cl.enqueue_copy(queue, self._host[0], pos_out, is_blocking=False)
