@@ -1,0 +1,121 @@
+"""[self_collision] on the OpenCL Verlet backend (kernels/self_collision.cl, docs/semantics.md
+"Self-collision"), beyond the contract's default build: strict is the NumPy float32 reference
+bit for bit in the generic build, the split kernels, per-step transfer, with normals and a
+padded launch, and with colliders, a mesh, motion and attached pins acting after the pass;
+fast stays within float32's own error; a scene without the table compiles none of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clothbench.backends import BackendOptions, create_backend
+from clothbench.backends.opencl import verlet as opencl
+from clothbench.colliders.analytic import Plane, Sphere
+from clothbench.colliders.mesh import Mesh
+from clothbench.colliders.motion import Motion
+from clothbench.harness import position_error
+from conftest import VERLET, assert_bit_exact, require
+from folded_sheet import folded
+from test_opencl_meshes import program_sources
+
+STEPS = 20  # the contract's longer run: every pair of the fold pushed, several times
+# 1.5 spacings, the fold's layers 0.5 apart: each particle has about five pairs across the fold,
+# so the order of its sum shows in the bits (at the contract's 0.8 it has one)
+THICK = 1.5
+
+
+def sheet(n: int = 16):
+    return folded(n, thickness=THICK)
+
+
+@pytest.fixture(autouse=True)
+def _opencl():
+    require("opencl")
+
+
+def run(name: str, scene, pos, steps: int, options: BackendOptions):
+    with create_backend(name, scene, VERLET, options) as b:
+        b.upload(pos, pos)
+        b.advance(steps)
+        return b.read()
+
+
+def assert_matches_numpy(scene, pos, options: BackendOptions, what: str, steps: int = STEPS):
+    got = run("opencl", scene, pos, steps, options)
+    expected = run("numpy", scene, pos, steps, BackendOptions())
+    assert_bit_exact(got[0], expected[0], f"pos, {what}")
+    assert_bit_exact(got[1], expected[1], f"prev, {what}")
+    without = run("numpy", scene.replace(self_collision=None), pos, steps, BackendOptions())[0]
+    assert not np.array_equal(expected[0], without), f"{what}: the pass pushed no pair, the test shows nothing"
+
+
+@pytest.mark.parametrize(
+    "n, build",
+    [
+        (16, {"generic": True}),
+        (16, {"transfer": "per-step"}),
+        (16, {"normals": True, "local_size": 24}),  # 256 particles in work-groups of 24: a padded launch
+        (16, {"generic": True, "local_size": 24}),
+        (12, {}),  # narrower than a vector: the split kernels, the border's scalar path included
+    ],
+    ids=lambda v: str(v),
+)
+def test_strict_matches_numpy_f32_bit_for_bit_in_every_build(n, build):
+    scene, pos = sheet(n)
+    assert_matches_numpy(scene, pos, BackendOptions(strict=True, **build), f"n={n} {build}")
+
+
+def bodies_scene():
+    """The folded sheet lying on a rising floor its pin follows, beside a sphere and a mesh: the
+    colliders act after the pass (a particle pushed into the floor comes back out), at the pose
+    of the step's end (per-step tables), with an attached pin."""
+    scene, pos = sheet(16)
+    h, y = scene.spacing, float(pos[0, 1])
+    floor = Plane(point=(0.0, y - 0.2 * h, 0.0), normal=(0.0, 1.0, 0.0), name="floor", motion=Motion(velocity=(0.0, 0.5, 0.0)))
+    ball = Sphere(center=(0.5, y + 0.5 * h, 0.4), radius=0.1)
+    mesh = Mesh(shape="icosphere", subdivisions=1, position=(0.3, y, 0.3), scale=0.08, name="ico")
+    return scene.replace(planes=(floor,), spheres=(ball,), meshes=(mesh,), pin_attach="floor"), pos
+
+
+@pytest.mark.parametrize("build", [{}, {"generic": True}, {"mesh_collision": "naive"}], ids=str)
+def test_colliders_meshes_motion_and_attached_pins_act_after_the_pass_bit_for_bit(build):
+    scene, pos = bodies_scene()
+    assert_matches_numpy(scene, pos, BackendOptions(strict=True, **build), f"bodies {build}", steps=40)
+
+
+@pytest.mark.parametrize("generic", [False, True])
+def test_fast_error_is_of_the_order_of_strict_float32s(generic):
+    # Fast mode contracts FMAs (the pass's d*s + corr too) and uses rsqrt in the springs:
+    # O(float32 epsilon) per operation. Held to strict's own distance from float64 (NumPy f64),
+    # 3x with a 1 nm floor; measured here 0.5-1.5x. A sign slip in the pass moves particles by
+    # a millimetre, 10^4 times more.
+    scene, pos = sheet()
+    ref64 = run("numpy", scene, pos.astype(np.float64), STEPS, BackendOptions(precision="f64"))[0]
+    _, strict_max = position_error(run("numpy", scene, pos, STEPS, BackendOptions())[0], ref64)
+    fast = run("opencl", scene, pos, STEPS, BackendOptions(generic=generic))[0]
+    _, fast_max = position_error(fast, ref64)
+    assert fast_max <= 3 * strict_max + 1e-9, f"fast {fast_max:.3g} m, NumPy f32 {strict_max:.3g} m"
+
+
+def compiled(scene, generic: bool) -> tuple[str, str]:
+    """The source and build options of the backend's programs for `scene`."""
+    with create_backend("opencl", scene, VERLET, BackendOptions(generic=generic)) as b:
+        return program_sources(b), " ".join(o for key in b.key for o in key)
+
+
+@pytest.mark.parametrize("generic", [False, True])
+def test_a_scene_without_self_collision_compiles_none_of_it(generic):
+    scene, _ = sheet()
+    source, options = compiled(scene, generic)
+    assert "self_push" in source and "-DCLOTH_SELF_COLLISION" in options, "the scene with the table has the pass"
+    source, options = compiled(scene.replace(self_collision=None), generic)
+    assert "self_push" not in source and "CLOTH_SELF_COLLISION" not in options
+
+
+def test_self_collision_offers_the_default_shape_only():
+    scene, _ = sheet(32)
+    options = BackendOptions(strict=True)
+    plain = opencl.OpenCLBackend.kernel_shapes(scene.replace(self_collision=None), options)
+    assert len(plain) > 1, "the test needs a grid with several candidates"
+    assert opencl.OpenCLBackend.kernel_shapes(scene, options) == plain[:1]
