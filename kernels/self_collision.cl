@@ -1,8 +1,10 @@
 /* self_collision.cl: the [self_collision] pass of docs/semantics.md ("Self-collision"),
- * operation for operation, then the colliders, for verlet_cloth.cl (either build). The host
- * puts it in the source (`#include <self_collision>`) only where the scene has the table;
- * with CLOTH_SELF_COLLISION the Verlet kernels leave the colliders to this one, so they act
- * after the pass, as the definition places them.
+ * operation for operation, then the colliders, for verlet_cloth.cl (either build) and
+ * pbd_cloth.cl (which defines CLOTH_PBD first). The host puts it in the source
+ * (`#include <self_collision>`) only where the scene has the table. Verlet: with
+ * CLOTH_SELF_COLLISION its kernels leave the colliders to `self_collision`, so they act after
+ * the pass, as the definition places them. PBD: `pbd_self_collision` takes the place of
+ * pbd_collide in the substep, after the last constraint iteration.
  *
  * One work item per particle reads the positions before the pass (x_in) and writes its own
  * (x_out): a Jacobi projection, race-free. The search is the definition's brute-force form,
@@ -13,7 +15,7 @@
  * are excluded like stencil neighbours).
  */
 
-#ifdef CLOTH_GENERIC
+#if defined(CLOTH_GENERIC) || defined(CLOTH_PBD)
 /* float4 rows, the inverse mass in w */
 #define SC_STATE __global const float4 *
 #define SC_X(s, j) ((s)[j].xyz)
@@ -67,7 +69,21 @@ float3 self_push(int i, int n, SC_STATE x_in, __global const float *inv_mass, fl
     return pushed ? xi + corr : xi;
 }
 
-#ifdef CLOTH_GENERIC
+#if defined(CLOTH_PBD)
+__kernel void pbd_self_collision(__global const float4 *xs_in, __global float4 *xs_out,
+                                 const float thickness, const float thickness2, const float relax,
+                                 const int exclude2, __constant float4 *colliders STEP_ARG MESH_ARG)
+{
+    int i = get_global_id(0);
+    if (i >= N2)
+        return; /* the launch is padded when the work-group size does not divide n*n */
+#ifdef CLOTH_PER_STEP
+    colliders += step * TABLE_ROWS; /* this substep's poses */
+#endif
+    float3 x = self_push(i, N, xs_in, 0, thickness, thickness2, relax, exclude2);
+    xs_out[i] = collide_particle((float4)(x, xs_in[i].w), colliders MESH_PASS); /* then the colliders */
+}
+#elif defined(CLOTH_GENERIC)
 __kernel void self_collision(__global const float4 *x_in, __global float4 *x_out, const int n,
                              const float thickness, const float thickness2, const float relax,
                              const int exclude2, __constant float4 *colliders, const int num_spheres,

@@ -19,6 +19,12 @@ attached pins"): the host side is bodies.py's, shared with verlet.py, with one c
 takes the index of its (first) substep in the upload, set before each enqueue (OpenCL takes a
 kernel's arguments when it is enqueued). The per-substep constants go up inside advance()
 (so the harness times them), bodies.STEPS_PER_UPLOAD substeps at a time.
+
+Self-collision ([self_collision], docs/pbd.md and docs/semantics.md), only where the scene has
+it (-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): per substep, pbd_self_collision reads
+the last iterate, pushes the pairs apart, collides, and writes the other predicted-position
+buffer, which update then reads (in place of collide). Its search is the definition's brute
+force, so only the per-stage shape is offered there.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Pbd
 from clothbench.backends.base import BackendOptions, Capabilities
+from clothbench.backends.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
@@ -42,6 +49,7 @@ from clothbench.backends.pbd_device import PbdDeviceBackend
 from clothbench.backends.tuning import median_seconds
 
 KERNEL_FILE = "pbd_cloth.cl"
+SELF_COLLISION_FILE = "self_collision.cl"  # in the program's source only where the scene has it
 # The kernel shapes, chosen per device and scene by measurement (backends/tuning.py):
 # `per-stage`, one launch per stage (predict, each Jacobi pass or coloured batch, collide,
 # update), and `one-launch`, whole substeps in one launch of one work-group (pbd_substeps):
@@ -97,6 +105,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         sweep_variants=({"strict": True}, {"strict": False}),
         meshes=("pbd",),
         moving_colliders=("pbd",),
+        self_collision=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # verlet.py's default, for the same reason
     )
 
@@ -106,7 +115,14 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         cl, context = self._cl, self._context
         # meshes, motion, attached pins (bodies.py): one table per substep, at its end
         self._open_bodies(solver.dt / solver.substeps, SUBSTEPS_PER_LAUNCH)
-        self._source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
+        # [self_collision]: its constants as the host rounded them once; None: no pass, no code
+        contact = None if scene.self_collision is None else SelfCollisionConstants.of(scene)
+        self._contact = None
+        if contact is not None:
+            exclude2 = np.int32(min(contact.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
+            self._contact = (contact.thickness, contact.thickness2, contact.relax, exclude2)
+        generated = {"mesh_colliders": self._mesh_source, "self_collision": self._self_collision_source}
+        self._source = program_source(KERNEL_FILE, generated)
         self.program = build_program(context, self._source, self.build_options())
 
         mf = cl.mem_flags
@@ -144,6 +160,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver: Pbd | None = None) -> tuple[str, ...]:
         """The shapes for `scene`; with `solver`, only those its method has (bands: Jacobi;
         one-launch-vectors: coloured)."""
+        if scene.self_collision is not None:
+            return SHAPES[:1]  # the pass is a launch of its own, between the passes and update
         small = scene.particles <= ONE_LAUNCH_MAX_PARTICLES
         shapes = SHAPES if small else SHAPES[:1]
         if (solver is None or solver.method != "jacobi") and small:
@@ -241,6 +259,22 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.border_particles = np.flatnonzero(~covered).astype(np.int32)
         self.border = self._read_only_buffer(self.border_particles)
 
+    def _self_collision_source(self) -> str:
+        """The text of `#include <self_collision>`: self_collision.cl where the scene has it."""
+        return f'#include "{SELF_COLLISION_FILE}"\n' if self._contact else ""
+
+    def _substep_plan(self, coloured_sweep: bool = False):
+        """pbd_device's plan; with [self_collision], its pass (and the colliders after it) from
+        the last iterate into the other buffer, which update reads, in place of collide."""
+        plan = super()._substep_plan(coloured_sweep)
+        if self._contact is None:
+            return plan
+        final = plan[-1][1]
+        return [step for step in plan[:-1] if step[0] != "collide"] + [
+            ("self collision", final, 1 - final),
+            ("update", 1 - final),
+        ]
+
     @property
     def vector_width(self) -> int:
         preferred = self._device.preferred_vector_width_float
@@ -249,7 +283,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     def build_options(self) -> tuple[str, ...]:
         method = ("-DCLOTH_CHEBYSHEV",) if self.chebyshev else () if self.jacobi else ("-DCLOTH_COLOURED",)
         shape = (*shape_options(self.scene, self.vector_width), *self._body_options())
-        return (*shape, *arithmetic_options(self.strict), *method)
+        contact = ("-DCLOTH_SELF_COLLISION",) * (self._contact is not None)
+        return (*shape, *arithmetic_options(self.strict), *method, *contact)
 
     def _default_substeps_local_size(self) -> int:
         """The one work-group of pbd_substeps: --local-size, else one work item on a CPU
@@ -427,6 +462,12 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
                 ),
             )
             kernels = [(k, len(batch.i))]
+        elif kind == "self collision":
+            _, src, dst = step
+            meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
+            dtypes = [None, None, f32, f32, f32, i32, None]
+            args = (self.xs[src], self.xs[dst], *self._contact, self.colliders)
+            kernels = [(self._kernel((kind, src), "pbd_self_collision", dtypes, args, meshes), self.n2)]
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)
