@@ -21,10 +21,10 @@ kernel's arguments when it is enqueued). The per-substep constants go up inside 
 (so the harness times them), bodies.STEPS_PER_UPLOAD substeps at a time.
 
 Self-collision ([self_collision], docs/pbd.md and docs/semantics.md), only where the scene has
-it (-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): per substep, pbd_self_collision reads
-the last iterate, pushes the pairs apart, collides, and writes the other predicted-position
-buffer, which update then reads (in place of collide). Its search is the definition's brute
-force, so only the per-stage shape is offered there.
+it (-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): per substep, the last iterate's cells
+are keyed and sorted (self_contact.py), and pbd_self_collision reads the iterate, pushes the
+pairs apart, collides, and writes the other predicted-position buffer, which update then reads
+(in place of collide). Only the per-stage shape is offered there.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Pbd
 from clothbench.backends.base import BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -49,7 +49,6 @@ from clothbench.backends.pbd_device import PbdDeviceBackend
 from clothbench.backends.tuning import median_seconds
 
 KERNEL_FILE = "pbd_cloth.cl"
-SELF_COLLISION_FILE = "self_collision.cl"  # in the program's source only where the scene has it
 # The kernel shapes, chosen per device and scene by measurement (backends/tuning.py):
 # `per-stage`, one launch per stage (predict, each Jacobi pass or coloured batch, collide,
 # update), and `one-launch`, whole substeps in one launch of one work-group (pbd_substeps):
@@ -115,13 +114,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         cl, context = self._cl, self._context
         # meshes, motion, attached pins (bodies.py): one table per substep, at its end
         self._open_bodies(solver.dt / solver.substeps, SUBSTEPS_PER_LAUNCH)
-        # [self_collision]: its constants as the host rounded them once; None: no pass, no code
-        contact = None if scene.self_collision is None else SelfCollisionConstants.of(scene)
-        self._contact = None
-        if contact is not None:
-            exclude2 = np.int32(min(contact.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
-            self._contact = (contact.thickness, contact.thickness2, contact.relax, exclude2)
-        generated = {"mesh_colliders": self._mesh_source, "self_collision": self._self_collision_source}
+        # [self_collision]: its numbers and sort buffers; None: no pass, no code
+        self._contact = SelfContact.of(scene, cl, context)
+        generated = {"mesh_colliders": self._mesh_source, "self_collision": lambda: include_text(self._contact)}
         self._source = program_source(KERNEL_FILE, generated)
         self.program = build_program(context, self._source, self.build_options())
 
@@ -259,10 +254,6 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.border_particles = np.flatnonzero(~covered).astype(np.int32)
         self.border = self._read_only_buffer(self.border_particles)
 
-    def _self_collision_source(self) -> str:
-        """The text of `#include <self_collision>`: self_collision.cl where the scene has it."""
-        return f'#include "{SELF_COLLISION_FILE}"\n' if self._contact else ""
-
     def _substep_plan(self, coloured_sweep: bool = False):
         """pbd_device's plan; with [self_collision], its pass (and the colliders after it) from
         the last iterate into the other buffer, which update reads, in place of collide."""
@@ -283,7 +274,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     def build_options(self) -> tuple[str, ...]:
         method = ("-DCLOTH_CHEBYSHEV",) if self.chebyshev else () if self.jacobi else ("-DCLOTH_COLOURED",)
         shape = (*shape_options(self.scene, self.vector_width), *self._body_options())
-        contact = ("-DCLOTH_SELF_COLLISION",) * (self._contact is not None)
+        contact = self._contact.build_options if self._contact is not None else ()
         return (*shape, *arithmetic_options(self.strict), *method, *contact)
 
     def _default_substeps_local_size(self) -> int:
@@ -464,10 +455,23 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             kernels = [(k, len(batch.i))]
         elif kind == "self collision":
             _, src, dst = step
+            sc = self._contact
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
-            dtypes = [None, None, f32, f32, f32, i32, None]
-            args = (self.xs[src], self.xs[dst], *self._contact, self.colliders)
-            kernels = [(self._kernel((kind, src), "pbd_self_collision", dtypes, args, meshes), self.n2)]
+            sort = (sc.keys, sc.order)
+            keys = self._kernel(
+                ("cell keys", src),
+                "self_cell_keys",
+                [None] * 3 + [f32, i32],
+                (self.xs[src], *sort, sc.inv_cell, sc.count),
+            )
+            kernels = [(keys, sc.slots)]
+            for j, k in sc.stages:
+                kernels.append(
+                    (self._kernel(("sort", j, k), "self_sort_stage", [None, None, i32, i32], (*sort, j, k)), sc.slots)
+                )
+            dtypes = [None] * 4 + [float4, i32, None]
+            args = (self.xs[src], self.xs[dst], *sort, sc.numbers, sc.exclude2, self.colliders)
+            kernels.append((self._kernel((kind, src), "pbd_self_collision", dtypes, args, meshes), self.n2))
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)
@@ -518,6 +522,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             *(self.band_scratch or ()),
             *(self.vector_scratch or ()),
             *self._body_buffers(),
+            *(self._contact.buffers() if self._contact is not None else ()),
         )
 
     # --- Backend interface -----------------------------------------------------------------

@@ -50,10 +50,10 @@ The generic build takes these parts as -D options too (one program per set of th
 
 Self-collision ([self_collision], docs/semantics.md), either build, only where the scene has
 it (-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): the step's kernels leave the colliders
-out and write x_new; one more launch per step reads it, pushes the pairs apart, collides, and
-writes a fifth state buffer, which the references then rotate into the state. The search is
-the definition's brute force (every pair, ascending j), so the specialised build runs only its
-default shape there (verlet_shapes.candidates).
+out and write x_new; then per step the cells are keyed and sorted (self_contact.py) and one
+launch reads x_new, pushes the pairs apart, collides, and writes a fifth state buffer, which
+the references then rotate into the state. The specialised build runs only its default shape
+there (verlet_shapes.candidates).
 
 Timings of these variants, and where the specialisation gain comes from: docs/opencl.md.
 """
@@ -69,9 +69,10 @@ from clothbench.scene import Scene
 from clothbench.solver import Verlet
 from clothbench.variant_names import TRANSFERS
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
-from clothbench.backends.kernel_inputs import SelfCollisionConstants, VerletConstants
+from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -84,7 +85,6 @@ from clothbench.backends.tuning import median_seconds
 from clothbench.backends.opencl.device import probe  # noqa: F401  (the registry asks this module)
 
 KERNEL_FILE = "verlet_cloth.cl"
-SELF_COLLISION_FILE = "self_collision.cl"  # in the program's source only where the scene has it
 
 
 class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
@@ -120,13 +120,9 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._constant_dtypes = [np.float32] * 4 + [cl.cltypes.float4] * 2
         # meshes, motion, attached pins (bodies.py): step k's poses are at (k + 1) dt
         self._open_bodies(solver.dt, shapes.STEPS_PER_LAUNCH)
-        # [self_collision]: its constants as the host rounded them once; None: no pass, no code
-        contact = None if scene.self_collision is None else SelfCollisionConstants.of(scene)
-        self._contact = None
-        if contact is not None:
-            exclude2 = np.int32(min(contact.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
-            self._contact = (contact.thickness, contact.thickness2, contact.relax, exclude2)
-        generated = {"mesh_colliders": self._mesh_source, "self_collision": self._self_collision_source}
+        # [self_collision]: its numbers and sort buffers; None: no pass, no code
+        self._contact = SelfContact.of(scene, cl, context)
+        generated = {"mesh_colliders": self._mesh_source, "self_collision": lambda: include_text(self._contact)}
         self._source = program_source(KERNEL_FILE, generated)
 
         # State buffers, twice over: float4 per particle (generic) or x, y, z planes with
@@ -138,7 +134,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._host = [np.zeros(state_bytes // 4, np.float32) for _ in range(2)]  # per-step copy
         # the self-collision pass's output: it reads the step's x_new, so it cannot write there
         self._pushed = cl.Buffer(context, mf.READ_WRITE, state_bytes) if self._contact else None
-        self._pass = None  # (kernel, global size, local size, arguments after the buffers)
+        self._pass = None  # its kernels: (keys, sort stage, pass)
         self._w = np.zeros(self.n2, np.float32)  # inverse mass, as uploaded
         self._w_prev = self._w
         self._inv_mass = None if self.generic else cl.Buffer(context, mf.READ_ONLY, self.n2 * 4)
@@ -183,30 +179,40 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._launches = [(k, *self._launch_size(items), (*args, *normals)) for k, items, args in launches]
         self.effective_local_size = self._launches[0][2][0] if self._launches[0][2] else None
         if self._contact is not None:
-            self._pass = self._self_collision_launch(self._shape.width if not self.generic else 1)
+            self._pass = self._self_collision_kernels(self._shape.width if not self.generic else 1)
 
-    def _self_collision_source(self) -> str:
-        """The text of `#include <self_collision>`: self_collision.cl where the scene has it."""
-        return f'#include "{SELF_COLLISION_FILE}"\n' if self._contact else ""
-
-    def _self_collision_launch(self, vector_width: int):
-        """The pass's kernel, from the program of the step's (its options: no build of its
-        own), one work item per particle."""
-        i32 = np.int32
+    def _self_collision_kernels(self, vector_width: int):
+        """The pass's kernels (cell keys, a sort stage, the pass), from the program of the
+        step's (its options: no build of its own), their arguments typed."""
+        i32, f32, float4 = np.int32, np.float32, self._cl.cltypes.float4
         program = build_program(self._context, self._source, self.build_options(vector_width))
-        k = self._cl.Kernel(program, "self_collision")
-        self._check_local_size(k, "self_collision")
-        constants = [np.float32] * 3 + [i32]
+        kernels = [self._cl.Kernel(program, name) for name in ("self_cell_keys", "self_sort_stage", "self_collision")]
+        for k in kernels:
+            self._check_local_size(k, k.function_name)
+        keys, stage, push = kernels
+        keys.set_scalar_arg_dtypes([None, None, None, f32, i32])
+        stage.set_scalar_arg_dtypes([None, None, i32, i32])
+        sort = [None, None, float4, i32, None]  # keys, order, the numbers, exclude2, colliders
+        if self.generic:
+            push.set_scalar_arg_dtypes([None, None, i32, *sort, i32, i32, i32, *self._body_dtypes()])
+        else:
+            push.set_scalar_arg_dtypes([None, None, None, *sort, *self._body_dtypes()])
+        return kernels
+
+    def _enqueue_self_collision(self, x_new, out, bodies) -> None:
+        """x_new (the step's output) -> out: keyed, sorted, pushed apart and collided."""
+        (keys, stage, push), c, queue, i32 = self._pass, self._contact, self.queue, np.int32
+        slots, particles = self._launch_size(c.slots), self._launch_size(self.n2)
+        self._events.append(keys(queue, *slots, x_new, c.keys, c.order, c.inv_cell, c.count))
+        for j, k in c.stages:
+            self._events.append(stage(queue, *slots, c.keys, c.order, j, k))
+        sort = (c.keys, c.order, c.numbers, c.exclude2, self._colliders)
         if self.generic:
             s = self.scene
-            dtypes = [None, None, i32, *constants, None, i32, i32, i32]
-            args = (i32(self.n), *self._contact, self._colliders)
-            args += (i32(len(s.spheres)), i32(len(s.cylinders)), i32(len(s.planes)))
+            counts = (i32(len(s.spheres)), i32(len(s.cylinders)), i32(len(s.planes)))
+            self._events.append(push(queue, *particles, x_new, out, i32(self.n), *sort, *counts, *bodies))
         else:
-            dtypes = [None, None, None, *constants, None]
-            args = (*self._contact, self._colliders)
-        k.set_scalar_arg_dtypes([*dtypes, *self._body_dtypes()])
-        return (k, *self._launch_size(self.n2), args)
+            self._events.append(push(queue, *particles, x_new, self._inv_mass, out, *sort, *bodies))
 
     def _time_shape(self, name: str) -> float:
         """Seconds of a short synchronised run of shape `name` from the initial state (a
@@ -233,7 +239,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         program cache is keyed by it). Generic: one key for every scene with the same
         meshes-and-motion options."""
         arithmetic = arithmetic_options(self.strict) + ("-DCLOTH_NORMALS",) * self.normals
-        arithmetic += ("-DCLOTH_SELF_COLLISION",) * (self._contact is not None)
+        arithmetic += self._contact.build_options if self._contact is not None else ()
         if self.generic:
             return ("-DCLOTH_GENERIC", *self._body_options(), *arithmetic)
         shape = (*shape_options(self.scene, vector_width), *self._body_options())
@@ -286,7 +292,16 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         return launches
 
     def _buffers(self) -> tuple:
-        return (*self._state, self._pushed, self._inv_mass, self._border, self._normals, *self._body_buffers())
+        contact = self._contact.buffers() if self._contact is not None else ()
+        return (
+            *self._state,
+            self._pushed,
+            *contact,
+            self._inv_mass,
+            self._border,
+            self._normals,
+            *self._body_buffers(),
+        )
 
     # --- Backend interface -------------------------------------------------------------
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
@@ -333,9 +348,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             for kernel, global_size, local_size, args in self._launches:
                 self._events.append(kernel(queue, global_size, local_size, *state, *args, *bodies))
             if self._pass is not None:  # x_new -> pushed apart and collided, in the spare buffer
-                kernel, global_size, local_size, args = self._pass
-                buffers = (pos_out, self._pushed) if self.generic else (pos_out, self._inv_mass, self._pushed)
-                self._events.append(kernel(queue, global_size, local_size, *buffers, *args, *bodies))
+                self._enqueue_self_collision(pos_out, self._pushed, bodies)
                 pos_out, self._pushed = self._pushed, pos_out
             self._state = [pos_out, prev_out, pos, prev]  # ping-pong: swap references, no copy
             if per_step:  # ... and comes back down, so the host owns the next step's input
