@@ -17,6 +17,7 @@ from clothbench.colliders.analytic import Plane, Sphere
 from clothbench.colliders.mesh import Mesh
 from clothbench.colliders.motion import Motion
 from clothbench.harness import position_error
+from clothbench.scene import SelfCollision
 from clothbench.solver import Pbd
 from conftest import VERLET, assert_bit_exact, require
 from folded_sheet import folded
@@ -74,6 +75,17 @@ def assert_matches_numpy(scene, pos, options: BackendOptions, what: str, steps: 
 def test_strict_matches_numpy_f32_bit_for_bit_in_every_build(n, build):
     scene, pos = sheet(n)
     assert_matches_numpy(scene, pos, BackendOptions(strict=True, **build), f"n={n} {build}")
+
+
+@pytest.mark.parametrize("cell", [1.0, 2.5])
+def test_strict_matches_numpy_f32_with_cells_larger_than_the_thickness(cell):
+    # 2.5 thicknesses: every cell holds several particles of both layers, so the runs merged
+    # hold candidates past the thickness that the distance test rejects
+    scene, pos = sheet()
+    t = scene.self_collision.thickness
+    scene = scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t))
+    for solver in (VERLET, PBD["jacobi"]):
+        assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"cell {cell} {solver.name}", solver=solver)
 
 
 @pytest.mark.parametrize("method", PBD)

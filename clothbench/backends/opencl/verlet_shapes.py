@@ -101,8 +101,8 @@ def candidates(device, scene, options) -> tuple[KernelShape, ...]:
     else:
         shapes.append(KernelShape("split", p))
     if scene.self_collision is not None:
-        # the default only: the pass (a launch of its own after the step's, every pair tested)
-        # costs far more than the step, so timing shapes would measure the pass; and the
+        # the default only: the pass (its own launches after the step's: keys, sort, push) costs
+        # more than the step, so timing the shapes would mostly time the pass; and the
         # multi-step kernel has no launch between steps for it
         return tuple(shapes[:1])
     return tuple(dict.fromkeys(shapes))
