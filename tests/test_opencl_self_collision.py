@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from clothbench.backends import BackendOptions, create_backend
+from clothbench.backends.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl import pbd as opencl_pbd
 from clothbench.backends.opencl import verlet as opencl
 from clothbench.colliders.analytic import Plane, Sphere
@@ -86,6 +87,16 @@ def test_strict_matches_numpy_f32_with_cells_larger_than_the_thickness(cell):
     scene = scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t))
     for solver in (VERLET, PBD["jacobi"]):
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"cell {cell} {solver.name}", solver=solver)
+
+
+def test_strict_matches_numpy_f32_where_the_cell_keys_are_clamped():
+    # 200 km out along x the keys pass 2^20 cells and clamp: the whole sheet shares one column of
+    # cells in x, so every candidate of those merged cells is met once and rejected by distance
+    scene, pos = sheet()
+    pos[:, 0] += np.float32(2e5)
+    assert float(pos[:, 0].min()) * float(SelfCollisionConstants.of(scene).inv_cell) > 2**20, "keys clamp"
+    for solver in (VERLET, PBD["coloured"]):
+        assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"clamped {solver.name}", solver=solver)
 
 
 @pytest.mark.parametrize("method", PBD)
