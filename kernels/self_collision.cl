@@ -130,25 +130,33 @@ float3 self_push(int i, int n, SC_STATE x_in, __global const float *inv_mass, __
     float wi = SC_W(x_in, inv_mass, i);
     if (!(wi > 0.0f) || !finite3(xi))
         return xi; /* a pinned particle does not move; one not finite is in no pair */
+    /* The 27 cells as nine rows along x: a row's cells have consecutive ids (x is the id's low
+     * field), so one search finds the row's first particle and a scan its cells' runs; a cell
+     * clamping made one with its neighbour is one id, met once. Rows are one only at the
+     * key's limits, where clamping makes them so: there a row met before is skipped. */
     int3 k = cell_of(xi, inv_cell);
-    ulong ids[27];
-    int next[27], end[27], runs = 0;
-    for (int dx = -1; dx <= 1; ++dx)
-        for (int dy = -1; dy <= 1; ++dy)
-            for (int dz = -1; dz <= 1; ++dz) {
-                int3 m = clamp(k + (int3)(dx, dy, dz), -KEY_LIMIT, KEY_LIMIT - 1);
-                ulong id = cell_id(m);
-                bool seen = false; /* clamping makes cells one: each counts once */
-                for (int r = 0; r < runs; ++r)
-                    seen = seen || ids[r] == id;
-                if (seen)
-                    continue;
-                int first = lower_slot(keys, id), last = first;
-                while (last < SLOTS && keys[last] == id)
-                    ++last;
-                if (first < last)
-                    ids[runs] = id, next[runs] = first, end[runs] = last, ++runs;
+    bool edge = any(k <= -KEY_LIMIT + 1) || any(k >= KEY_LIMIT - 2);
+    ulong rows[9];
+    int next[27], end[27], runs = 0, row_count = 0;
+    for (int dy = -1; dy <= 1; ++dy)
+        for (int dz = -1; dz <= 1; ++dz) {
+            ulong lo = cell_id(clamp(k + (int3)(-1, dy, dz), -KEY_LIMIT, KEY_LIMIT - 1));
+            ulong hi = cell_id(clamp(k + (int3)(1, dy, dz), -KEY_LIMIT, KEY_LIMIT - 1));
+            bool seen = false;
+            for (int r = 0; edge && r < row_count; ++r)
+                seen = seen || rows[r] == lo;
+            if (seen)
+                continue;
+            rows[row_count++] = lo;
+            int slot = lower_slot(keys, lo);
+            while (slot < SLOTS && keys[slot] <= hi) { /* each cell of the row: one run */
+                ulong id = keys[slot];
+                next[runs] = slot;
+                while (slot < SLOTS && keys[slot] == id)
+                    ++slot;
+                end[runs++] = slot;
             }
+        }
     int row = i / n, col = i % n;
     float3 corr = (float3)(0.0f);
     bool pushed = false;

@@ -90,11 +90,11 @@ def test_strict_matches_numpy_f32_with_cells_larger_than_the_thickness(cell):
 
 
 def test_strict_matches_numpy_f32_where_the_cell_keys_are_clamped():
-    # 200 km out along x the keys pass 2^20 cells and clamp: the whole sheet shares one column of
-    # cells in x, so every candidate of those merged cells is met once and rejected by distance
+    # 200 km out along every axis the keys pass 2^20 cells and clamp: the whole sheet is in one
+    # cell, whose 27 neighbours are that cell again; each candidate is met once
     scene, pos = sheet()
-    pos[:, 0] += np.float32(2e5)
-    assert float(pos[:, 0].min()) * float(SelfCollisionConstants.of(scene).inv_cell) > 2**20, "keys clamp"
+    pos[:, :3] += np.float32(2e5)
+    assert float(pos[:, :3].min()) * float(SelfCollisionConstants.of(scene).inv_cell) > 2**20, "keys clamp"
     for solver in (VERLET, PBD["coloured"]):
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"clamped {solver.name}", solver=solver)
 
