@@ -203,19 +203,19 @@ __kernel void pbd_self_collision(__global const float4 *xs_in, __global float4 *
 __kernel void self_collision(__global const float4 *x_in, __global float4 *x_out, const int n,
                              __global const ulong *keys, __global const int *order, const float4 c,
                              const int exclude2, __constant float4 *colliders, const int num_spheres,
-                             const int num_cylinders, const int num_planes BODY_ARG)
+                             const int num_cylinders, const int num_boxes, const int num_planes BODY_ARG)
 {
     int i = get_global_id(0);
     if (i >= n * n)
         return; /* the launch is padded when the work-group size does not divide n*n */
-    int analytic_rows = num_spheres + 3 * num_cylinders + 2 * num_planes;
+    int analytic_rows = num_spheres + 3 * num_cylinders + 4 * num_boxes + 2 * num_planes;
 #ifdef CLOTH_PER_STEP
     colliders += step * (analytic_rows + MESH_ROWS * CLOTH_MESHES); /* this step's poses */
 #endif
     float w = x_in[i].w;
     float3 x = self_push(i, n, x_in, 0, keys, order, c, exclude2);
     if (w != 0.0f) { /* then the colliders, as the Verlet kernel would have */
-        x = collide(x, colliders, num_spheres, num_cylinders, num_planes);
+        x = collide(x, colliders, num_spheres, num_cylinders, num_boxes, num_planes);
 #if CLOTH_MESHES > 0
         x = collide_meshes(x, colliders + analytic_rows, mesh_geometry, mesh_ints); /* after the planes */
 #endif
@@ -237,7 +237,7 @@ __kernel void self_collision(__global const float *x_in, __global const float *i
     float w = inv_mass[i];
     float3 x = self_push(i, N, x_in, inv_mass, keys, order, c, exclude2);
     if (w != 0.0f) { /* then the colliders, as the Verlet kernels would have */
-        x = collide(x, colliders, CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_PLANES);
+        x = collide(x, colliders, CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES);
 #if CLOTH_MESHES > 0
         x = collide_meshes(x, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints); /* after the planes */
 #endif

@@ -14,7 +14,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl import pbd as opencl_pbd
 from clothbench.backends.opencl import verlet as opencl
-from clothbench.colliders.analytic import Plane, Sphere
+from clothbench.colliders.analytic import Box, Plane, Sphere
 from clothbench.colliders.mesh import Mesh
 from clothbench.colliders.motion import Motion
 from clothbench.harness import position_error
@@ -106,7 +106,7 @@ def test_pbd_strict_matches_numpy_f32_bit_for_bit_in_every_method(method):
 
 
 def bodies_scene():
-    """The folded sheet lying on a rising floor its pin follows, beside a sphere and a mesh: the
+    """The folded sheet lying on a rising floor its pin follows, beside a sphere, a box and a mesh: the
     colliders act after the pass (a particle pushed into the floor comes back out), at the pose
     of the step's end (per-step tables), with an attached pin."""
     scene, pos = sheet(16)
@@ -116,7 +116,9 @@ def bodies_scene():
     )
     ball = Sphere(center=(0.5, y + 0.5 * h, 0.4), radius=0.1)
     mesh = Mesh(shape="icosphere", subdivisions=1, position=(0.3, y, 0.3), scale=0.08, name="ico")
-    return scene.replace(planes=(floor,), spheres=(ball,), meshes=(mesh,), pin_attach="floor"), pos
+    box = Box(center=(0.7, y, 0.2), half_extents=(0.06, 0.05, 0.06), rotation=(0.0, 30.0, 0.0))
+    scene = scene.replace(planes=(floor,), spheres=(ball,), boxes=(box,), meshes=(mesh,), pin_attach="floor")
+    return scene, pos
 
 
 @pytest.mark.parametrize("build", [{}, {"generic": True}, {"mesh_collision": "naive"}], ids=str)

@@ -104,6 +104,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         sweep_variants=({"strict": True}, {"strict": False}),
         meshes=("pbd",),
         moving_colliders=("pbd",),
+        boxes=("pbd",),
         self_collision=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # verlet.py's default, for the same reason
     )

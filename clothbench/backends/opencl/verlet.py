@@ -71,7 +71,7 @@ from clothbench.variant_names import TRANSFERS
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
-from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.opencl.bodies import OpenCLBodiesMixin, collider_counts
 from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
@@ -98,6 +98,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         shapes=True,  # verlet_shapes.py; the specialised build only
         meshes=("verlet",),  # not opencl/pbd.py, whose Capabilities are its own
         moving_colliders=("verlet",),
+        boxes=("verlet",),
         self_collision=("verlet",),
         # the first is the default: faster from a few hundred triangles up (docs/opencl.md)
         mesh_collisions=("accelerated", "naive"),
@@ -194,7 +195,8 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         stage.set_scalar_arg_dtypes([None, None, i32, i32])
         sort = [None, None, float4, i32, None]  # keys, order, the numbers, exclude2, colliders
         if self.generic:
-            push.set_scalar_arg_dtypes([None, None, i32, *sort, i32, i32, i32, *self._body_dtypes()])
+            counts = [i32] * len(collider_counts(self.scene))
+            push.set_scalar_arg_dtypes([None, None, i32, *sort, *counts, *self._body_dtypes()])
         else:
             push.set_scalar_arg_dtypes([None, None, None, *sort, *self._body_dtypes()])
         return kernels
@@ -208,8 +210,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             self._events.append(stage(queue, *slots, c.keys, c.order, j, k))
         sort = (c.keys, c.order, c.numbers, c.exclude2, self._colliders)
         if self.generic:
-            s = self.scene
-            counts = (i32(len(s.spheres)), i32(len(s.cylinders)), i32(len(s.planes)))
+            counts = tuple(i32(count) for _, count in collider_counts(self.scene))
             self._events.append(push(queue, *particles, x_new, out, i32(self.n), *sort, *counts, *bodies))
         else:
             self._events.append(push(queue, *particles, x_new, self._inv_mass, out, *sort, *bodies))
@@ -259,10 +260,9 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
 
     def _generic_launches(self):
         """The float4 kernel, one work item per particle; n and the counts are arguments."""
-        i32, s = np.int32, self.scene
-        dtypes = [None] * 4 + [i32, *self._constant_dtypes, None, i32, i32, i32]
-        args = (i32(self.n), *self._constants, self._colliders)
-        args += (i32(len(s.spheres)), i32(len(s.cylinders)), i32(len(s.planes)))
+        i32, counts = np.int32, collider_counts(self.scene)
+        dtypes = [None] * 4 + [i32, *self._constant_dtypes, None] + [i32] * len(counts)
+        args = (i32(self.n), *self._constants, self._colliders, *(i32(count) for _, count in counts))
         return [(self._kernel("verlet_cloth", dtypes), self.n2, args)]
 
     def _specialised_launches(self, shape: shapes.KernelShape):
