@@ -962,3 +962,7 @@ __kernel void pbd_coloured_vectors(__global float4 *x, __global float4 *v, __glo
     }
 }
 #endif
+
+/* [self_collision]: its pass and the colliders after it, only where the scene has the table. */
+#define CLOTH_PBD
+#include <self_collision>

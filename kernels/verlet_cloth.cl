@@ -51,6 +51,10 @@
  *       CLOTH_ATTACHED_PINS, CLOTH_PINS
  *                           pins following a body: pin_slot (per particle, -1 for none)
  *                           indexes pin_target, CLOTH_PINS float3 targets per step.
+ *       CLOTH_SELF_COLLISION [self_collision]: kernels/self_collision.cl, in the source only
+ *                           then (`#include <self_collision>`), runs its pass and then the
+ *                           colliders in a launch of its own after the step's; the step's
+ *                           kernels leave the colliders out.
  *   -DCLOTH_NORMALS (either build): also write each particle's normal (docs/normals.md) of
  *       the state the step read, x(t), to one more buffer, normal_out; without it the
  *       kernels neither compute nor take it.
@@ -198,12 +202,14 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
     if (slot >= 0)
         x_new = (float3)(pin_target[3 * slot], pin_target[3 * slot + 1], pin_target[3 * slot + 2]);
 #endif
+#ifndef CLOTH_SELF_COLLISION /* else self_collision.cl collides, after its pass */
     if (w != 0.0f) {
         x_new = collide(x_new, colliders, num_spheres, num_cylinders, num_boxes, num_planes);
 #if CLOTH_MESHES > 0
         x_new = collide_meshes(x_new, colliders + analytic_rows, mesh_geometry, mesh_ints); /* after the planes */
 #endif
     }
+#endif
     pos_out[i] = (float4)(x_new, w); /* 7. */
     pos_prev_out[i] = (float4)(x, w); /* 8. */
 #ifdef CLOTH_NORMALS
@@ -415,8 +421,8 @@ INLINE void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *collid
 #define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 4 * CLOTH_BOXES + 2 * CLOTH_PLANES)
 #define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a step's collider table */
 
-#if CLOTH_MESHES > 0
-/* (a.x*b.x + a.y*b.y) + a.z*b.z, for collide_mesh.cl: not dot(), whose order is the driver's */
+#if CLOTH_MESHES > 0 || defined(CLOTH_SELF_COLLISION)
+/* (a.x*b.x + a.y*b.y) + a.z*b.z, for collide_mesh.cl and collide.cl: not dot(), whose order is the driver's */
 INLINE float dot3(float3 a, float3 b)
 {
     return (a.x * b.x + a.y * b.y) + a.z * b.z;
@@ -530,9 +536,11 @@ INLINE void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z,
     pin_targets_v(i, pin_slot, pin_target, &nx, &ny, &nz); /* before the colliders, as NumPy */
 #endif
     floatv cx = nx, cy = ny, cz = nz;
+#ifndef CLOTH_SELF_COLLISION /* else self_collision.cl collides, after its pass */
     collide_v(&cx, &cy, &cz, colliders);
 #if CLOTH_MESHES > 0
     collide_meshes_v(&cx, &cy, &cz, w, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints);
+#endif
 #endif
     store_lanes(SELECT(cx, nx, pinned), pos_out, i, first_lane);
     store_lanes(SELECT(cy, ny, pinned), pos_out, N2 + i, first_lane);
@@ -843,3 +851,6 @@ __kernel void verlet_cloth_steps(__global float *pos, __global float *pos_prev,
 }
 #endif
 #endif /* CLOTH_GENERIC */
+
+/* [self_collision]: its pass and the colliders after it, only where the scene has the table. */
+#include <self_collision>

@@ -19,6 +19,12 @@ attached pins"): the host side is bodies.py's, shared with verlet.py, with one c
 takes the index of its (first) substep in the upload, set before each enqueue (OpenCL takes a
 kernel's arguments when it is enqueued). The per-substep constants go up inside advance()
 (so the harness times them), bodies.STEPS_PER_UPLOAD substeps at a time.
+
+Self-collision ([self_collision], docs/pbd.md and docs/semantics.md), only where the scene has
+it (-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): per substep, the last iterate's cells
+are keyed and sorted (self_contact.py), and pbd_self_collision reads the iterate, pushes the
+pairs apart, collides, and writes the other predicted-position buffer, which update then reads
+(in place of collide). Only the per-stage shape is offered there.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from clothbench.model.scene import Scene
 from clothbench.model.solver import Pbd
 from clothbench.backends.base import BackendOptions, Capabilities
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -97,6 +104,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         meshes=("pbd",),
         moving_colliders=("pbd",),
         boxes=("pbd",),
+        self_collision=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # verlet.py's default, for the same reason
     )
 
@@ -106,7 +114,10 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         cl, context = self._cl, self._context
         # meshes, motion, attached pins (bodies.py): one table per substep, at its end
         self._open_bodies(solver.dt / solver.substeps, SUBSTEPS_PER_LAUNCH)
-        self._source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
+        # [self_collision]: its numbers and sort buffers; None: no pass, no code
+        self._contact = SelfContact.of(scene, cl, context)
+        generated = {"mesh_colliders": self._mesh_source, "self_collision": lambda: include_text(self._contact)}
+        self._source = program_source(KERNEL_FILE, generated)
         self.program = build_program(context, self._source, self.build_options())
 
         mf = cl.mem_flags
@@ -144,6 +155,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver: Pbd | None = None) -> tuple[str, ...]:
         """The shapes for `scene`; with `solver`, only those its method has (bands: Jacobi;
         one-launch-vectors: coloured)."""
+        if scene.self_collision is not None:
+            return SHAPES[:1]  # the pass is a launch of its own, between the passes and update
         small = scene.particles <= ONE_LAUNCH_MAX_PARTICLES
         shapes = SHAPES if small else SHAPES[:1]
         if (solver is None or solver.method != "jacobi") and small:
@@ -230,6 +243,18 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.border_particles = np.flatnonzero(~covered).astype(np.int32)
         self.border = self._read_only_buffer(self.border_particles)
 
+    def _substep_plan(self, coloured_sweep: bool = False):
+        """pbd_device's plan; with [self_collision], its pass (and the colliders after it) from
+        the last iterate into the other buffer, which update reads, in place of collide."""
+        plan = super()._substep_plan(coloured_sweep)
+        if self._contact is None:
+            return plan
+        final = plan[-1][1]
+        return [step for step in plan[:-1] if step[0] != "collide"] + [
+            ("self collision", final, 1 - final),
+            ("update", 1 - final),
+        ]
+
     @property
     def vector_width(self) -> int:
         preferred = self._device.preferred_vector_width_float
@@ -238,7 +263,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     def build_options(self) -> tuple[str, ...]:
         method = ("-DCLOTH_CHEBYSHEV",) if self.chebyshev else () if self.jacobi else ("-DCLOTH_COLOURED",)
         shape = (*shape_options(self.scene, self.vector_width), *self._body_options())
-        return (*shape, *arithmetic_options(self.strict), *method)
+        contact = self._contact.build_options if self._contact is not None else ()
+        return (*shape, *arithmetic_options(self.strict), *method, *contact)
 
     def _default_substeps_local_size(self) -> int:
         """The one work-group of pbd_substeps: --local-size, else one work item on a CPU
@@ -416,6 +442,25 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
                 ),
             )
             kernels = [(k, len(batch.i))]
+        elif kind == "self collision":
+            _, src, dst = step
+            sc = self._contact
+            meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
+            sort = (sc.keys, sc.order)
+            keys = self._kernel(
+                ("cell keys", src),
+                "self_cell_keys",
+                [None] * 3 + [f32, i32],
+                (self.xs[src], *sort, sc.inv_cell, sc.count),
+            )
+            kernels = [(keys, sc.slots)]
+            for j, k in sc.stages:
+                kernels.append(
+                    (self._kernel(("sort", j, k), "self_sort_stage", [None, None, i32, i32], (*sort, j, k)), sc.slots)
+                )
+            dtypes = [None] * 4 + [float4, i32, None]
+            args = (self.xs[src], self.xs[dst], *sort, sc.numbers, sc.exclude2, self.colliders)
+            kernels.append((self._kernel((kind, src), "pbd_self_collision", dtypes, args, meshes), self.n2))
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)
@@ -466,6 +511,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             *(self.band_scratch or ()),
             *(self.vector_scratch or ()),
             *self._body_buffers(),
+            *(self._contact.buffers() if self._contact is not None else ()),
         )
 
     # --- Backend interface -----------------------------------------------------------------

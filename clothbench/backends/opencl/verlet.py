@@ -48,6 +48,13 @@ of verlet_cloth.cl), both builds, each compiled only where the scene has it:
              multi-step kernel reads one table per step of its launch).
 The generic build takes these parts as -D options too (one program per set of them).
 
+Self-collision ([self_collision], docs/semantics.md), either build, only where the scene has
+it (-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): the step's kernels leave the colliders
+out and write x_new; then per step the cells are keyed and sorted (self_contact.py) and one
+launch reads x_new, pushes the pairs apart, collides, and writes a fifth state buffer, which
+the references then rotate into the state. The specialised build runs only its default shape
+there (verlet_shapes.candidates).
+
 Timings of these variants, and where the specialisation gain comes from: docs/opencl.md.
 """
 
@@ -65,6 +72,7 @@ from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.model.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin, collider_counts
+from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -90,6 +98,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         meshes=("verlet",),  # not opencl/pbd.py, whose Capabilities are its own
         moving_colliders=("verlet",),
         boxes=("verlet",),
+        self_collision=("verlet",),
         # the first is the default: faster from a few hundred triangles up (docs/opencl.md)
         mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "per-step"}),
@@ -111,7 +120,10 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._constant_dtypes = [np.float32] * 4 + [cl.cltypes.float4] * 2
         # meshes, motion, attached pins (bodies.py): step k's poses are at (k + 1) dt
         self._open_bodies(solver.dt, shapes.STEPS_PER_LAUNCH)
-        self._source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
+        # [self_collision]: its numbers and sort buffers; None: no pass, no code
+        self._contact = SelfContact.of(scene, cl, context)
+        generated = {"mesh_colliders": self._mesh_source, "self_collision": lambda: include_text(self._contact)}
+        self._source = program_source(KERNEL_FILE, generated)
 
         # State buffers, twice over: float4 per particle (generic) or x, y, z planes with
         # PAD floats before and after them (the rows kernels' masked loads reach past).
@@ -120,6 +132,9 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         state_bytes = 4 * (self.n2 * 4 if self.generic else self.n2 * 3 + 2 * self._pad)
         self._state = [cl.Buffer(context, mf.READ_WRITE, state_bytes) for _ in range(4)]
         self._host = [np.zeros(state_bytes // 4, np.float32) for _ in range(2)]  # per-step copy
+        # the self-collision pass's output: it reads the step's x_new, so it cannot write there
+        self._pushed = cl.Buffer(context, mf.READ_WRITE, state_bytes) if self._contact else None
+        self._pass = None  # its kernels: (keys, sort stage, pass)
         self._w = np.zeros(self.n2, np.float32)  # inverse mass, as uploaded
         self._w_prev = self._w
         self._inv_mass = None if self.generic else cl.Buffer(context, mf.READ_ONLY, self.n2 * 4)
@@ -163,6 +178,41 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         normals = (self._normals,) if self.normals else ()
         self._launches = [(k, *self._launch_size(items), (*args, *normals)) for k, items, args in launches]
         self.effective_local_size = self._launches[0][2][0] if self._launches[0][2] else None
+        if self._contact is not None:
+            self._pass = self._self_collision_kernels(self._shape.width if not self.generic else 1)
+
+    def _self_collision_kernels(self, vector_width: int):
+        """The pass's kernels (cell keys, a sort stage, the pass), from the program of the
+        step's (its options: no build of its own), their arguments typed."""
+        i32, f32, float4 = np.int32, np.float32, self._cl.cltypes.float4
+        program = build_program(self._context, self._source, self.build_options(vector_width))
+        kernels = [self._cl.Kernel(program, name) for name in ("self_cell_keys", "self_sort_stage", "self_collision")]
+        for k in kernels:
+            self._check_local_size(k, k.function_name)
+        keys, stage, push = kernels
+        keys.set_scalar_arg_dtypes([None, None, None, f32, i32])
+        stage.set_scalar_arg_dtypes([None, None, i32, i32])
+        sort = [None, None, float4, i32, None]  # keys, order, the numbers, exclude2, colliders
+        if self.generic:
+            counts = [i32] * len(collider_counts(self.scene))
+            push.set_scalar_arg_dtypes([None, None, i32, *sort, *counts, *self._body_dtypes()])
+        else:
+            push.set_scalar_arg_dtypes([None, None, None, *sort, *self._body_dtypes()])
+        return kernels
+
+    def _enqueue_self_collision(self, x_new, out, bodies) -> None:
+        """x_new (the step's output) -> out: keyed, sorted, pushed apart and collided."""
+        (keys, stage, push), c, queue, i32 = self._pass, self._contact, self.queue, np.int32
+        slots, particles = self._launch_size(c.slots), self._launch_size(self.n2)
+        self._events.append(keys(queue, *slots, x_new, c.keys, c.order, c.inv_cell, c.count))
+        for j, k in c.stages:
+            self._events.append(stage(queue, *slots, c.keys, c.order, j, k))
+        sort = (c.keys, c.order, c.numbers, c.exclude2, self._colliders)
+        if self.generic:
+            counts = tuple(i32(count) for _, count in collider_counts(self.scene))
+            self._events.append(push(queue, *particles, x_new, out, i32(self.n), *sort, *counts, *bodies))
+        else:
+            self._events.append(push(queue, *particles, x_new, self._inv_mass, out, *sort, *bodies))
 
     timing_repeats = 5
 
@@ -180,6 +230,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         program cache is keyed by it). Generic: one key for every scene with the same
         meshes-and-motion options."""
         arithmetic = arithmetic_options(self.strict) + ("-DCLOTH_NORMALS",) * self.normals
+        arithmetic += self._contact.build_options if self._contact is not None else ()
         if self.generic:
             return ("-DCLOTH_GENERIC", *self._body_options(), *arithmetic)
         shape = (*shape_options(self.scene, vector_width), *self._body_options())
@@ -231,7 +282,16 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         return launches
 
     def _buffers(self) -> tuple:
-        return (*self._state, self._inv_mass, self._border, self._normals, *self._body_buffers())
+        contact = self._contact.buffers() if self._contact is not None else ()
+        return (
+            *self._state,
+            self._pushed,
+            *contact,
+            self._inv_mass,
+            self._border,
+            self._normals,
+            *self._body_buffers(),
+        )
 
     # --- Backend interface -------------------------------------------------------------
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
@@ -277,6 +337,9 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             bodies = self._body_args(j)
             for kernel, global_size, local_size, args in self._launches:
                 self._events.append(kernel(queue, global_size, local_size, *state, *args, *bodies))
+            if self._pass is not None:  # x_new -> pushed apart and collided, in the spare buffer
+                self._enqueue_self_collision(pos_out, self._pushed, bodies)
+                pos_out, self._pushed = self._pushed, pos_out
             self._state = [pos_out, prev_out, pos, prev]  # ping-pong: swap references, no copy
             if per_step:  # ... and comes back down, so the host owns the next step's input
                 cl.enqueue_copy(queue, self._host[0], pos_out, is_blocking=False)

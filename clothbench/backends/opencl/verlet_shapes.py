@@ -101,6 +101,11 @@ def candidates(device, scene, options) -> tuple[KernelShape, ...]:
             shapes.append(KernelShape("steps", native, group, STEPS_PER_LAUNCH))
     else:
         shapes.append(KernelShape("split", p))
+    if scene.self_collision is not None:
+        # the default only: the pass (its own launches after the step's: keys, sort, push) costs
+        # more than the step, so timing the shapes would mostly time the pass; and the
+        # multi-step kernel has no launch between steps for it
+        return tuple(shapes[:1])
     return tuple(dict.fromkeys(shapes))
 
 
