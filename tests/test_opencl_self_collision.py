@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 
 from clothbench.backends import BackendOptions, create_backend
-from clothbench.backends.kernel_inputs import SelfCollisionConstants
+from clothbench.model.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl import pbd as opencl_pbd
 from clothbench.backends.opencl import verlet as opencl
-from clothbench.colliders.analytic import Box, Plane, Sphere
-from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Motion
+from clothbench.model.colliders.analytic import Box, Plane, Sphere
+from clothbench.model.colliders.mesh import Mesh
+from clothbench.model.colliders.motion import Motion
 from clothbench.harness import position_error
-from clothbench.scene import SelfCollision
-from clothbench.solver import Pbd
+from clothbench.model.scene import SelfCollision
+from clothbench.model.solver import Pbd
 from conftest import VERLET, assert_bit_exact, require
 from folded_sheet import folded
 from test_opencl_meshes import program_sources

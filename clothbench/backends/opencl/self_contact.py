@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.backends.kernel_inputs import SelfCollisionConstants
+from clothbench.model.kernel_inputs import SelfCollisionConstants
 
 KERNEL_FILE = "self_collision.cl"  # in a program's source only where the scene has the table
 
