@@ -385,11 +385,44 @@ static void sort_buckets(const contact *ct)
         ct->order[start[ct->bucket[i] + 1]++] = i;
 }
 
+/* Whether (i, j) is a pair (not neighbours, closer than the thickness, not coincident), with
+ * d = x_i - x_j and its L2; i at (x, y, z) = q_i, grid row and col. */
+INLINE int close_pair(const contact *ct, int i, int row, int col, int j, const real *restrict q, real x, real y,
+                      real z, real *d, real *L2)
+{
+    int dr = j / N - row, dc = j % N - col;
+    if (j == i || (long long)dr * dr + (long long)dc * dc < ct->exclude2)
+        return 0;
+    if (dr >= -2 && dr <= 2 && dc >= -2 && dc <= 2 && ct->joined[dr + 2][dc + 2])
+        return 0;
+    d[0] = x - q[j];
+    d[1] = y - q[N2 + j];
+    d[2] = z - q[2 * N2 + j];
+    *L2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2];
+    return *L2 < ct->thickness2 && *L2 > 0; /* coincident: no direction, nothing added */
+}
+
+/* One pair's correction of i, added to corr (docs/semantics.md, in its order). */
+INLINE void add_push(const contact *ct, real wi, real wj, const real *d, real L2, real *corr)
+{
+    real L = SQRT(L2);
+    real share = wi / (wi + wj); /* i's part of the shortfall, by inverse mass */
+    real s = ct->relax * (ct->thickness - L);
+    s = s * share;
+    s = s / L;
+    corr[0] = corr[0] + d[0] * s;
+    corr[1] = corr[1] + d[1] * s;
+    corr[2] = corr[2] + d[2] * s;
+}
+
+#define MAX_HITS 32 /* pairs of one particle sorted on the stack; more take the merge */
+
 /* The pass for free particle i at (x, y, z) = q_i (w_i > 0): its corrections from every pair,
- * in ascending j, added to it when it has one. */
+ * in ascending j, added to it when it has one. The candidates are tested first in the cells'
+ * order, most failing; the few pairs found are then summed in ascending j. A particle with
+ * more than MAX_HITS pairs merges its buckets' runs (each ascending) by smallest j instead. */
 static void push(const contact *ct, int i, const real *restrict q, const real *restrict w, real *x, real *y, real *z)
 {
-    const real *qx = q, *qy = q + N2, *qz = q + 2 * N2;
     int kx = cell_key(*x, ct->inv_cell), ky = cell_key(*y, ct->inv_cell), kz = cell_key(*z, ct->inv_cell);
     int next[27], end[27], runs = 0;
     for (int dz = -1; dz <= 1; ++dz)
@@ -406,40 +439,45 @@ static void push(const contact *ct, int i, const real *restrict q, const real *r
             }
     const int row = i / N, col = i % N;
     const real wi = w[i];
-    real cx = 0, cy = 0, cz = 0;
-    int pushed = 0;
-    for (;;) {
-        int best = -1, j = N2;
-        for (int r = 0; r < runs; ++r) /* the smallest index at the head of any run */
-            if (next[r] < end[r] && ct->order[next[r]] < j)
-                j = ct->order[next[r]], best = r;
-        if (best < 0)
-            break;
-        next[best] += 1;
-        int dr = j / N - row, dc = j % N - col;
-        if (j == i || (long long)dr * dr + (long long)dc * dc < ct->exclude2)
-            continue;
-        if (dr >= -2 && dr <= 2 && dc >= -2 && dc <= 2 && ct->joined[dr + 2][dc + 2])
-            continue;
-        real dx = *x - qx[j], dy = *y - qy[j], dz = *z - qz[j];
-        real L2 = (dx * dx + dy * dy) + dz * dz;
-        if (!(L2 < ct->thickness2) || !(L2 > 0)) /* coincident: no direction, nothing added */
-            continue;
-        real L = SQRT(L2);
-        real share = wi / (wi + w[j]); /* i's part of the shortfall, by inverse mass */
-        real s = ct->relax * (ct->thickness - L);
-        s = s * share;
-        s = s / L;
-        cx = cx + dx * s;
-        cy = cy + dy * s;
-        cz = cz + dz * s;
-        pushed = 1;
+    real d[3], L2, corr[3] = {0, 0, 0};
+    int hits[MAX_HITS], count = 0;
+    for (int r = 0; r < runs; ++r)
+        for (int k = next[r]; k < end[r]; ++k) {
+            int j = ct->order[k];
+            if (close_pair(ct, i, row, col, j, q, *x, *y, *z, d, &L2)) {
+                if (count < MAX_HITS)
+                    hits[count] = j;
+                ++count;
+            }
+        }
+    if (count == 0)
+        return; /* a particle with no pair keeps its bits */
+    if (count <= MAX_HITS) {
+        for (int a = 1; a < count; ++a) /* insertion sort: ascending j */
+            for (int b = a; b > 0 && hits[b - 1] > hits[b]; --b) {
+                int t = hits[b];
+                hits[b] = hits[b - 1], hits[b - 1] = t;
+            }
+        for (int h = 0; h < count; ++h) {
+            close_pair(ct, i, row, col, hits[h], q, *x, *y, *z, d, &L2);
+            add_push(ct, wi, w[hits[h]], d, L2, corr);
+        }
+    } else {
+        for (;;) {
+            int best = -1, j = N2;
+            for (int r = 0; r < runs; ++r) /* the smallest index at the head of any run */
+                if (next[r] < end[r] && ct->order[next[r]] < j)
+                    j = ct->order[next[r]], best = r;
+            if (best < 0)
+                break;
+            next[best] += 1;
+            if (close_pair(ct, i, row, col, j, q, *x, *y, *z, d, &L2))
+                add_push(ct, wi, w[j], d, L2, corr);
+        }
     }
-    if (pushed) { /* a particle with no pair keeps its bits */
-        *x = *x + cx;
-        *y = *y + cy;
-        *z = *z + cz;
-    }
+    *x = *x + corr[0];
+    *y = *y + corr[1];
+    *z = *z + corr[2];
 }
 
 /* One row of the pass: q (the updated positions, uncollided) to out, then the colliders. */

@@ -11,6 +11,7 @@ import pytest
 
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.c.verlet import SELF_FLAG, build_flags, load_library
+from clothbench.harness.health import self_contact
 from clothbench.harness.simulate import position_error
 from clothbench.scene import Cylinder, Plane, Sphere
 
@@ -53,6 +54,24 @@ def test_strict_with_colliders_matches_numpy_pos_and_prev_bit_for_bit(precision,
         bare = run("numpy", scene.replace(spheres=(), cylinders=(), planes=()), pos, (300,), BackendOptions())
         assert not np.array_equal(want[0], alone[0]), "the pass pushed no pair: the test shows nothing"
         assert not np.allclose(want[0][:, :3], bare[0][:, :3], atol=1e-3), "no collider acted"
+
+
+@pytest.mark.parametrize("steps", [1, 5])
+def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_on_the_stack(steps):
+    # the sheet crumpled into a ball 1.5 thicknesses wide: every particle has dozens of pairs,
+    # more than the kernel's MAX_HITS (32), so it sums them by merging its buckets' runs
+    require("c")
+    scene, pos = folded()
+    rng = np.random.default_rng(7)
+    free = np.ones(scene.particles, dtype=bool)
+    free[scene.pinned()] = False
+    pos[free, :3] = 0.5 + 1.5 * scene.self_collision.thickness * rng.random((int(free.sum()), 3))
+    got = run("c", scene, pos, (steps,), BackendOptions(strict=True))
+    want = run("numpy", scene, pos, (steps,), BackendOptions())
+    assert_bit_exact(got[0], want[0], f"pos, crumpled, {steps} steps")
+    assert_bit_exact(got[1], want[1], f"prev, crumpled, {steps} steps")
+    pairs = self_contact(pos, scene)[0]
+    assert pairs > 32 * scene.particles / 2, f"only {pairs} pairs: the merge is not reached"
 
 
 @pytest.mark.parametrize("strict", [True, False], ids=["strict", "fast"])
