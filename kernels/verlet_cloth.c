@@ -208,7 +208,7 @@ INLINE void integrate(const constants *c, const real *colliders, int i, real spr
     real nz = ((real)2 * z - zp) + (c->gz + (fz - damp * (z - zp)) * w) * c->dt2;
 #endif
 #ifdef CLOTH_SELF
-    (void)colliders; /* the colliders act after the self-collision pass (contact_particle) */
+    (void)colliders; /* the colliders act after the self-collision pass (contact_row) */
 #else
     collide(colliders, &nx, &ny, &nz);
 #endif
@@ -304,10 +304,10 @@ static void step_row(const constants *c, const real *colliders, int row, const r
  * After every particle's position update (written over x(t-dt) in q, uncollided), one Jacobi
  * projection reads q and writes x(t+dt), collided, into a third buffer: the three buffers
  * rotate, so nothing is copied. The search is a uniform grid of cells, hashed into BUCKETS
- * buckets and sorted by a counting sort in ascending particle order (deterministic, no atomics):
- * a particle merges the runs of its 27 cells' buckets by smallest index, so its corrections
- * are summed in ascending j, each partner once, as the definition sums them. A hash collision
- * or a clamped key only adds candidates, which the distance test rejects. */
+ * buckets and sorted by a counting sort in ascending particle order (deterministic, no atomics).
+ * A particle's corrections are summed in ascending j, each partner once, as the definition sums
+ * them, whatever order its 27 cells' buckets deliver them in (push). A hash collision or a
+ * clamped key only adds candidates, which the distance test rejects. */
 
 /* The pass's numbers, as the host packs them (kernel_inputs.SelfCollisionConstants). */
 enum { S_THICKNESS, S_THICKNESS2, S_RELAX, S_INV_CELL, S_COUNT };
