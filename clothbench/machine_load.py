@@ -23,9 +23,9 @@ from typing import Callable
 
 # Other processes' CPU, in cores' worth averaged over the window, from which it is busy. A
 # kernel split over every core waits at each step for its slowest thread, so one other process
-# holding even half a core keeps a thread of the widest shape descheduled half the time: the
-# issue-36 tuning, with other jobs on a 2-core Zen 3, kept threads=1 though threads=2 was 1.6x
-# faster. A quiet machine's background (daemons, a terminal) stays well under a tenth of a core.
+# holding even half a core keeps a thread of the widest shape descheduled half the time, enough
+# to make a busy tuning keep the wrong shape (docs/timing.md, "Kernel shapes chosen on a busy
+# machine"). A quiet machine's background (daemons, a terminal) stays well under a tenth of a core.
 BUSY_CORES = 0.5
 # Steal (the hypervisor running another guest on our vCPUs) as a share of the machine from which
 # it is busy: that load is invisible to /proc's process accounting, and a quiet host steals ~0.
@@ -169,8 +169,7 @@ def threads_left_free(threads: int, cores: int) -> tuple[int, Load | None]:
     watch finds the machine busy, the cores the other processes leave free (at least one).
 
     A thread of a split step waits at every step's barrier for the slowest, and a core another
-    process holds keeps one descheduled: the whole step waits with it (docs/c.md, "Under load":
-    the c backend's 32^2 step 2.6x slower beside one busy process on two threads, 1.8x on one).
+    process holds keeps one descheduled: the whole step waits with it (docs/c.md, "Under load").
     Also returns the load it saw (None where `threads` is 1: nothing to watch for)."""
     if threads <= 1:
         return threads, None

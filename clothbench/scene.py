@@ -17,17 +17,23 @@ from pathlib import Path
 import numpy as np
 
 from clothbench.colliders.analytic import (
-    ANCHOR,  # noqa: F401 (re-exported: the model's names in one place)
-    COLLIDER_KINDS,
     COLLIDER_OPTIONAL_KEYS,
-    COLLIDER_TABLE_KEYS,
+    Box,
     Cylinder,
     Plane,
     Sphere,
     body_pose,  # noqa: F401 (re-exported)
 )
+from clothbench.colliders.kinds import KINDS, ColliderKind
 from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Frame, Motion, array_of_tables, frames_from_toml, motion_from_toml
+from clothbench.colliders.motion import (
+    Frame,
+    Motion,
+    array_of_tables,
+    finite3,
+    frames_from_toml,
+    motion_from_toml,
+)
 from clothbench.colliders.self_contact import SelfCollision, self_collision_from_toml
 from clothbench.errors import SceneError
 from clothbench.solver import FLOAT32_MAX, FLOAT32_TINY, SOLVERS, Pbd, Solver, Verlet, finite_number, solver_for_spec
@@ -53,7 +59,7 @@ _PBD_KEYS = {"method", "iterations", "substeps", "relaxation", "compliance", "ch
 _PIN_KEYS = {"indices", "corners", "edge", "attach"}
 _MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *COLLIDER_OPTIONAL_KEYS}
 _TABLES = {
-    "name", "description", "cloth", "sim", "pbd", "pins", *COLLIDER_TABLE_KEYS, "mesh", "frame", "self_collision",
+    "name", "description", "cloth", "sim", "pbd", "pins", *(k.name for k in KINDS), "mesh", "frame", "self_collision",
 }  # fmt: skip
 
 
@@ -83,9 +89,10 @@ class Scene:
     stiffness: float = 1000.0  # k of every spring (N/m)
     damping: float = 0.002  # b of every spring (N s/m), applied to the particle's own velocity
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)  # [sim] gravity (m/s^2)
-    # colliders and pins
+    # colliders (one field per kind of colliders/kinds.py, its `plural`) and pins
     spheres: tuple[Sphere, ...] = ()
     cylinders: tuple[Cylinder, ...] = ()
+    boxes: tuple[Box, ...] = ()
     planes: tuple[Plane, ...] = ()
     pin_indices: tuple[int, ...] = ()
     pin_corners: tuple[str, ...] = ()
@@ -118,9 +125,9 @@ class Scene:
 
     @property
     def colliders(self) -> tuple:
-        """The analytic colliders in the order the step applies them: spheres, cylinders,
-        planes (the meshes come after them: `meshes`)."""
-        return self.spheres + self.cylinders + self.planes
+        """The analytic colliders in the order the step applies them (colliders/kinds.py:
+        spheres, cylinders, boxes, planes; the meshes come after them: `meshes`)."""
+        return tuple(c for kind in KINDS for c in getattr(self, kind.plural))
 
     @property
     def has_motion(self) -> bool:
@@ -195,12 +202,6 @@ def count_springs(n: int) -> int:
     return sum(max(0, n - abs(dr)) * max(0, n - abs(dc)) for dr, dc in OFFSETS)
 
 
-def _vec3(value, what: str) -> tuple[float, float, float]:
-    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(finite_number(v) for v in value):
-        raise SceneError(f"{what} must be three finite numbers, got {value!r}")
-    return tuple(float(v) for v in value)
-
-
 def _validate(s: Scene) -> None:
     if not isinstance(s.grid, int) or isinstance(s.grid, bool) or s.grid < 3:
         raise SceneError(f"grid must be an integer >= 3, got {s.grid!r}")
@@ -218,23 +219,9 @@ def _validate(s: Scene) -> None:
             raise SceneError(f"{name} must be > 0, got {value!r}")
         if positive is False and value < 0:
             raise SceneError(f"{name} must be >= 0, got {value!r}")
-    object.__setattr__(s, "gravity", _vec3(s.gravity, "gravity"))
-    for sphere in s.spheres:
-        _vec3(sphere.center, "sphere center")
-        if not finite_number(sphere.radius) or sphere.radius <= 0:
-            raise SceneError(f"sphere radius must be > 0, got {sphere.radius!r}")
-    for cyl in s.cylinders:
-        _vec3(cyl.start, "cylinder start")
-        _vec3(cyl.end, "cylinder end")
-        if not finite_number(cyl.radius) or cyl.radius <= 0:
-            raise SceneError(f"cylinder radius must be > 0, got {cyl.radius!r}")
-        if cyl.length == 0:
-            raise SceneError(f"cylinder start and end must differ (zero-length cylinder at {cyl.start})")
-    for plane in s.planes:
-        _vec3(plane.point, "plane point")
-        _vec3(plane.normal, "plane normal")
-        if not any(plane.normal):
-            raise SceneError("plane normal must not be zero")
+    object.__setattr__(s, "gravity", finite3(s.gravity, "gravity"))
+    for collider in s.colliders:
+        collider.check()
     _check_float32_range(s)
     n2 = s.grid * s.grid
     for group in s.pin_sets():
@@ -338,22 +325,26 @@ def _table(data: dict, key: str, allowed: set, where: str) -> dict:
     return table
 
 
-def _colliders(data: dict, kind: str, where: str) -> tuple:
+def _colliders(data: dict, kind: ColliderKind, where: str) -> tuple:
     """The [[kind]] array of tables as collider objects, every key checked."""
-    keys = COLLIDER_TABLE_KEYS[kind]
+    keys, optional_keys = kind.keys, kind.optional + COLLIDER_OPTIONAL_KEYS
     out = []
-    for table in array_of_tables(data.get(kind, []), kind, "colliders", where):
-        optional = _optional_keys(table, kind, where)
-        unknown = set(table) - set(keys) - set(COLLIDER_OPTIONAL_KEYS)
+    for table in array_of_tables(data.get(kind.name, []), kind.name, "colliders", where):
+        optional = _optional_keys(table, kind.name, where)
+        unknown = set(table) - set(keys) - set(optional_keys)
         missing = set(keys) - set(table)
         if unknown or missing:
             raise SceneError(
-                f"{where}: [[{kind}]] needs {', '.join(keys)} (optional: {', '.join(COLLIDER_OPTIONAL_KEYS)})"
+                f"{where}: [[{kind.name}]] needs {', '.join(keys)} (optional: {', '.join(optional_keys)})"
                 + (f" (unknown: {sorted(unknown)[0]!r})" if unknown else "")
                 + (f" (missing: {sorted(missing)[0]!r})" if missing else "")
             )
-        values = {k: table[k] if k == "radius" else _vec3(table[k], f"{kind} {k}") for k in keys}
-        out.append(COLLIDER_KINDS[kind](**values, **optional))
+        values = {
+            k: table[k] if k in kind.numbers else finite3(table[k], f"{kind.name} {k}")
+            for k in keys + kind.optional
+            if k in table
+        }
+        out.append(kind.type(**values, **optional))
     return tuple(out)
 
 
@@ -388,11 +379,11 @@ def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
             values["shape"] = table["shape"]
         for k in ("position", "rotation"):
             if k in table:
-                values[k] = _vec3(table[k], f"mesh {k}")
+                values[k] = finite3(table[k], f"mesh {k}")
         if "scale" in table:
             scale = table["scale"]
             values["scale"] = (
-                (float(scale),) * 3 if finite_number(scale) else _vec3(scale, "mesh scale (one number or three)")
+                (float(scale),) * 3 if finite_number(scale) else finite3(scale, "mesh scale (one number or three)")
             )
         for k in ("subdivisions", "margin"):
             if k in table:
@@ -467,13 +458,13 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
     sim = dict(_table(data, "sim", _SIM_KEYS, where))
     pins, pin_groups = _pins(data, where)
     pbd = _table(data, "pbd", _PBD_KEYS, where)
-    colliders = {kind: _colliders(data, kind, where) for kind in COLLIDER_KINDS}
+    colliders = {kind.plural: _colliders(data, kind, where) for kind in KINDS}
     meshes = _meshes(data, where, folder)
     frames = frames_from_toml(data.get("frame", []), where)
     self_collision = self_collision_from_toml(data.get("self_collision"), where)
     scene_kwargs = dict(cloth)
     if "gravity" in sim:
-        scene_kwargs["gravity"] = _vec3(sim.pop("gravity"), "gravity")
+        scene_kwargs["gravity"] = finite3(sim.pop("gravity"), "gravity")
     indices = pins.get("indices", [])
     corners = pins.get("corners", [])
     if not isinstance(indices, list) or not isinstance(corners, list):
@@ -486,9 +477,7 @@ def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None
         scene = Scene(
             name=str(data.get("name", "custom")),
             description=str(data.get("description", "")),
-            spheres=colliders["sphere"],
-            cylinders=colliders["cylinder"],
-            planes=colliders["plane"],
+            **colliders,
             pin_indices=tuple(indices),
             pin_corners=tuple(corners),
             pin_edge=pins.get("edge"),
@@ -548,6 +537,7 @@ def load_setup(name_or_path: str) -> Setup:
 
 
 __all__ = [
-    "Scene", "Setup", "Sphere", "Cylinder", "Plane", "Mesh", "Frame", "Motion", "PinGroup", "SelfCollision", "OFFSETS",
+    "Scene", "Setup", "Sphere", "Cylinder", "Box", "Plane", "Mesh", "Frame", "Motion", "PinGroup", "SelfCollision",
+    "OFFSETS",
     "count_springs", "load_scene", "load_setup", "builtin_scenes",
 ]  # fmt: skip

@@ -116,7 +116,7 @@ __device__ __forceinline__ int closest_triangle(float3 p, const float4* __restri
     int feature;
 #ifdef CLOTH_MESH_BVH
     // nodes: boxes at mesh_rows + head[2] (2 rows each), links at mesh_ints + head[3] (3 ints)
-    const float4* boxes = mesh_rows + head[2];
+    const float4* node_boxes = mesh_rows + head[2];
     const int* links = mesh_ints + head[3];
     const int* leaf_tris = mesh_ints + head[4];
     int stack[MESH_STACK];
@@ -124,13 +124,13 @@ __device__ __forceinline__ int closest_triangle(float3 p, const float4* __restri
     stack[top++] = 0;
     while (top > 0) {
         const int node = stack[--top];
-        if (box_distance2(p, xyz(boxes[2 * node]), xyz(boxes[2 * node + 1])) > best)
+        if (box_distance2(p, xyz(node_boxes[2 * node]), xyz(node_boxes[2 * node + 1])) > best)
             continue;  // every triangle in it is strictly farther: it could not win, not even a tie
         const int child = links[3 * node];
         if (child >= 0) {  // the nearer child is popped first: the order changes speed, not results
             int near_node = child, far_node = child + 1;
-            if (box_distance2(p, xyz(boxes[2 * far_node]), xyz(boxes[2 * far_node + 1])) <
-                box_distance2(p, xyz(boxes[2 * near_node]), xyz(boxes[2 * near_node + 1]))) {
+            if (box_distance2(p, xyz(node_boxes[2 * far_node]), xyz(node_boxes[2 * far_node + 1])) <
+                box_distance2(p, xyz(node_boxes[2 * near_node]), xyz(node_boxes[2 * near_node + 1]))) {
                 near_node = child + 1, far_node = child;
             }
             stack[top++] = far_node;

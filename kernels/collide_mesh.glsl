@@ -132,8 +132,8 @@ vec3 collide_mesh(vec3 x, int m)
     // A node is pushed only by its parent, so a traversal pops each of the mesh's at most
     // 2T - 1 nodes (T triangles, a leaf holds one or more) at most once: the bound never cuts
     // one short. It is there for llvmpipe's fragment shader, where a bare `while (top > 0)`
-    // ran on (to Mesa's loop limit, by our reading) in lanes no fragment uses: 45 ms a step at
-    // 16 x 16 on the sweep scene, 0.15 ms with the bound (docs/llvmpipe.md, "The fragment loop").
+    // runs on (to Mesa's loop limit, by our reading) in lanes no fragment uses, many times the
+    // step's own cost (docs/llvmpipe.md, "The fragment loop").
     for (int visit = 0; top > 0 && visit < 2 * info.y; ++visit) {
         --top;
         if (stack_d2[top] > best)

@@ -2,8 +2,7 @@
  * included by verlet_cloth.cl and pbd_cloth.cl after they define floatv and V. Fast builds only
  * (strict rounds every operation correctly). PoCL 3.1 builds rsqrt() as a correctly rounded
  * sqrt and division, and 1/x as a division, each costing more than the rest of a spring on
- * AVX-512 (vsqrtps and vdivps run one 16-lane operation per 10-12 cycles); its native_rsqrt()
- * is no quicker. With AVX-512 and 16 lanes these are the 14-bit estimates with one Newton step
+ * AVX-512 (docs/pbd.md, "Time per step on OpenCL"); its native_rsqrt() is no quicker. With AVX-512 and 16 lanes these are the 14-bit estimates with one Newton step
  * (about 23 bits); elsewhere the built-ins. */
 #ifndef CLOTH_STRICT
 #if V == 16 && defined(__AVX512F__)

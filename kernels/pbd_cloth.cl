@@ -21,7 +21,7 @@
  *
  * Build options:
  *   CLOTH_N                                      grid side n (index arithmetic folds)
- *   CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_PLANES collider counts (0 when absent)
+ *   CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES collider counts (0 when absent)
  *   CLOTH_VECTOR_WIDTH                           particles per work item of the Jacobi
  *                                                interior: 4, 8 or 16
  *   CLOTH_COLOURED   pbd_substeps runs the coloured method (else Jacobi)
@@ -43,8 +43,8 @@
  * Numbers (h, g*h, compliance/h^2, rest lengths, damping, relaxation, Chebyshev weights) are
  * kernel arguments, rounded once to float32 on the host. The collider table and the colliders
  * are collide.cl's (included by the host, as verlet_cloth.cl includes it): spheres (centre,
- * radius); cylinders (start, length), (unit axis, radius), (radial_r, 0); planes (point, 0),
- * (unit normal, 0).
+ * radius); cylinders (start, length), (unit axis, radius), (radial_r, 0); boxes (centre, 0),
+ * (axis i, half extent i); planes (point, 0), (unit normal, 0).
  *
  * lambda: the Jacobi form keeps 12 per particle (lam[o * n2 + i], one for each end of a
  * constraint; each takes the share relax / cnt of its dlam that its position takes), the
@@ -65,6 +65,9 @@
 #endif
 #ifndef CLOTH_CYLINDERS
 #define CLOTH_CYLINDERS 0
+#endif
+#ifndef CLOTH_BOXES
+#define CLOTH_BOXES 0
 #endif
 #ifndef CLOTH_PLANES
 #define CLOTH_PLANES 0
@@ -88,7 +91,7 @@
 /* The extra arguments of a scene with meshes, motion or attached pins: STEP_ARG, MESH_ARG,
  * PIN_ARG in a kernel's parameters, *_PASS through the helpers. */
 #include "body_args.cl"
-#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 2 * CLOTH_PLANES)
+#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 4 * CLOTH_BOXES + 2 * CLOTH_PLANES)
 #define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a substep's collider table */
 
 /* The 12-spring stencil (d_row, d_col) in the order docs/semantics.md fixes; offsets 0-3 are
@@ -265,8 +268,8 @@ __kernel void pbd_jacobi_border(__global const float4 *X, __global float4 *Y,
 
 /* The interior in vectors: V consecutive particles of a row per work item, their float4s
  * deinterleaved into x, y, z, w vectors (or, planar, loaded as they are). Explicit vectors
- * because PoCL does not vectorise this kernel across work items by itself: at n = 256 a pass
- * took 2.5-3 ms in scalar form, 0.8 ms with V = 16, strict or fast. IEEE arithmetic is per lane, so strict stays exact.
+ * because PoCL does not vectorise this kernel across work items by itself (docs/opencl.md,
+ * "Why explicit vectors"). IEEE arithmetic is per lane, so strict stays exact.
  * When V does not divide the n - 4 interior columns, the last vector of a row overlaps the
  * one before it and stores only the lanes that one does not (its other lanes may read
  * multipliers the neighbouring item is rewriting: they are never stored), so the scalar
@@ -570,13 +573,13 @@ __kernel void pbd_coloured(__global float4 *X, __global const int2 *ij, __global
 #include <mesh_colliders>
 #endif
 
-/* collisions as position projections, free particles only: spheres, cylinders, planes, then
- * meshes (colliders: the substep's table) */
+/* collisions as position projections, free particles only: spheres, cylinders, boxes, planes,
+ * then meshes (colliders: the substep's table) */
 INLINE float4 collide_particle(float4 p, __constant float4 *colliders MESH_ARG)
 {
     if (p.w == 0.0f)
         return p; /* pinned particles are never collided */
-    float3 x = collide(p.xyz, colliders, CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_PLANES);
+    float3 x = collide(p.xyz, colliders, CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES);
 #if CLOTH_MESHES > 0
     x = collide_meshes(x, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints);
 #endif
@@ -721,9 +724,9 @@ __kernel void pbd_substeps(__global float4 *x, __global float4 *v, __global floa
 /* Where a row holds two vectors, the bands take every particle in vectors: a row's units are
  * an edge vector at either side (columns 0 .. V-1 and n-V .. n-1, jacobi_lanes with `edge`)
  * and the interior vectors between them (the last overlapping the one before), every unit of
- * rows 0, 1, n-2 and n-1 an edge one. A particle alone cost about as much as a vector of V (its
- * bounds tests, scalar division and square root): at 256^2 the four border columns and rows
- * took a quarter of a pass. */
+ * rows 0, 1, n-2 and n-1 an edge one. A particle alone costs about as much as a vector of V (its
+ * bounds tests, scalar division and square root), so the border columns and rows one at a time
+ * were a large share of a pass (docs/pbd.md, "Time per step on OpenCL"). */
 #define MIDDLE_VECTORS ((N - 2 * V + V - 1) / V)
 #define ROW_UNITS (MIDDLE_VECTORS + 2)
 #define MIDDLE_FIRST_LANE (V * MIDDLE_VECTORS - (N - 2 * V)) /* lanes the last interior vector leaves */

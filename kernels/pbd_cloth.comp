@@ -326,8 +326,8 @@ void main()
 layout(std430, binding = 0) buffer Pred { vec4 xs[]; };
 
 // `vec3 collide(vec3 x)`: the scene's colliders in the fixed order (spheres, cylinders,
-// planes, meshes), from kernels/collide_KIND.glsl and collide_mesh.glsl (the host puts them
-// here; with MOTION they read this substep's rows)
+// boxes, planes, meshes), from kernels/collide_KIND.glsl and collide_mesh.glsl (the host puts
+// them here; with MOTION they read this substep's rows)
 #include <colliders>
 
 // collisions as position projections, free particles only

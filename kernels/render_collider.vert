@@ -1,4 +1,4 @@
-// render_collider.vert: a unit mesh (sphere, capped cylinder or square patch) placed in the
+// render_collider.vert: a unit mesh (sphere, capped cylinder, cube or square patch) placed in the
 // scene by its model matrix (clothbench/reports/render.py).
 
 uniform mat4 view_projection;

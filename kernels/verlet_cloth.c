@@ -4,8 +4,9 @@
  *
  * Built per scene by clothbench/native.py with -D options, so the compiler folds them:
  *   CLOTH_N                grid side n: strides, bounds and the interior range are constants.
- *   CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_PLANES
- *                          collider counts: each kind's loop unrolls, an absent kind vanishes.
+ *   CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES
+ *                          collider counts (clothbench/colliders/kinds.py): each kind's loop
+ *                          unrolls, an absent kind vanishes.
  *   CLOTH_DOUBLE           float64 (the fast reference for accuracy figures); else float32.
  *   CLOTH_SELF             the scene's [self_collision] pass (docs/semantics.md, "Self-collision")
  *                          between the position update and the colliders; without it nothing of
@@ -45,9 +46,11 @@
 #ifdef CLOTH_DOUBLE
 typedef double real;
 #define SQRT(v) __builtin_sqrt(v)
+#define ABS(v) __builtin_fabs(v)
 #else
 typedef float real;
 #define SQRT(v) __builtin_sqrtf(v)
+#define ABS(v) __builtin_fabsf(v)
 #endif
 
 #define INLINE static inline __attribute__((always_inline))
@@ -58,9 +61,12 @@ enum { K_K, K_B, K_DT, K_DT2, K_GX, K_GY, K_GZ, K_REST0, K_REST1, K_REST2, K_COU
 /* The collider table, reals per collider of each kind (kernel_inputs.collider_rows). */
 #define SPHERE_REALS 4   /* centre, radius */
 #define CYLINDER_REALS 12 /* (start, length), (unit axis, radius), (radial_r, 0) */
+#define BOX_REALS 16     /* (centre, 0), (axis i, half extent i) for i = 0, 1, 2 */
 #define PLANE_REALS 8    /* (point, 0), (unit normal, 0) */
-#define COLLIDER_REALS \
-    (SPHERE_REALS * CLOTH_SPHERES + CYLINDER_REALS * CLOTH_CYLINDERS + PLANE_REALS * CLOTH_PLANES + 1)
+#define FIRST_CYLINDER (SPHERE_REALS * CLOTH_SPHERES)
+#define FIRST_BOX (FIRST_CYLINDER + CYLINDER_REALS * CLOTH_CYLINDERS)
+#define FIRST_PLANE (FIRST_BOX + BOX_REALS * CLOTH_BOXES)
+#define COLLIDER_REALS (FIRST_PLANE + PLANE_REALS * CLOTH_PLANES + 1)
 
 /* The 12-spring stencil (d_row, d_col) in the order every backend sums it (scene.OFFSETS):
  * 0-3 structural, 4-7 shear, 8-11 bend. */
@@ -158,6 +164,29 @@ INLINE void collide_cylinder(const real *c, real *x, real *y, real *z)
     *z = inside ? (through_side ? sz : cz) : *z;
 }
 
+INLINE void collide_box(const real *b, real *x, real *y, real *z)
+{
+    const real *a0 = b + 4, *a1 = b + 8, *a2 = b + 12; /* (axis i, half extent i) */
+    real dx = *x - b[0], dy = *y - b[1], dz = *z - b[2];
+    real l0 = (dx * a0[0] + dy * a0[1]) + dz * a0[2]; /* coordinates along the box's axes */
+    real l1 = (dx * a1[0] + dy * a1[1]) + dz * a1[2];
+    real l2 = (dx * a2[0] + dy * a2[1]) + dz * a2[2];
+    real p0 = a0[3] - ABS(l0), p1 = a1[3] - ABS(l1), p2 = a2[3] - ABS(l2); /* depth per face pair */
+    int inside = (p0 > 0) & (p1 > 0) & (p2 > 0);
+    int k1 = p1 < p0; /* the face pair of least depth, ties to the lower axis */
+    real least = k1 ? p1 : p0;
+    int k2 = p2 < least;
+    real lk = k2 ? l2 : (k1 ? l1 : l0);
+    real hk = k2 ? a2[3] : (k1 ? a1[3] : a0[3]);
+    real ux = k2 ? a2[0] : (k1 ? a1[0] : a0[0]);
+    real uy = k2 ? a2[1] : (k1 ? a1[1] : a0[1]);
+    real uz = k2 ? a2[2] : (k1 ? a1[2] : a0[2]);
+    real m = (lk >= 0 ? hk : -hk) - lk; /* to the face on the particle's side */
+    *x = inside ? *x + ux * m : *x;
+    *y = inside ? *y + uy * m : *y;
+    *z = inside ? *z + uz * m : *z;
+}
+
 INLINE void collide_plane(const real *p, real *x, real *y, real *z)
 {
     real nx = p[4], ny = p[5], nz = p[6];
@@ -168,7 +197,7 @@ INLINE void collide_plane(const real *p, real *x, real *y, real *z)
     *z = inside ? *z - nz * dist : *z;
 }
 
-/* Every collider in the fixed order: spheres, cylinders, planes. */
+/* Every collider in the fixed order: spheres, cylinders, boxes, planes. */
 INLINE void collide(const real *colliders, real *x, real *y, real *z)
 {
 #if CLOTH_SPHERES > 0
@@ -177,12 +206,15 @@ INLINE void collide(const real *colliders, real *x, real *y, real *z)
 #endif
 #if CLOTH_CYLINDERS > 0
     for (int s = 0; s < CLOTH_CYLINDERS; ++s)
-        collide_cylinder(colliders + SPHERE_REALS * CLOTH_SPHERES + CYLINDER_REALS * s, x, y, z);
+        collide_cylinder(colliders + FIRST_CYLINDER + CYLINDER_REALS * s, x, y, z);
+#endif
+#if CLOTH_BOXES > 0
+    for (int s = 0; s < CLOTH_BOXES; ++s)
+        collide_box(colliders + FIRST_BOX + BOX_REALS * s, x, y, z);
 #endif
 #if CLOTH_PLANES > 0
     for (int s = 0; s < CLOTH_PLANES; ++s)
-        collide_plane(colliders + SPHERE_REALS * CLOTH_SPHERES + CYLINDER_REALS * CLOTH_CYLINDERS + PLANE_REALS * s,
-                      x, y, z);
+        collide_plane(colliders + FIRST_PLANE + PLANE_REALS * s, x, y, z);
 #endif
     (void)colliders, (void)x, (void)y, (void)z;
 }
@@ -286,7 +318,7 @@ static void step_row(const constants *c, const real *colliders, int row, const r
     /* The numbers as locals: a value the vectoriser sees used under a condition (the rest
      * length when L2 > 0, radial_r on a cylinder's axis) it loads only there, through a
      * masked load from the caller's pointer, which GCC 12 cannot vectorise (the loop then
-     * runs scalar, ~5x slower); from a local it loads unconditionally. */
+     * runs scalar: docs/c.md, "What the kernel does"); from a local it loads unconditionally. */
     const constants local = *c;
     real table[COLLIDER_REALS];
     for (int k = 0; k < COLLIDER_REALS; ++k)

@@ -34,7 +34,7 @@
  *       (specialised build only).
  *       CLOTH_N             grid side n: index arithmetic, neighbour strides and bounds fold
  *                           to constants.
- *       CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_PLANES
+ *       CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES
  *                           collider counts: each kind's loop unrolls into straight-line
  *                           code, and a kind the scene lacks is not compiled at all.
  *       CLOTH_VECTOR_WIDTH  particles per work item (1 for the border kernel).
@@ -58,13 +58,14 @@
  *       once to float32 on the host and passed with an explicit dtype, so a dt or stiffness
  *       sweep does not rebuild, and a wrongly typed argument is refused by the host wrapper
  *       instead of being reinterpreted silently (the chapter's section 22.8 complaint).
- *       Passing them as exact hex literals instead (-D, c_float) was measured no faster at
- *       n = 256 (the host code's header has the numbers).
+ *       Exact hex literals instead (-D, c_float) would gain nothing (docs/opencl.md, "What it
+ *       decided").
  *
  * The collider table (one __constant float4 array, rows rounded once from float64): spheres
  * (centre, radius); then cylinders, three rows each: (start, length), (unit axis, radius),
- * (radial_r, 0); then planes, two rows each: (point, 0), (unit normal, 0); then meshes, MESH_ROWS
- * each (collide_mesh.cl has them). The generic build
+ * (radial_r, 0); then boxes, four rows each: (centre, 0), (axis i, half extent i); then planes,
+ * two rows each: (point, 0), (unit normal, 0); then meshes, MESH_ROWS each (collide_mesh.cl
+ * has them). The generic build
  * takes its colliders from collide.cl (included by the host, as pbd_cloth.cl does); the
  * specialised build has its own vectorised ones below, the same operations lane by lane.
  */
@@ -158,13 +159,14 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
                            const int n, const float k, const float b, const float dt,
                            const float dt2, const float4 g, const float4 rest,
                            __constant float4 *colliders, const int num_spheres,
-                           const int num_cylinders, const int num_planes NORMALS_ARG BODY_ARG)
+                           const int num_cylinders, const int num_boxes,
+                           const int num_planes NORMALS_ARG BODY_ARG)
 {
     int i = get_global_id(0);
     if (i >= n * n)
         return; /* the launch is padded when the work-group size does not divide n*n */
     int row = i / n, col = i % n;
-    int analytic_rows = num_spheres + 3 * num_cylinders + 2 * num_planes;
+    int analytic_rows = num_spheres + 3 * num_cylinders + 4 * num_boxes + 2 * num_planes;
 #ifdef CLOTH_PER_STEP
     colliders += step * (analytic_rows + MESH_ROWS * CLOTH_MESHES); /* this step's poses */
     PIN_STEP_TARGETS(step);
@@ -197,7 +199,7 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
         x_new = (float3)(pin_target[3 * slot], pin_target[3 * slot + 1], pin_target[3 * slot + 2]);
 #endif
     if (w != 0.0f) {
-        x_new = collide(x_new, colliders, num_spheres, num_cylinders, num_planes);
+        x_new = collide(x_new, colliders, num_spheres, num_cylinders, num_boxes, num_planes);
 #if CLOTH_MESHES > 0
         x_new = collide_meshes(x_new, colliders + analytic_rows, mesh_geometry, mesh_ints); /* after the planes */
 #endif
@@ -218,12 +220,10 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
  * builds this part with the kernel shape's V for the interior, rows and multi-step kernels
  * (V consecutive particles of a row per work item) and with V = 1 for the border kernel (one
  * particle per work item). State buffers hold CLOTH_PAD floats before and after the planes;
- * every kernel steps its state pointers past them first. Explicit vectors because PoCL 3.1 (LLVM 15) did not vectorise the
- * scalar form across work items: its first optimisation pass packs four springs of one
- * particle into gathers, which then blocks the work-item loop vectoriser. Measured at
- * n = 256: the fast interior kernel took 2.6 ms per step in scalar form, 0.15 ms with
- * float16. Whole strict steps: 2.8-5 ms with the float4 kernel (FP_CONTRACT OFF or not,
- * PoCL vectorises it across work items no better), 0.3-0.6 ms in this form.
+ * every kernel steps its state pointers past them first. Explicit vectors because PoCL 3.1
+ * (LLVM 15) does not vectorise the scalar form across work items: its first optimisation pass
+ * packs four springs of one particle into gathers, which then blocks the work-item loop
+ * vectoriser (docs/opencl.md, "Why explicit vectors").
  * ====================================================================================== */
 
 #ifndef CLOTH_N
@@ -234,6 +234,9 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
 #endif
 #ifndef CLOTH_CYLINDERS
 #define CLOTH_CYLINDERS 0
+#endif
+#ifndef CLOTH_BOXES
+#define CLOTH_BOXES 0
 #endif
 #ifndef CLOTH_PLANES
 #define CLOTH_PLANES 0
@@ -350,6 +353,30 @@ INLINE void collide_cylinder_v(floatv *x, floatv *y, floatv *z, float4 start_len
 }
 #endif
 
+#if CLOTH_BOXES > 0
+INLINE void collide_box_v(floatv *x, floatv *y, floatv *z, float4 center, float4 ax0, float4 ax1,
+                          float4 ax2)
+{
+    floatv dx = *x - center.x, dy = *y - center.y, dz = *z - center.z;
+    floatv l0 = (dx * ax0.x + dy * ax0.y) + dz * ax0.z; /* the box's coordinates */
+    floatv l1 = (dx * ax1.x + dy * ax1.y) + dz * ax1.z;
+    floatv l2 = (dx * ax2.x + dy * ax2.y) + dz * ax2.z;
+    floatv p0 = ax0.w - fabs(l0), p1 = ax1.w - fabs(l1), p2 = ax2.w - fabs(l2); /* depth per face pair */
+    intv inside = (p0 > 0.0f) & (p1 > 0.0f) & (p2 > 0.0f);
+    intv take1 = p1 < p0; /* the face pair of least penetration; ties to the lower axis */
+    intv take2 = p2 < SELECT(p0, p1, take1);
+    floatv l = SELECT(SELECT(l0, l1, take1), l2, take2);
+    floatv h = SELECT(SELECT((floatv)(ax0.w), (floatv)(ax1.w), take1), (floatv)(ax2.w), take2);
+    floatv m = SELECT(-h, h, l >= 0.0f) - l; /* to the face on the point's side (+ at l == 0) */
+    floatv ux = SELECT(SELECT((floatv)(ax0.x), (floatv)(ax1.x), take1), (floatv)(ax2.x), take2);
+    floatv uy = SELECT(SELECT((floatv)(ax0.y), (floatv)(ax1.y), take1), (floatv)(ax2.y), take2);
+    floatv uz = SELECT(SELECT((floatv)(ax0.z), (floatv)(ax1.z), take1), (floatv)(ax2.z), take2);
+    *x = SELECT(*x, *x + ux * m, inside);
+    *y = SELECT(*y, *y + uy * m, inside);
+    *z = SELECT(*z, *z + uz * m, inside);
+}
+#endif
+
 #if CLOTH_PLANES > 0
 INLINE void collide_plane_v(floatv *x, floatv *y, floatv *z, float4 point, float4 normal)
 {
@@ -361,7 +388,7 @@ INLINE void collide_plane_v(floatv *x, floatv *y, floatv *z, float4 point, float
 }
 #endif
 
-/* Every collider, in the order docs/semantics.md fixes: spheres, cylinders, planes. */
+/* Every collider, in the order docs/semantics.md fixes: spheres, cylinders, boxes, planes. */
 INLINE void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *colliders)
 {
 #if CLOTH_SPHERES > 0
@@ -373,14 +400,19 @@ INLINE void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *collid
     for (int c = 0; c < CLOTH_CYLINDERS; ++c)
         collide_cylinder_v(x, y, z, cylinders[3 * c], cylinders[3 * c + 1], cylinders[3 * c + 2]);
 #endif
+#if CLOTH_BOXES > 0
+    __constant float4 *boxes = colliders + CLOTH_SPHERES + 3 * CLOTH_CYLINDERS;
+    for (int b = 0; b < CLOTH_BOXES; ++b)
+        collide_box_v(x, y, z, boxes[4 * b], boxes[4 * b + 1], boxes[4 * b + 2], boxes[4 * b + 3]);
+#endif
 #if CLOTH_PLANES > 0
-    __constant float4 *planes = colliders + CLOTH_SPHERES + 3 * CLOTH_CYLINDERS;
+    __constant float4 *planes = colliders + CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 4 * CLOTH_BOXES;
     for (int p = 0; p < CLOTH_PLANES; ++p)
         collide_plane_v(x, y, z, planes[2 * p], planes[2 * p + 1]);
 #endif
 }
 
-#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 2 * CLOTH_PLANES)
+#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 4 * CLOTH_BOXES + 2 * CLOTH_PLANES)
 #define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a step's collider table */
 
 #if CLOTH_MESHES > 0

@@ -45,6 +45,7 @@ struct Offset {
 #ifdef CLOTH_GENERIC
 #define HAS_SPHERES 1
 #define HAS_CYLINDERS 1
+#define HAS_BOXES 1
 #define HAS_PLANES 1
 #ifdef CLOTH_MESHES
 #define HAS_MESHES 1
@@ -58,6 +59,7 @@ struct Offset {
 #endif
 #define SPHERE_COUNT sphere_count
 #define CYLINDER_COUNT cylinder_count
+#define BOX_COUNT box_count
 #define PLANE_COUNT plane_count
 #elif !defined(CLOTH_N)
 #error "build with -DCLOTH_GENERIC, or with the scene's -D values (clothbench.backends.cuda.verlet.kernel_defines)"
@@ -71,6 +73,7 @@ constexpr float rest_structural = CLOTH_REST_STRUCTURAL, rest_shear = CLOTH_REST
                 rest_bend = CLOTH_REST_BEND;
 #define HAS_SPHERES (CLOTH_SPHERE_COUNT > 0)
 #define HAS_CYLINDERS (CLOTH_CYLINDER_COUNT > 0)
+#define HAS_BOXES (CLOTH_BOX_COUNT > 0)
 #define HAS_PLANES (CLOTH_PLANE_COUNT > 0)
 // the colliders, in the row layout the generic kernel takes as arguments (see verlet_step)
 #if HAS_SPHERES
@@ -78,6 +81,9 @@ constexpr int sphere_count = CLOTH_SPHERE_COUNT;
 #endif
 #if HAS_CYLINDERS
 constexpr int cylinder_count = CLOTH_CYLINDER_COUNT;
+#endif
+#if HAS_BOXES
+constexpr int box_count = CLOTH_BOX_COUNT;
 #endif
 #if HAS_PLANES
 constexpr int plane_count = CLOTH_PLANE_COUNT;
@@ -88,6 +94,9 @@ static __device__ const float4 spheres[sphere_count] = CLOTH_SPHERES;
 #endif
 #if HAS_CYLINDERS
 static __device__ const float4 cylinders[3 * cylinder_count] = CLOTH_CYLINDERS;
+#endif
+#if HAS_BOXES
+static __device__ const float4 boxes[4 * box_count] = CLOTH_BOXES;
 #endif
 #if HAS_PLANES
 static __device__ const float4 planes[2 * plane_count] = CLOTH_PLANES;
@@ -107,6 +116,7 @@ constexpr int motion_rows = CLOTH_MOTION_ROWS;  // rows of the table per step
 #endif
 #define SPHERE_COUNT CLOTH_SPHERE_COUNT
 #define CYLINDER_COUNT CLOTH_CYLINDER_COUNT
+#define BOX_COUNT CLOTH_BOX_COUNT
 #define PLANE_COUNT CLOTH_PLANE_COUNT
 #endif
 #ifndef HAS_PIN_TARGETS
@@ -114,18 +124,20 @@ constexpr int motion_rows = CLOTH_MOTION_ROWS;  // rows of the table per step
 #endif
 
 // Where a step finds its colliders' rows: the fixed ones, or its part of the per-step table,
-// `step_rows` (docs/semantics.md, "Moving colliders"): the rows of every sphere, cylinder and
-// plane in the fixed layout, then three rows (R row i, T_i) per mesh, then one row per
+// `step_rows` (docs/semantics.md, "Moving colliders"): the rows of every sphere, cylinder, box
+// and plane in the fixed layout, then three rows (R row i, T_i) per mesh, then one row per
 // attached pin (its target), in that order.
 #ifdef CLOTH_MOTION
 #define SPHERE_ROWS (step_rows)
-#define CYLINDER_ROWS (step_rows + SPHERE_COUNT)
-#define PLANE_ROWS (step_rows + SPHERE_COUNT + 3 * CYLINDER_COUNT)
-#define MESH_POSE(m) (step_rows + SPHERE_COUNT + 3 * CYLINDER_COUNT + 2 * PLANE_COUNT + 3 * (m))
-#define PIN_TARGETS (step_rows + SPHERE_COUNT + 3 * CYLINDER_COUNT + 2 * PLANE_COUNT + 3 * MESH_COUNT)
+#define CYLINDER_ROWS (SPHERE_ROWS + SPHERE_COUNT)
+#define BOX_ROWS (CYLINDER_ROWS + 3 * CYLINDER_COUNT)
+#define PLANE_ROWS (BOX_ROWS + 4 * BOX_COUNT)
+#define MESH_POSE(m) (PLANE_ROWS + 2 * PLANE_COUNT + 3 * (m))
+#define PIN_TARGETS (PLANE_ROWS + 2 * PLANE_COUNT + 3 * MESH_COUNT)
 #else
 #define SPHERE_ROWS spheres
 #define CYLINDER_ROWS cylinders
+#define BOX_ROWS boxes
 #define PLANE_ROWS planes
 #define MESH_POSE(m) (mesh_rows + MESH_HEADER_ROWS * (m) + 2)  // the fixed pose, in the header
 #endif
@@ -212,6 +224,28 @@ __device__ __forceinline__ float3 collide_cylinder(float3 x, float4 a_len, float
 }
 #endif
 
+#if HAS_BOXES
+// An oriented box, rows (centre c, 0), (axis i, half extent h_i) for i = 0, 1, 2, axis i the
+// world direction of its local axis i: a particle strictly inside is moved along the axis of
+// least penetration (ties to the lower axis) onto the face on its side (+ at l_k == 0).
+__device__ __forceinline__ float3 collide_box(float3 x, float4 center, float4 ax0, float4 ax1, float4 ax2)
+{
+    const float3 d = minus(x, make_float3(center.x, center.y, center.z));
+    const float3 a0 = make_float3(ax0.x, ax0.y, ax0.z);
+    const float3 a1 = make_float3(ax1.x, ax1.y, ax1.z);
+    const float3 a2 = make_float3(ax2.x, ax2.y, ax2.z);
+    const float l0 = dot3(d, a0), l1 = dot3(d, a1), l2 = dot3(d, a2);  // the box's own coordinates
+    const float p0 = ax0.w - fabsf(l0), p1 = ax1.w - fabsf(l1), p2 = ax2.w - fabsf(l2);  // depths
+    if (!(p0 > 0.0f && p1 > 0.0f && p2 > 0.0f)) return x;
+    float3 u = a0;
+    float lk = l0, hk = ax0.w, pk = p0;
+    if (p1 < pk) u = a1, lk = l1, hk = ax1.w, pk = p1;
+    if (p2 < pk) u = a2, lk = l2, hk = ax2.w;
+    const float move = (lk >= 0.0f ? hk : -hk) - lk;
+    return make_float3(x.x + u.x * move, x.y + u.y * move, x.z + u.z * move);
+}
+#endif
+
 #if HAS_PLANES
 // A one-sided plane, rows (point p0, 0), (unit normal nrm, 0): solid where the signed
 // distance is negative (a floor); a particle below it is moved back onto it along nrm.
@@ -289,14 +323,15 @@ __device__ __forceinline__ float3 normal_at(Positions pos, int row, int col, int
 // specialised build's constants above, so the code below reads the same in both).
 #ifdef CLOTH_GENERIC
 #ifdef CLOTH_MOTION  // the collider rows are in the step's table: only their counts
-#define COLLIDER_PARAMS int sphere_count, int cylinder_count, int plane_count
-#define COLLIDER_ARGS sphere_count, cylinder_count, plane_count
+#define COLLIDER_PARAMS int sphere_count, int cylinder_count, int box_count, int plane_count
+#define COLLIDER_ARGS sphere_count, cylinder_count, box_count, plane_count
 #else
 #define COLLIDER_PARAMS                                                                     \
     const float4* __restrict__ spheres, int sphere_count,     /* (centre, radius) */        \
     const float4* __restrict__ cylinders, int cylinder_count, /* 3 rows, collide_cylinder */ \
+    const float4* __restrict__ boxes, int box_count,          /* 4 rows, collide_box */      \
     const float4* __restrict__ planes, int plane_count        /* 2 rows, collide_plane */
-#define COLLIDER_ARGS spheres, sphere_count, cylinders, cylinder_count, planes, plane_count
+#define COLLIDER_ARGS spheres, sphere_count, cylinders, cylinder_count, boxes, box_count, planes, plane_count
 #endif
 #define SCENE_PARAMS                                                                        \
     , int n,                              /* particles per side */                          \
@@ -399,7 +434,7 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
     float3 x_new = make_float3((2.0f * x.x - xp.x) + acc.x * dt2,
                                (2.0f * x.y - xp.y) + acc.y * dt2,
                                (2.0f * x.z - xp.z) + acc.z * dt2);
-    // every collider in the fixed order: all spheres, all cylinders, all planes, all meshes
+    // every collider in the fixed order: all spheres, cylinders, boxes, planes, then meshes
 #if HAS_SPHERES
     for (int s = 0; s < sphere_count; ++s)
         x_new = collide_sphere(x_new, SPHERE_ROWS[s]);
@@ -407,6 +442,10 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
 #if HAS_CYLINDERS
     for (int c = 0; c < cylinder_count; ++c)
         x_new = collide_cylinder(x_new, CYLINDER_ROWS[3 * c], CYLINDER_ROWS[3 * c + 1], CYLINDER_ROWS[3 * c + 2]);
+#endif
+#if HAS_BOXES
+    for (int o = 0; o < box_count; ++o)
+        x_new = collide_box(x_new, BOX_ROWS[4 * o], BOX_ROWS[4 * o + 1], BOX_ROWS[4 * o + 2], BOX_ROWS[4 * o + 3]);
 #endif
 #if HAS_PLANES
     for (int f = 0; f < plane_count; ++f)

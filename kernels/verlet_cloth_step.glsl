@@ -76,8 +76,8 @@ vec3 spring(vec3 x, vec3 xj, vec3 bv, float rest_o)
 
 #ifdef MOTION
 // A scene that moves (docs/semantics.md, "Moving colliders"): this step's collider rows, mesh
-// poses and attached-pin targets, MOTION_STRIDE vec4s per step at the offsets MOTION_CYLINDERS,
-// MOTION_PLANES, MOTION_MESHES, MOTION_PINS (clothbench/backends/gl/context.py,
+// poses and attached-pin targets, MOTION_STRIDE vec4s per step at the offsets MOTION_SPHERES,
+// MOTION_CYLINDERS, ..., MOTION_MESHES, MOTION_PINS (clothbench/backends/gl/bodies.py,
 // motion_offsets), evaluated on the host in float64 and rounded once. The host uploads the
 // rows of a block of steps before dispatching them; the kernel sets motion_base per step.
 layout(std430, binding = 6) readonly buffer MotionRows { vec4 motion_rows[]; };
@@ -91,10 +91,11 @@ layout(std430, binding = 10) readonly buffer PinSlots { int pin_slot[]; };
 #endif
 
 // Collisions (section 22.3): `vec3 collide(vec3 x)`, every collider in the fixed order
-// (spheres, cylinders, planes, then meshes). The host puts here the file of each collider
-// kind the program handles (kernels/collide_sphere.glsl, collide_cylinder.glsl,
-// collide_plane.glsl: only the kinds the scene has, or all three with GENERIC; and
-// collide_mesh.glsl only where the scene has meshes) and collide() calling them.
+// (spheres, cylinders, boxes, planes, then meshes: clothbench/colliders/kinds.py). The host
+// puts here the file of each collider kind the program handles (kernels/collide_sphere.glsl,
+// collide_cylinder.glsl, collide_box.glsl, collide_plane.glsl: only the kinds the scene has,
+// or all of them with GENERIC; and collide_mesh.glsl only where the scene has meshes) and
+// collide() calling them.
 #include <colliders>
 
 // One step for the particle at rc (Listing 22.1 steps 3-6); returns x(t + dt).

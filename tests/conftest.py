@@ -66,6 +66,37 @@ def every_collider_scene(n: int) -> Scene:
     )
 
 
+def three_kinds_scene(n: int = 32) -> Scene:
+    """A sphere, a cylinder and a floor that do not overlap (so no push-out can push a particle
+    into another collider), all under a falling sheet: the sheet touches all three in 1500 steps."""
+    return sphere(n).replace(
+        height=0.8,
+        spheres=(Sphere((0.3, 0.5, 0.35), 0.15),),
+        cylinders=(Cylinder((0.75, 0.45, 0.15), (0.75, 0.45, 0.85), 0.1),),
+        planes=(Plane((0.0, 0.25, 0.0), (0.0, 1.0, 0.0)),),
+    )
+
+
+def every_kind(n: int = 32) -> Scene:
+    """The built-in `cylinder` scene lowered onto a sphere and a raised, tilted floor, so that
+    within 300 steps all three kinds hold particles (tests/contract/test_collider_scenes_contract.py
+    checks that they do)."""
+    return load_scene("cylinder").replace(
+        name="every-kind", grid=n, height=0.7,
+        spheres=(Sphere((0.8, 0.45, 0.2), 0.2),), planes=(Plane((0.0, 0.6, 0.0), (0.15, 1.0, 0.0)),),
+    )  # fmt: skip
+
+
+def tilted_cylinder_scene(n: int = 24) -> Scene:
+    """A tilted cylinder and a raised, tilted floor: at n = 24 the sheet reaches both within 600
+    steps, so the side, the caps' arithmetic and the plane all run."""
+    return load_scene("cylinder").replace(
+        grid=n,
+        cylinders=(Cylinder((0.2, 0.45, 0.45), (0.8, 0.55, 0.6), 0.15),),
+        planes=(Plane((0.0, 0.55, 0.0), (0.1, 1.0, 0.05)),),
+    )
+
+
 def bent_state(n: int) -> tuple[Scene, np.ndarray]:
     """A sheet with hills and noise: every face a different direction."""
     scene = sphere(n)

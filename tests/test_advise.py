@@ -51,7 +51,7 @@ def advise_json(capsys, *args) -> tuple[int, dict]:
 
 
 def test_the_configuration_advise_names_for_drape_meets_the_error_when_run(tmp_path, capsys, monkeypatch):
-    # the issue's must-show as a user types it, from the repository root: the committed CSV
+    # as a user types it, from the repository root: the committed CSV
     monkeypatch.chdir(REPO)
     assert main(["advise", "--scene", "drape", "--max-error", str(E)]) == 0
     text = capsys.readouterr().out
@@ -248,7 +248,7 @@ def test_check_matches_takes_the_committed_run():
 
 
 def test_readme_advise_line_answers_from_another_folder(tmp_path, monkeypatch, capsys):
-    # issue 31 item 14: the committed results are found from the package, as its kernels are
+    # the committed results are found from the package, as its kernels are
     from pathlib import Path
 
     monkeypatch.chdir(tmp_path)

@@ -1,6 +1,6 @@
 """Which commit an installed clothbench is: its wheel records the commit of the checkout it was
 built from (hatch_build.py), and every row it measures says that commit and its version where
-there is no repository to ask (issue 31 item 5). The wheels are built offline from copies of this
+there is no repository to ask. The wheels are built offline from copies of this
 tree, by pip without build isolation: the hatchling installed here (clothbench[test])."""
 
 from __future__ import annotations

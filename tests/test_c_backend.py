@@ -57,7 +57,7 @@ def test_strict_f64_matches_numpy_f64_bit_for_bit(scene_name, steps):
     assert_bit_exact(got[1], want[1], f"prev, c strict f64 {scene_name} steps={steps}")
 
 
-@pytest.mark.parametrize("precision", ["f32", "f64"])
+@pytest.mark.parametrize("precision", ["f64"])  # f32: tests/contract/test_verlet_contract.py, every backend
 @pytest.mark.parametrize("n", [3, 4, 5, 6, 37])
 def test_strict_holds_on_grids_with_little_or_odd_interior(n, precision):
     # n < 5 has no interior at all (border code only); 37 leaves a ragged SIMD remainder
@@ -288,7 +288,7 @@ def test_tuning_chooses_a_candidate_and_remembers_it(tmp_path, monkeypatch):
 def test_gcc_vectorises_the_interior_loop(scene_name, strict, precision):
     # Not a timing: whether GCC reports the interior loop vectorised, for every collider kind.
     # It silently stops when a value is loaded only under a condition (a masked load GCC 12
-    # cannot vectorise here); the step then runs scalar, ~5x slower, with the same results.
+    # cannot vectorise here); the step then runs scalar, slower (docs/c.md), with the same results.
     import re
     import subprocess
 
@@ -316,7 +316,7 @@ def test_gcc_vectorises_the_interior_loop(scene_name, strict, precision):
     )
 
 
-# --- a busy machine: the threads the others leave free (issue 30 part 3) ---------------
+# --- a busy machine: the threads the others leave free -----------------------------------
 
 
 class _SeenLoad:

@@ -13,19 +13,20 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.c.verlet import SELF_FLAG, build_flags, load_library
 from clothbench.harness.health import self_contact
 from clothbench.harness.simulate import position_error
-from clothbench.scene import Cylinder, Plane, Sphere
+from clothbench.scene import Box, Cylinder, Plane, Sphere
 
 from conftest import VERLET, assert_bit_exact, require
 from folded_sheet import folded
 
 
 def folded_over_colliders():
-    """The folded sheet (y ~ 1) falling onto a sphere, a skewed cylinder and a tilted plane just
-    below it, so the colliders act after the pass within a few hundred steps."""
+    """The folded sheet (y ~ 1) falling onto a sphere, a skewed cylinder, a turned box and a
+    tilted plane just below it, so the colliders act after the pass within a few hundred steps."""
     scene, pos = folded()
     scene = scene.replace(
         spheres=(Sphere((0.5, 0.9, 0.25), 0.08),),
         cylinders=(Cylinder((0.1, 0.96, 0.1), (0.9, 0.97, 0.15), 0.02),),
+        boxes=(Box((0.8, 0.93, 0.35), (0.06, 0.04, 0.06), (10.0, 20.0, 5.0)),),
         planes=(Plane((0.0, 0.95, 0.0), (0.05, 1.0, 0.02)),),
     )
     return scene, pos
@@ -51,7 +52,7 @@ def test_strict_with_colliders_matches_numpy_pos_and_prev_bit_for_bit(precision,
     assert_bit_exact(got[1], want[1], f"prev {precision} {splits}")
     if sum(splits) == 300:
         alone = run("numpy", scene.replace(self_collision=None), pos, (300,), BackendOptions(precision=precision))
-        bare = run("numpy", scene.replace(spheres=(), cylinders=(), planes=()), pos, (300,), BackendOptions())
+        bare = run("numpy", scene.replace(spheres=(), cylinders=(), boxes=(), planes=()), pos, (300,), BackendOptions())
         assert not np.array_equal(want[0], alone[0]), "the pass pushed no pair: the test shows nothing"
         assert not np.allclose(want[0][:, :3], bare[0][:, :3], atol=1e-3), "no collider acted"
 

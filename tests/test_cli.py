@@ -28,7 +28,7 @@ RUN_KEYS = {
 
 
 def test_run_prints_json_from_a_real_process():
-    # the issue's must-show, as a user types it (through the installed package)
+    # as a user types it (through the installed package)
     out = subprocess.run(
         [
             sys.executable,
@@ -108,7 +108,7 @@ def test_backends_lists_the_driver_run_prints(backend, capsys):
         (["run", "--steps", "0"], "steps must be an integer >= 1"),
         (["run", "--dt", "0"], "dt must be > 0"),
         (["run", "--dt=-1e-3"], "dt must be > 0"),
-        # issue 31 item 13: a negative number is a value, so the range check answers
+        # a negative number is a value, so the range check answers
         (["run", "--dt", "-1e-3"], "dt must be > 0"),
         (["run", "--dt", "-inf"], "dt must be a finite number"),
         (["run", "--grid", "-5"], "grid must be an integer >= 3"),
@@ -243,7 +243,7 @@ def test_backends_table_prints_an_install_hint_with_its_brackets(capsys):
 
 
 def test_sweep_columns_names_every_backend_that_runs_f64(capsys):
-    # issue 31 item 3: not "numpy only" while c runs f64 too; from the declared Capabilities
+    # not "numpy only" while c runs f64 too; from the declared Capabilities
     from clothbench.backends import BACKENDS, capabilities
 
     f64 = [n for n, e in BACKENDS.items() if any("f64" in capabilities(n, s).precisions for s in e.solvers())]
@@ -262,7 +262,7 @@ def test_pbd_options_with_the_pbd_solver_still_run(capsys):
 
 
 def test_accuracy_help_agrees_with_docs_pbd_on_when_the_methods_meet(capsys):
-    # issue 31 item 4: not "they converge to different answers"
+    # not "they converge to different answers"
     import re
     from pathlib import Path
 
@@ -286,7 +286,7 @@ DEVICE = {"device": "0:0", "default": True, "name": "Intel(R) Xeon(R) Processor 
 
 @pytest.mark.parametrize("width", [80, 40])
 def test_backends_device_list_fits_a_narrow_terminal_with_every_cell_whole(width, capsys):
-    # issue 31 item 16: at 80 columns (or piped) the table cut cells to "Intel… Xeon(… Proce…"
+    # at 80 columns (or piped) no cell may be cut, as in "Intel… Xeon(… Proce…"
     from clothbench.cli.backends import print_opencl_devices
 
     print_opencl_devices([DEVICE], "default: 0:0", width=width)

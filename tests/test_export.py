@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -115,6 +116,26 @@ def test_a_moving_collider_is_time_sampled_at_its_pose_and_a_still_one_is_not(tm
     for prim in stage.GetPrimAtPath("/World/Colliders").GetChildren():
         if prim.GetName() != "mesh_0":
             assert not UsdGeom.Xformable(prim).GetTimeSamples(), f"{prim.GetName()} does not move"
+
+
+def test_a_box_is_a_cube_prim_where_the_box_is_and_a_moving_one_follows_its_pose(tmp_path):
+    out = tmp_path / "boxes.usd"
+    scene_file = str(Path(__file__).parent / "data" / "boxes.toml")
+    run(tmp_path, "--export", str(out), "--export-every", "10", scene=scene_file, steps=20)
+    stage = Usd.Stage.Open(str(out))
+    for i, box in enumerate(load_setup(scene_file).scene.boxes):
+        prim = stage.GetPrimAtPath(f"/World/Colliders/box_{i}")
+        assert prim.IsA(UsdGeom.Cube), box.name
+        for code in (0.0, 2.0):
+            rotation, centre = body_pose(box, code * 10 * DT)
+            corners = np.array(
+                [centre + rotation @ ((2 * np.array(c) - 1) * box.half_extents) for c in np.ndindex(2, 2, 2)]
+            )
+            cache = UsdGeom.BBoxCache(Usd.TimeCode(code), [UsdGeom.Tokens.default_])
+            r = cache.ComputeWorldBound(prim).ComputeAlignedRange()
+            assert np.allclose(np.array(r.GetMin()), corners.min(axis=0), atol=1e-9), (box.name, code)
+            assert np.allclose(np.array(r.GetMax()), corners.max(axis=0), atol=1e-9), (box.name, code)
+        assert bool(UsdGeom.Xformable(prim).GetTimeSamples()) == (box.motion is not None), box.name
 
 
 def test_a_200_frame_64_squared_run_is_under_20_mb(tmp_path):

@@ -57,8 +57,10 @@ def test_gpu_check_bad_input_is_one_line_and_exit_2(argv, message):
 
 
 def test_build_wheelhouse_bad_input_is_one_line_and_exit_2(tmp_path):
-    for argv, message in ((["--max-mib", "0"], "--max-mib must be > 0"),
-                          (["--check", "--out", str(tmp_path / "absent")], "is not a folder")):  # fmt: skip
+    for argv, message in (
+        (["--max-mib", "0"], "--max-mib must be > 0"),
+        (["--check", "--out", str(tmp_path / "absent")], "is not a folder"),
+    ):
         result = run_tool(BUILD_WHEELHOUSE, *argv)
         assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
         assert result.stderr.startswith("build-wheelhouse: ") and message in result.stderr
@@ -85,8 +87,11 @@ def test_wheelhouse_over_its_limit_fails_in_one_line(tmp_path):
 def test_wheels_for_another_python_are_recognised():
     tool = load_tool(GPU_CHECK)
     here = f"cp{sys.version_info.major}{sys.version_info.minor}"
-    names = [f"moderngl-5.13.0-{here}-{here}-manylinux2014_x86_64.whl", "pytools-2026.1.1-py3-none-any.whl",
-             "glcontext-3.1.0-cp29-cp29-manylinux1_x86_64.whl"]  # fmt: skip
+    names = [
+        f"moderngl-5.13.0-{here}-{here}-manylinux2014_x86_64.whl",
+        "pytools-2026.1.1-py3-none-any.whl",
+        "glcontext-3.1.0-cp29-cp29-manylinux1_x86_64.whl",
+    ]
     assert tool.foreign_wheels([Path(n) for n in names]) == ["glcontext-3.1.0-cp29-cp29-manylinux1_x86_64.whl"]
 
 
@@ -130,8 +135,15 @@ def test_without_a_gpu_the_summary_says_why_each_gpu_part_was_skipped_and_the_cp
         assert result.returncode == 0, result.stderr[-2000:]
     summary = (out / "summary.md").read_text()
     gpu_parts = summary.split("## GPU parts")[1].split("\n## ")[0]
-    for part in ("CUDA backend", "GL fragment on the NVIDIA driver", "GL compute on the NVIDIA driver",
-                 "OpenCL on the NVIDIA ICD", "GPU copy bandwidth", "GPU tests", "GPU peers in the sweep"):  # fmt: skip
+    for part in (
+        "CUDA backend",
+        "GL fragment on the NVIDIA driver",
+        "GL compute on the NVIDIA driver",
+        "OpenCL on the NVIDIA ICD",
+        "GPU copy bandwidth",
+        "GPU tests",
+        "GPU peers in the sweep",
+    ):
         line = next((row for row in gpu_parts.splitlines() if row.startswith(f"- {part}")), None)
         assert line is not None, f"{part} missing from:\n{gpu_parts}"
         assert "skipped: nvidia-smi not found" in line, line

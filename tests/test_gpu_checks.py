@@ -1,4 +1,4 @@
-"""The GPU checks of issue 15 that no other test file makes: each runs only on an NVIDIA GPU
+"""The GPU checks that no other test file makes: each runs only on an NVIDIA GPU
 (tools/gpu-check runs them there) and skips elsewhere with the reason.
 
 - CUDA strict after 1 and 500 steps on every built-in scene in the copy transfer mode (the
@@ -62,6 +62,9 @@ def test_cuda_strict_in_copy_mode_matches_numpy_f32_bit_for_bit(scene_name, step
     require("cuda")
     assert "copy" in capabilities("cuda").transfers
     scene = scene_named(scene_name)
+    refusal = capabilities("cuda").scene_refusal("cuda", scene)
+    if refusal:  # a scene the cuda backend does not take yet ([self_collision])
+        pytest.skip(refusal)
     pos, prev = simulate("cuda", scene, VERLET, steps, BackendOptions(strict=True, transfer="copy"))
     ref_pos, ref_prev = reference(scene, VERLET, steps, "f32")
     assert_bit_exact(pos, ref_pos, f"pos, cuda copy {scene_name} steps={steps}")

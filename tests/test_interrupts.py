@@ -164,8 +164,13 @@ def test_an_interrupted_study_keeps_its_finished_rows_and_resume_completes_it(tm
     env = dict(
         os.environ, CLOTHBENCH_FAULT="numpy:hang", CLOTHBENCH_FAULT_AFTER="1", CLOTHBENCH_FAULT_READY=str(started)
     )
-    proc = subprocess.Popen(_clothbench(*STUDIES[command], "--out", str(out)), env=env,
-                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        _clothbench(*STUDIES[command], "--out", str(out)),
+        env=env,
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     wait_until(lambda: _data_rows(out) >= 1, proc, "a finished row")  # the header and a finished row
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)

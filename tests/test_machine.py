@@ -23,10 +23,12 @@ def recorded_sampler(other_cores: float, steal_share: float = 0.0, cores: int = 
     worth of others' busy time (this process used none) and `steal_share` of the machine stolen."""
     total = cores * TICKS
     busy, steal = round(other_cores * TICKS), round(steal_share * total)
-    lines = iter([
-        "cpu 1000 0 0 9000 0 0 0 0 0 0",
-        f"cpu {1000 + busy} 0 0 {9000 + total - busy - steal} 0 0 0 {steal} 0 0",
-    ])  # fmt: skip
+    lines = iter(
+        [
+            "cpu 1000 0 0 9000 0 0 0 0 0 0",
+            f"cpu {1000 + busy} 0 0 {9000 + total - busy - steal} 0 0 0 {steal} 0 0",
+        ]
+    )
     clock = itertools.chain([0.0], itertools.repeat(1.0))  # the window opens at 0 and is 1 s long
     return LoadSampler(lambda: next(lines), lambda: next(clock), lambda: 0.0, cores, lambda s: None, TICKS)
 
@@ -93,20 +95,27 @@ def test_a_busy_machine_names_the_process_that_used_it_and_what_to_do(tmp_path):
 
 
 def test_steal_alone_makes_it_busy(tmp_path):
-    f = machine_fitness.check(recorded_sampler(0.0, steal_share=0.2), 1.0, fake_proc(tmp_path, {}),
-                              fake_sys(tmp_path, "performance"), [0, 1])  # fmt: skip
+    f = machine_fitness.check(
+        recorded_sampler(0.0, steal_share=0.2), 1.0, fake_proc(tmp_path, {}), fake_sys(tmp_path, "performance"), [0, 1]
+    )
     assert f.fit is False and "steal 20%" in f.verdict
 
 
 def test_a_powersave_governor_is_a_problem_and_turbo_siblings_and_unreadable_cpufreq_are_notes(tmp_path):
-    f = machine_fitness.check(recorded_sampler(0.0), 1.0, fake_proc(tmp_path, {}),
-                              fake_sys(tmp_path, "powersave", "0", siblings={0: "0-1", 1: "0-1"}), [0, 1])  # fmt: skip
+    f = machine_fitness.check(
+        recorded_sampler(0.0),
+        1.0,
+        fake_proc(tmp_path, {}),
+        fake_sys(tmp_path, "powersave", "0", siblings={0: "0-1", 1: "0-1"}),
+        [0, 1],
+    )
     assert f.fit is False and f.verdict == "frequency governor powersave"
     assert "performance" in f.problems[0].fix
     assert f.turbo is True and any("turbo boost is on" in n for n in f.notes)
     assert f.smt_shared == [(0, 1)] and any("0+1 are hyperthreads of one core" in n for n in f.notes)
-    bare = machine_fitness.check(recorded_sampler(0.0), 1.0, fake_proc(tmp_path / "b", {}), fake_sys(tmp_path / "b"),
-                                 [0, 1])  # fmt: skip
+    bare = machine_fitness.check(
+        recorded_sampler(0.0), 1.0, fake_proc(tmp_path / "b", {}), fake_sys(tmp_path / "b"), [0, 1]
+    )
     assert bare.fit is True and bare.turbo is None and bare.governors == {}
     assert any("governor not readable" in n for n in bare.notes)
 
@@ -174,7 +183,7 @@ def test_a_sweep_says_at_its_start_whether_the_machine_is_fit(monkeypatch, capsy
     assert not any(x.startswith("machine: ") for x in capsys.readouterr().err.splitlines())
 
 
-# --- the machine's state in every row (issue 30 part 1) -------------------------------
+# --- the machine's state in every row -----------------------------------------------
 
 
 class FixedLoad(LoadSampler):
@@ -183,8 +192,9 @@ class FixedLoad(LoadSampler):
 
     def __init__(self, other_cores: float):
         busy = round(other_cores * TICKS)  # of 2 cores x 100 ticks in the second
-        self.lines = itertools.cycle(["cpu 1000 0 0 9000 0 0 0 0 0 0",
-                                      f"cpu {1000 + busy} 0 0 {9000 + 2 * TICKS - busy} 0 0 0 0 0 0"])  # fmt: skip
+        self.lines = itertools.cycle(
+            ["cpu 1000 0 0 9000 0 0 0 0 0 0", f"cpu {1000 + busy} 0 0 {9000 + 2 * TICKS - busy} 0 0 0 0 0 0"]
+        )
         self.t = 0.0
         super().__init__(lambda: next(self.lines), self._tick, lambda: 0.0, 2, lambda s: None, TICKS)
 
@@ -205,8 +215,9 @@ def machine_seen_as(monkeypatch):
 
 
 @pytest.mark.parametrize("other_cores, busy", [(1.2, True), (0.02, False)])
-def test_a_sweep_row_records_how_busy_the_machine_was_and_a_busy_one_says_so(machine_seen_as, tmp_path, capsys,
-                                                                             other_cores, busy):  # fmt: skip
+def test_a_sweep_row_records_how_busy_the_machine_was_and_a_busy_one_says_so(
+    machine_seen_as, tmp_path, capsys, other_cores, busy
+):
     import csv
 
     machine_seen_as(other_cores)

@@ -1,4 +1,4 @@
-"""Mesh size, mesh algorithm and motion as sweep dimensions (issue 17): the options and their
+"""Mesh size, mesh algorithm and motion as sweep dimensions: the options and their
 one-line refusals, the triangle count a built-in shape is set to, the rows a sweep writes, the
 backends a scene is refused by (skipped with the reason, never a failed row), the mesh figure,
 and mesh colliders in `clothbench render`."""

@@ -1,23 +1,23 @@
 """Triangle-mesh colliders (docs/semantics.md, "Triangle mesh"): the scene format and its
 refusals, the response on hard cases (a vertex, an edge, an open skin, degenerate triangles, far
-from the origin, a fast pass), the BVH traversal giving the naive loop's triangle and bits, and a
-mesh scene's final state checked against the mesh by trimesh, not by the reference's answer."""
+from the origin, a fast pass), the BVH traversal giving the naive loop's triangle and bits, and the
+check of a state against the mesh itself (a winding number) that the contract applies to every
+backend's mesh scenes (tests/contract/test_bodies_contract.py)."""
 
 import numpy as np
 import pytest
 
 trimesh = pytest.importorskip("trimesh", reason="mesh colliders load with trimesh (pip install trimesh)")
 
-from clothbench.backends import BACKENDS, BackendOptions, backend_class, create_backend
+from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.kernel_inputs import MeshConstants, pose_rows
 from clothbench.backends.numpy.collide_mesh import (
     closest_triangle_bvh, closest_triangle_naive, collide_mesh,
 )  # fmt: skip
 from clothbench.cli import main
 from clothbench.colliders.mesh import Mesh
-from clothbench.errors import ClothbenchError, SceneError
-from clothbench.harness import simulate
-from clothbench.scene import Scene, Sphere, load_scene, load_setup
+from clothbench.errors import SceneError
+from clothbench.scene import Scene, Sphere, load_scene
 from clothbench.solver import Verlet
 
 F32 = BackendOptions(precision="f32")
@@ -145,19 +145,6 @@ def test_bad_meshes_are_one_line_and_exit_2(tmp_path, capsys, mesh, files, messa
     assert err.count("\n") == 1 and "Traceback" not in err
 
 
-def test_backends_without_meshes_refuse_in_one_line_before_any_work():
-    scene = still(Mesh(shape="box"))
-    refusal = backend_class("c").capabilities.scene_refusal("c", scene)
-    takers = [n for n, e in BACKENDS.items() if e.verlet and "verlet" in backend_class(n).capabilities.meshes]
-    assert "numpy" in takers and "c" not in takers
-    verb = "does" if len(takers) == 1 else "do"
-    assert (
-        refusal == f"c does not take mesh colliders yet (it takes: sphere, cylinder, plane; {', '.join(takers)} {verb})"
-    )
-    with pytest.raises(ClothbenchError, match="^c does not take mesh colliders yet"):
-        backend_class("c")(scene, VERLET, BackendOptions())  # refused before its library is built
-
-
 # --- the response --------------------------------------------------------------------------
 
 
@@ -258,7 +245,7 @@ def probe_points(mesh, rng, count):
         (Mesh(shape="icosphere"), 300),  # 20
         (Mesh(shape="torus", subdivisions=1), 200),  # 1024
         (Mesh(shape="box", subdivisions=3, scale=(1.0, 0.2, 2.0)), 150),  # 768, thin, ties on faces
-        pytest.param(Mesh(shape="icosphere", subdivisions=5), 60, marks=pytest.mark.full),  # 20480: 20 s
+        pytest.param(Mesh(shape="icosphere", subdivisions=5), 60, marks=pytest.mark.full),  # 20480: slow
     ],
     ids=["box-12", "icosphere-20", "torus-1024", "slab-768", "icosphere-20480"],
 )
@@ -292,22 +279,3 @@ def test_bvh_and_naive_collisions_move_particles_to_the_same_bits():
 def test_bvh_fits_the_kernels_stack():
     bvh = Mesh(shape="icosphere", subdivisions=6).geometry.bvh  # 81,920 triangles
     assert bvh.depth <= 32 and sorted(bvh.tris.tolist()) == list(range(81920))
-
-
-# --- a mesh scene, checked against the mesh ------------------------------------------------
-
-
-def test_cloth_dropped_on_the_torus_ends_outside_it():
-    # 400 steps: contact from about step 200, the sheet draped over the tube by the end
-    run = load_setup("torus").replace(grid=32)
-    pos, _ = simulate("numpy", run.scene, run.solver, 400, F32)
-    x = pos[:, :3].astype(np.float64)
-    torus = run.scene.meshes[0]
-    tm = world_mesh(torus)
-    assert tm.is_watertight
-    tube = np.array([[torus.position[0] + 0.35, torus.position[1], torus.position[2]]])
-    assert winding_number(tm, tube)[0] == pytest.approx(1.0, abs=1e-6)  # the check itself
-    _, dist, _ = trimesh.proximity.closest_point_naive(tm, x)
-    inside = winding_number(tm, x) > 0.5
-    assert dist.min() < 1e-3  # the cloth lies on the torus: this is not vacuous
-    assert inside.sum() == 0 or dist[inside].max() <= 1e-5, f"{inside.sum()} inside, deepest {dist[inside].max():.3g} m"

@@ -1,21 +1,22 @@
 """Moving colliders and pins attached to a body (docs/semantics.md, "Moving colliders" and
 "Pins attached to a body"): poses per step in float64 rounded once, the motion carrying the
-cloth, pins following a body exactly, keyframes, refusals, and the built-in scenes that move."""
+cloth, pins following a body exactly, keyframes and refusals. The built-in scenes that move
+(the carried sheet's pins on the bar, the paddle leaving no particle inside) are checked on
+every backend that takes them by tests/contract/test_bodies_contract.py."""
 
 import numpy as np
 import pytest
 
 pytest.importorskip("trimesh", reason="the built-in mesh scenes load with trimesh (pip install trimesh)")
 
-from clothbench.backends import BACKENDS, BackendOptions, backend_class
+from clothbench.backends import BackendOptions
 from clothbench.backends.kernel_inputs import collider_rows
 from clothbench.colliders.motion import Frame, Motion
 from clothbench.errors import SceneError
 from clothbench.harness import simulate
-from clothbench.scene import Plane, Scene, Sphere, load_scene, load_setup
+from clothbench.scene import Plane, Scene, Sphere, load_scene
 from clothbench.solver import Verlet
 
-F32 = BackendOptions(precision="f32")
 DT = 5e-4
 VERLET = Verlet(dt=DT)
 
@@ -117,50 +118,3 @@ def test_bad_motion_and_attachments_are_refused(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(SceneError, match=message):
         load_scene(str(path))
-
-
-def test_backends_without_motion_refuse_in_one_line():
-    scene = load_scene("carried")
-    refusal = backend_class("c").capabilities.scene_refusal("c", scene)
-    takers = [n for n, e in BACKENDS.items() if e.verlet and "verlet" in backend_class(n).capabilities.moving_colliders]
-    assert "numpy" in takers and "c" not in takers
-    verb = "does" if len(takers) == 1 else "do"
-    assert (
-        refusal
-        == f"c does not take moving colliders yet (it takes: fixed colliders and fixed pins; {', '.join(takers)} {verb})"
-    )
-    pinned = Scene(grid=4, pin_edge="top", pin_attach="f", frames=(Frame("f"),))
-    assert "pins attached to a body" in backend_class("c").capabilities.scene_refusal("c", pinned)
-
-
-# --- the built-in scenes that move ---------------------------------------------------------
-
-
-def test_the_carried_sheets_pinned_edge_moves_with_the_bar():
-    setup = load_setup("carried").replace(grid=16)
-    s = setup.scene
-    steps = 1000  # 0.5 s: a quarter of the bar's 0.6 m keyframed travel
-    pos, _ = simulate("numpy", s, setup.solver, steps, F32)
-    x0 = s.initial_state(np.float64)[0][s.pinned(), :3]
-    expected = (x0 + (0.0, 0.0, 0.6 * steps * DT / 2.0)).astype(np.float32)
-    np.testing.assert_array_equal(pos[s.pinned(), :3], expected)
-    assert np.isfinite(pos).all()
-
-
-def test_the_rotating_paddle_pushes_the_curtain_and_leaves_no_particle_inside():
-    import trimesh
-
-    from test_meshes import winding_number, world_mesh
-
-    setup = load_setup("sweep").replace(grid=24)
-    s = setup.scene
-    steps = 1200  # 0.6 s: the curtain has swung down onto the paddle's path
-    pos, _ = simulate("numpy", s, setup.solver, steps, F32)
-    still = s.replace(meshes=())
-    unswept, _ = simulate("numpy", still, setup.solver, steps, F32)
-    assert np.abs(pos[:, :3] - unswept[:, :3]).max() > 0.05  # the paddle did push the curtain
-    paddle = world_mesh(s.meshes[0], steps * DT)
-    x = pos[:, :3].astype(np.float64)
-    inside = winding_number(paddle, x) > 0.5
-    _, dist, _ = trimesh.proximity.closest_point_naive(paddle, x)
-    assert inside.sum() == 0 or dist[inside].max() <= 1e-5

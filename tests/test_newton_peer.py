@@ -76,7 +76,7 @@ def test_pinned_particles_never_move():
     assert np.abs(pos[~pinned, 1] - start[~pinned, 1]).max() > 0.1, "the free cloth moved"
 
 
-@pytest.mark.full  # Newton's contact kernels compile cold (20 s here); the quick tier runs its drape and pins
+@pytest.mark.full  # Newton's contact kernels are slow to compile cold; the quick tier runs its drape and pins
 def test_collisions_keep_the_curtain_outside_the_sphere():
     require("newton")
     scene = load_scene("curtain").replace(grid=16, damping=0.0)

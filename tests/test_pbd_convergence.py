@@ -26,9 +26,9 @@ def rms_distance(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.mark.parametrize(
     "steps, iterations, tolerance",
     [
-        # measured 1e-8 m; the old Jacobi (full dlam into lambda) 9.6e-6 m: 1000x apart
+        # measured 1e-8 m; a Jacobi that adds the full dlam into lambda 9.6e-6 m: 1000x apart
         (1, 2000, 1e-7),
-        # measured 8e-6 m; the old Jacobi 4.5e-4 m. The rest is not Jacobi's: each form's
+        # measured 8e-6 m; that full-dlam Jacobi 4.5e-4 m. The rest is not Jacobi's: each form's
         # converged XPBD answer depends on its path (docs/pbd.md), and the sheet speeds up
         (3, 1000, 5e-5),
     ],

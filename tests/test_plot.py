@@ -26,14 +26,38 @@ def row(**values) -> dict[str, str]:
     ms = float(values.pop("ms", 1e-4 * n * n))
     r = dict.fromkeys(COLUMNS, "")
     r.update(
-        backend="numpy", peer="false", solver="verlet", mode="f32", precision="f32", strict="false",
-        generic="false", device="Test CPU", scene="sphere", grid=str(n), particles=str(n * n),
-        springs="0", dt="0.0005", steps="10", repeats="5", simulated_s="0.025", status="ok",
-        ms_median=str(ms), ms_min=str(ms * 0.9), ms_max=str(ms * 1.2), ms_iqr=str(ms * 0.1),
-        particles_per_s=str(n * n * 1e3 / ms), ms_per_sim_s=str(ms / 5e-4), finite="true",
-        err_rms_m="1e-6", err_max_m="2e-6", timed_region="steps", cpu="Test CPU", cores="2",
-        git_commit="abc123", timestamp="2026-01-01T00:00:00+00:00",
-    )  # fmt: skip
+        backend="numpy",
+        peer="false",
+        solver="verlet",
+        mode="f32",
+        precision="f32",
+        strict="false",
+        generic="false",
+        device="Test CPU",
+        scene="sphere",
+        grid=str(n),
+        particles=str(n * n),
+        springs="0",
+        dt="0.0005",
+        steps="10",
+        repeats="5",
+        simulated_s="0.025",
+        status="ok",
+        ms_median=str(ms),
+        ms_min=str(ms * 0.9),
+        ms_max=str(ms * 1.2),
+        ms_iqr=str(ms * 0.1),
+        particles_per_s=str(n * n * 1e3 / ms),
+        ms_per_sim_s=str(ms / 5e-4),
+        finite="true",
+        err_rms_m="1e-6",
+        err_max_m="2e-6",
+        timed_region="steps",
+        cpu="Test CPU",
+        cores="2",
+        git_commit="abc123",
+        timestamp="2026-01-01T00:00:00+00:00",
+    )
     r.update({k: str(v) for k, v in values.items()})
     return r
 
@@ -47,12 +71,23 @@ def sample_rows() -> list[dict[str, str]]:
     grids = (16, 32, 64)
     rows = [row(grid=n) for n in grids]
     rows += [row(grid=n, mode="f64", precision="f64", ms=2e-4 * n * n, err_rms_m=0, err_max_m=0) for n in grids]
-    rows += [row(grid=n, backend="glsl", mode="strict", strict="true", device="llvmpipe", ms=0.05 + 1e-5 * n * n)
-             for n in grids]  # fmt: skip
+    rows += [
+        row(grid=n, backend="glsl", mode="strict", strict="true", device="llvmpipe", ms=0.05 + 1e-5 * n * n)
+        for n in grids
+    ]
     rows += [row(grid=n, backend="taichi", peer="true", mode="default", ms=0.2 + 2e-5 * n * n) for n in grids]
     # a backend whose mode names its local size: still one line across sizes
-    rows += [row(grid=64, backend="opencl", mode=f"fast/resident/ls={ls}", device="pthread-Test", local_size=ls,
-                 ms=0.3 + ls / 200) for ls in (16, 32, 64, 128)]  # fmt: skip
+    rows += [
+        row(
+            grid=64,
+            backend="opencl",
+            mode=f"fast/resident/ls={ls}",
+            device="pthread-Test",
+            local_size=ls,
+            ms=0.3 + ls / 200,
+        )
+        for ls in (16, 32, 64, 128)
+    ]
     rows.append(row(grid=64, backend="opencl", mode="fast/resident/ls=auto", device="pthread-Test", ms=0.35))
     bad = row(grid=64, backend="cuda", mode="swap", status="failed", note="CUDARuntimeError: no device")
     bad.update(dict.fromkeys(("ms_median", "ms_min", "ms_max", "particles_per_s", "err_rms_m"), ""))
@@ -77,8 +112,12 @@ def test_plot_writes_every_figure_as_a_non_empty_png_and_svg(tmp_path):
         assert "<svg" in (tmp_path / "plots" / f"{name}.svg").read_text()[:1000]
     # one line per variant, peers marked; local sizes of one variant make one line per grid
     assert report.series["time_vs_grid"] == [
-        "CPU (numpy) f32", "CPU (numpy) f64", "GLSL strict", "Taichi (peer)", "OpenCL",
-    ]  # fmt: skip
+        "CPU (numpy) f32",
+        "CPU (numpy) f64",
+        "GLSL strict",
+        "Taichi (peer)",
+        "OpenCL",
+    ]
     assert report.series["local_size"] == ["OpenCL, n=64"]
     # numpy was made linear in N, GLSL mostly constant: the fitted exponents say so
     assert report.exponents["CPU (numpy) f32"] == pytest.approx(1.0)
@@ -113,23 +152,63 @@ def many_variant_rows(grids=(32, 64, 128), **extra) -> list[dict[str, str]]:
     for n in grids:
         base = 1e-4 * n * n
         for p in ("f32", "f64"):
-            rows.append(row(grid=n, mode=p, precision=p, ms=base * (2 if p == "f64" else 1),
-                            err_rms_m=0 if p == "f64" else 1e-6, **extra))  # fmt: skip
+            rows.append(
+                row(
+                    grid=n,
+                    mode=p,
+                    precision=p,
+                    ms=base * (2 if p == "f64" else 1),
+                    err_rms_m=0 if p == "f64" else 1e-6,
+                    **extra,
+                )
+            )
         for strict in ("true", "false"):
             for transfer in ("resident", "per-step"):
                 for generic in ("false", "true"):
-                    rows.append(row(grid=n, backend="opencl", device="pthread", strict=strict, transfer=transfer,
-                                    generic=generic, mode=f"{strict}/{transfer}/{generic}", err_rms_m=1.01e-6,
-                                    ms=base / (3 if strict == "false" else 2) * (2 if generic == "true" else 1),
-                                    **extra))  # fmt: skip
+                    rows.append(
+                        row(
+                            grid=n,
+                            backend="opencl",
+                            device="pthread",
+                            strict=strict,
+                            transfer=transfer,
+                            generic=generic,
+                            mode=f"{strict}/{transfer}/{generic}",
+                            err_rms_m=1.01e-6,
+                            ms=base / (3 if strict == "false" else 2) * (2 if generic == "true" else 1),
+                            **extra,
+                        )
+                    )
             for method in ("jacobi", "coloured"):
-                rows.append(row(grid=n, backend="opencl", device="pthread", strict=strict, solver="pbd",
-                                pbd_method=method, mode=f"{strict}/pbd", ms=base * 10, **extra))  # fmt: skip
+                rows.append(
+                    row(
+                        grid=n,
+                        backend="opencl",
+                        device="pthread",
+                        strict=strict,
+                        solver="pbd",
+                        pbd_method=method,
+                        mode=f"{strict}/pbd",
+                        ms=base * 10,
+                        **extra,
+                    )
+                )
         for backend in ("glsl", "glsl-compute"):
             for strict in ("true", "false"):
                 for generic in ("false", "true"):
-                    rows.append(row(grid=n, backend=backend, device="llvmpipe", strict=strict, generic=generic,
-                                    mode=f"{strict}/{generic}", ms=base / 1.5, err_rms_m=0.9e-6, **extra))  # fmt: skip
+                    rows.append(
+                        row(
+                            grid=n,
+                            backend=backend,
+                            device="llvmpipe",
+                            strict=strict,
+                            generic=generic,
+                            mode=f"{strict}/{generic}",
+                            ms=base / 1.5,
+                            err_rms_m=0.9e-6,
+                            **extra,
+                        )
+                    )
         rows.append(row(grid=n, backend="cuda", device="GPU", mode="swap", ms=base / 50, err_rms_m=1.2e-6, **extra))
         for backend in ("taichi", "warp", "numba"):
             rows.append(row(grid=n, backend=backend, peer="true", mode="default", ms=base / 1.2, **extra))
@@ -168,8 +247,15 @@ def test_no_panel_carries_more_than_eight_series_and_every_variant_is_drawn_once
         assert all(len(labels) <= MAX_SERIES for labels in panels.values()), panels
         detail = [label for title, labels in panels.items() if "fastest" not in title for label in labels]
         assert sorted(detail) == sorted(report.series[name]) and len(detail) == 26
-        assert list(panels)[1:] == ["CPU (numpy, c)", "OpenCL, Verlet", "OpenCL, PBD jacobi", "OpenCL, PBD coloured",
-                                    "GL", "CUDA", "peers"]  # fmt: skip
+        assert list(panels)[1:] == [
+            "CPU (numpy, c)",
+            "OpenCL, Verlet",
+            "OpenCL, PBD jacobi",
+            "OpenCL, PBD coloured",
+            "GL",
+            "CUDA",
+            "peers",
+        ]
         assert "fastest" in list(panels)[0]
     assert all(len(platforms) <= MAX_SERIES for platforms in report.charts["speed_vs_error"].panels.values())
 
@@ -186,8 +272,12 @@ def test_peers_are_dashed_with_hollow_markers_and_say_peer(tmp_path):
     for line in legend_lines(numpy_ax).values():
         assert line.get_linestyle() == "-" and line.get_markerfacecolor() != "white"
     # speed against error: a legend entry says which hollow points are peers
-    key = [t.get_text() for ax in report.charts["speed_vs_error"].figure.axes if ax.get_legend()
-           for t in ax.get_legend().get_texts()]  # fmt: skip
+    key = [
+        t.get_text()
+        for ax in report.charts["speed_vs_error"].figure.axes
+        if ax.get_legend()
+        for t in ax.get_legend().get_texts()
+    ]
     assert any("peer" in t for t in key) and any("Pareto front" in t for t in key)
 
 
@@ -227,8 +317,12 @@ def test_the_machine_bound_is_drawn_only_where_the_csv_has_it(tmp_path, with_bou
     rows = many_variant_rows(bound_ms="0.001") if with_bound else many_variant_rows()
     report = draw_sweep(write_csv(tmp_path / "b.csv", rows, columns=columns))
     for name in ("time_vs_grid", "throughput"):
-        bound_lines = [line for ax in report.charts[name].figure.axes for line in ax.get_lines()
-                       if line.get_label().startswith("machine bound")]  # fmt: skip
+        bound_lines = [
+            line
+            for ax in report.charts[name].figure.axes
+            for line in ax.get_lines()
+            if line.get_label().startswith("machine bound")
+        ]
         if with_bound:  # every panel, one line per device in it, across its grids
             assert len(bound_lines) >= len(report.charts[name].panels)
             assert all(len(line.get_xdata()) == 3 for line in bound_lines)
@@ -306,13 +400,30 @@ def test_front_labels_never_overlap_and_a_moved_one_is_joined_to_its_point(tmp_p
     # time, its label where the "real time" line's name is
     n = 2048
     rows = [row(grid=g, mode="f64", precision="f64", ms=0.55, err_rms_m=0) for g in (1024, n)]
-    variants = [("numpy", "f32"), ("c", "strict"), ("c", "fast"), ("opencl", "strict"), ("opencl", "fast"),
-                ("glsl", "fast"), ("taichi", "default"), ("warp", "default")]  # fmt: skip
+    variants = [
+        ("numpy", "f32"),
+        ("c", "strict"),
+        ("c", "fast"),
+        ("opencl", "strict"),
+        ("opencl", "fast"),
+        ("glsl", "fast"),
+        ("taichi", "default"),
+        ("warp", "default"),
+    ]
     for k, (backend, mode) in enumerate(variants):
         peer = "true" if backend in ("taichi", "warp") else "false"
         for g in (1024, n):
-            rows.append(row(grid=g, backend=backend, mode=mode, strict=str(mode == "strict").lower(), peer=peer,
-                            ms=0.3 * 0.97**k, err_rms_m=1e-6 * 1.06**k))  # fmt: skip
+            rows.append(
+                row(
+                    grid=g,
+                    backend=backend,
+                    mode=mode,
+                    strict=str(mode == "strict").lower(),
+                    peer=peer,
+                    ms=0.3 * 0.97**k,
+                    err_rms_m=1e-6 * 1.06**k,
+                )
+            )
     rows += [row(grid=g, backend="numba", peer="true", ms=0.01, err_rms_m=1e-3) for g in (1024, n)]  # the axis wide
     report = draw_sweep(write_csv(tmp_path / "front.csv", rows))
     chart = report.charts["speed_vs_error"]

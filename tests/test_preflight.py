@@ -208,7 +208,7 @@ def test_advise_refuses_an_accuracy_run_written_as_measured_but_not_finished(tmp
     _one_line_error(capsys, "unfinished", "--resume")
 
 
-# --- issue 31 items 8, 9, 11 ---------------------------------------------------------
+# --- output paths, and positions float32 cannot carry ----------------------------------
 
 
 @pytest.mark.parametrize("name", ["result", "x.npy"])
@@ -283,7 +283,7 @@ def test_a_default_results_path_makes_its_folders(tmp_path, monkeypatch):
     assert (tmp_path / "results" / "study").is_dir()
 
 
-# --- issue 31 item 12: a truncated CSV is said to be truncated ------------------------
+# --- a truncated CSV is said to be truncated ------------------------------------------
 
 
 def _cut(tmp_path, where: str):

@@ -61,7 +61,7 @@ def performance_section() -> str:
 
 
 def test_every_registered_backend_the_committed_sweep_lacks_is_said_why(committed):
-    # issue 31 item 19: a backend that runs here but has no row reads as forgotten unless said
+    # a backend that runs here but has no row reads as forgotten unless said
     from clothbench.backends import BACKENDS
 
     swept = {r["backend"] for r in committed}
@@ -73,7 +73,7 @@ def test_every_registered_backend_the_committed_sweep_lacks_is_said_why(committe
 
 
 def test_readme_says_which_opencl_runtime_the_quick_start_gets(committed):
-    # issue 31 item 19: the quick start installs Intel's runtime, the tables ran on Debian's PoCL
+    # the quick start installs Intel's runtime, the tables ran on Debian's PoCL
     quick = README.read_text().split("## Quick start", 1)[1].split("\n## ", 1)[0]
     assert "intel-opencl" in quick
     assert {r["driver"].split(":")[0] for r in committed if r["backend"] == "opencl"} == {"Portable Computing Language"}
@@ -108,7 +108,7 @@ def test_limits_take_the_fastest_of_each_kind_per_grid():
     assert (line["grid"], line["best"], line["peer"]) == (256, "opencl fast", "numba fast")
     assert line["vs_c"] == pytest.approx(0.8) and line["peer_ratio"] == pytest.approx(5.0)
     assert line["bound_ms"] == 0.12 and line["fraction"] == 0.5 and line["fastest_any"] == "opencl fast"
-    # the fastest row is the GPU-style row already named: not named twice (issue 31 item 19)
+    # the fastest row is the GPU-style row already named: not named twice
     assert (
         "| 256×256 | 0.300 | opencl fast | 0.240 | 0.80× | numba fast | 1.200 | 5.0× | 0.120 (memory) | 50 % (the same row) |"
         in limits_markdown(rows)

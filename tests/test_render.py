@@ -8,6 +8,8 @@ image as a backend whose positions are read back and uploaded.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -18,7 +20,7 @@ from clothbench.backends.gl import fragment as glsl
 from clothbench.backends.gl import compute as glsl_compute
 from clothbench.harness import simulate
 from clothbench.reports import render as render_module
-from clothbench.reports.meshes import cloth_indices
+from clothbench.reports.meshes import cloth_indices, cube_mesh
 from clothbench.reports.render import RenderSettings, frame_scene, render
 from clothbench.scene import load_scene
 from clothbench.solver import Pbd
@@ -28,6 +30,7 @@ from conftest import VERLET, require
 pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
 
 SIZE = (160, 120)
+BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
 # Strict GL and numpy f32 states are the same bits, so the two ways to the vertex shader
 # draw the same triangles: at most a few edge pixels may differ (measured: none).
 PIXEL_TOLERANCE = 0.002  # fraction of pixels allowed to differ
@@ -87,6 +90,22 @@ def test_the_floor_and_the_cylinder_are_drawn(tmp_path):
     grey = (np.abs(image.astype(int) - image[..., :1]).max(axis=-1) < 12) & ~is_background(image)
     assert grey.mean() > 0.1, "the floor plane covers part of the picture"
     assert is_collider(image).sum() > 20 and is_cloth(image).sum() > 500
+
+
+def test_boxes_are_drawn(tmp_path):
+    scene = load_scene(str(BOX_SCENE)).replace(grid=16)
+    with_boxes = is_collider(render_png(tmp_path, scene, "numpy", steps=1)).sum()
+    without = is_collider(render_png(tmp_path, scene.replace(boxes=()), "numpy", steps=1)).sum()
+    assert with_boxes > without + 100, f"{with_boxes} collider pixels with the boxes, {without} without"
+
+
+def test_the_cube_is_closed_and_its_faces_point_out():
+    vertices, indices = cube_mesh()
+    tri = vertices[indices]  # (12, 3 corners, position + normal)
+    face = np.cross(tri[:, 1, :3] - tri[:, 0, :3], tri[:, 2, :3] - tri[:, 0, :3])
+    assert len(tri) == 12 and np.allclose(np.abs(vertices[:, :3]), 1.0)
+    assert (np.einsum("ij,ij->i", face, tri[:, 0, 3:]) > 0).all(), "wound counter-clockwise seen from outside"
+    assert (np.einsum("ij,ij->i", tri[:, :, :3].mean(axis=1), tri[:, 0, 3:]) > 0).all(), "normals point out"
 
 
 def test_the_gif_has_the_frames_asked_for(tmp_path):

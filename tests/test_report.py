@@ -23,10 +23,17 @@ ACCURACY = RESULTS / "accuracy-drape.csv"
 STABILITY = RESULTS / "stability.csv"
 WINDOW = (1280, 900)
 CHROMIUM_FLAGS = (
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    f"--window-size={WINDOW[0]},{WINDOW[1]}", "--force-device-scale-factor=1",
-)  # fmt: skip
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    f"--window-size={WINDOW[0]},{WINDOW[1]}",
+    "--force-device-scale-factor=1",
+)
 
 
 def every_csv(test):
@@ -39,7 +46,7 @@ def every_csv(test):
 
 @pytest.fixture(scope="session")
 def study(tmp_path_factory) -> tuple[Path, str]:
-    """The report of every committed results CSV (the issue's `clothbench report results/*.csv`)."""
+    """The report of every committed results CSV (`clothbench report results/*.csv`)."""
     out = tmp_path_factory.mktemp("report") / "r.html"
     assert main(["report", *map(str, COMMITTED), "--out", str(out)]) == 0
     return out, out.read_text(encoding="utf-8")
@@ -59,16 +66,25 @@ def section_id(kind: str, path: Path) -> str:
 @every_csv
 def test_committed_results_are_each_recognised(study):
     _, page = study
-    for path, what in ((SWEEP, "a sweep"), (PBD_SWEEP, "a sweep"), (ACCURACY, "an accuracy run"),
-                       (RESULTS / "accuracy-drape-artefacts.csv", "PBD artefacts"), (STABILITY, "a stability run")):  # fmt: skip
+    for path, what in (
+        (SWEEP, "a sweep"),
+        (PBD_SWEEP, "a sweep"),
+        (ACCURACY, "an accuracy run"),
+        (RESULTS / "accuracy-drape-artefacts.csv", "PBD artefacts"),
+        (STABILITY, "a stability run"),
+    ):
         assert re.search(rf"{re.escape(str(path))}</a></td><td>{what}", page), path
 
 
 @every_csv
 def test_page_holds_a_figure_for_each_input_kind(study):
     _, page = study
-    for kind, path, at_least in (("sweep", SWEEP, 4), ("sweep", PBD_SWEEP, 3), ("accuracy", ACCURACY, 2),
-                                 ("stability", STABILITY, 1)):  # fmt: skip
+    for kind, path, at_least in (
+        ("sweep", SWEEP, 4),
+        ("sweep", PBD_SWEEP, 3),
+        ("accuracy", ACCURACY, 2),
+        ("stability", STABILITY, 1),
+    ):
         part = top_section(page, section_id(kind, path))
         assert part.count("<svg") >= at_least, f"{path.name}: {part.count('<svg')} figures"
     assert 'aria-label="Stability against the bound"' in top_section(page, section_id("stability", STABILITY))
@@ -143,8 +159,12 @@ def test_the_dirty_note_is_there_only_when_a_row_is_dirty():
 
 def _device_rows(machine: str) -> list[tuple[str, ...]]:
     """(backend, device, driver, in) of each row of the machine section's device table."""
-    body = re.search(r"<th>device, as its driver names it</th><th>driver</th><th>in</th></tr></thead><tbody>(.*?)"
-                     r"</tbody>", machine, re.S)  # fmt: skip
+    body = re.search(
+        r"<th>device, as its driver names it</th><th>driver</th><th>in</th></tr></thead><tbody>(.*?)"
+        r"</tbody>",
+        machine,
+        re.S,
+    )
     assert body, "the device table has a driver column"
     return [tuple(re.findall(r"<td[^>]*>(.*?)</td>", tr)) for tr in re.findall(r"<tr[^>]*>(.*?)</tr>", body.group(1))]
 
@@ -216,9 +236,18 @@ def _bad_input_cases(tmp: Path) -> dict[str, tuple[list[str], str]]:
 
 
 BAD_CASES = (
-    "missing file", "a directory", "binary", "not ours", "empty", "no rows", "a sweep lacking a column",
-    "one bad among good", "--out a directory", "--out under a file", "--out an input",
-)  # fmt: skip
+    "missing file",
+    "a directory",
+    "binary",
+    "not ours",
+    "empty",
+    "no rows",
+    "a sweep lacking a column",
+    "one bad among good",
+    "--out a directory",
+    "--out under a file",
+    "--out an input",
+)
 
 
 @pytest.mark.parametrize("case", BAD_CASES)

@@ -211,7 +211,7 @@ def test_the_twist_keeps_every_pair_apart_by_half_the_thickness_at_a_small_grid(
 
 @pytest.mark.full
 def test_the_twist_at_64_after_2_s_has_no_pair_within_half_the_thickness():
-    # issue 34's goal on the reference: 4000 steps of 0.5 ms at 64^2 (about 80 s here)
+    # issue 34's goal on the reference: 4000 steps of 0.5 ms at 64^2 (two runs: about 2 minutes here)
     setup = load_setup("twist")
     scene, solver = setup.scene, setup.solver
     assert scene.grid == 64 and setup.steps * solver.dt == pytest.approx(2.0)

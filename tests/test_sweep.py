@@ -30,7 +30,7 @@ from conftest import VERLET, lines_in, wait_until
 
 pytestmark = pytest.mark.serial  # times sweep rows: one xdist worker
 
-# Columns the issue asks every row to have (the file has more).
+# Columns every row must have (the file has more).
 ISSUE_COLUMNS = (
     "backend", "peer", "mode", "strict", "transfer", "local_size", "precision", "device", "scene", "grid",
     "particles", "springs", "steps", "repeats", "dt", "ms_median", "ms_min", "ms_max", "ms_iqr",

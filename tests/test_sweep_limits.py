@@ -92,8 +92,8 @@ def test_every_row_has_the_machines_bound_and_its_fraction(tmp_path):
     assert len({(r["bandwidth_gb_s"], r["sqrt_gops"]) for r in rows}) == 1 and float(rows[0]["bandwidth_gb_s"]) > 0
     # so the bound scales with the work: 4x the particles and their bytes; a little more than
     # 4x the springs (6n^2 - 14n + 10: the edge's missing springs weigh less on the larger
-    # grid), which the arithmetic part counts exactly: 4.316x from 16^2 to 32^2, the ratio
-    # measured where both rows were arithmetic-bound (the Zen 5 of 2026-12-02).
+    # grid), which the arithmetic part counts exactly: 4.316x from 16^2 to 32^2, the springs'
+    # ratio, where both rows are arithmetic-bound.
     by_grid = {(r["grid"], r["precision"]): r for r in rows}
     small, large = by_grid[("16", "f32")], by_grid[("32", "f32")]
     ratio = float(large["bound_ms"]) / float(small["bound_ms"])

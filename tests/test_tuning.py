@@ -1,7 +1,7 @@
 """Kernel shapes chosen by measurement (clothbench/backends/tuning.py): measured once per key,
 remembered on disk, measured again on --retune, never measured with tuning off; a choice made
 on a busy machine, or between candidates within their noise, is provisional and measured again
-at the next quiet meeting (issue 36). Every timing and every load here is recorded, never
+at the next quiet meeting. Every timing and every load here is recorded, never
 measured: the clock is a fake one that moves only when asked."""
 
 from __future__ import annotations
@@ -184,7 +184,7 @@ def test_a_short_tuning_waits_out_the_window_to_get_a_verdict(tuning_on, machine
     assert machine.t == pytest.approx(machine_load.MIN_WINDOW_S) and stored(tuning_on)["load"]["busy"] is True
 
 
-# --- provisional and final (issue 36) ------------------------------------------------------
+# --- provisional and final -----------------------------------------------------------------
 
 
 def test_a_clear_quiet_choice_is_final_and_met_again_without_measuring(tuning_on):
@@ -197,8 +197,8 @@ def test_a_clear_quiet_choice_is_final_and_met_again_without_measuring(tuning_on
 
 
 def test_the_issue_36_case_busy_tuning_is_provisional_and_the_next_quiet_run_replaces_it(tuning_on, machine):
-    # recorded on the 2-core Zen 3 of the issue: under other jobs threads=1 looked faster; quiet,
-    # threads=2 is (0.256 against 0.419 ms/step)
+    # docs/timing.md's case, "Kernel shapes chosen on a busy machine": under other jobs
+    # threads=1 looked faster; quiet, threads=2 is
     shapes = ["threads=2", "threads=1"]
     machine.other_cores = 1.4
     busy = {"threads=2": [0.61e-3, 0.55e-3, 0.58e-3], "threads=1": [0.42e-3, 0.41e-3, 0.43e-3]}

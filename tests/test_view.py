@@ -187,8 +187,8 @@ def test_the_trackball_turns_the_view_and_keeps_it_a_rotation():
 
 
 def test_the_cloth_is_framed_clear_of_the_panels():
-    """The drape's cloth starts level at the top of its bounds: `render`'s framing put its left
-    corner under the run panel (issue 31, item 18). Framed between the top panels, every
+    """The drape's cloth starts level at the top of its bounds: `render`'s framing would put its
+    left corner under the run panel. Framed between the top panels, every
     particle is on screen and none under a panel, in a wide window and a narrower one (moved,
     and made smaller where the width needs it); a span under half the window keeps the
     whole-window framing."""

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver
@@ -62,12 +63,15 @@ class Capabilities:
     device: bool = False  # options.device selects among several devices
     gl: bool = False  # options.gl selects the GL context provider
     shapes: bool = False  # has kernel shapes chosen by measurement (options.shape, options.retune)
-    # scene features beyond fixed analytic colliders (docs/semantics.md), as the solvers
-    # (names) for which the backend takes them: triangle meshes, and motion (moving colliders,
-    # pins attached to a body); a scene that needs one is refused in one line where absent.
-    # By solver because one Capabilities may serve a backend's Verlet and PBD classes alike.
+    # scene features beyond fixed spheres, cylinders and planes (docs/semantics.md), as the
+    # solvers (names) for which the backend takes them: triangle meshes, motion (moving
+    # colliders, pins attached to a body), and each collider kind whose `capability` names
+    # one of these fields (colliders/kinds.py); a scene that needs one is refused in one line
+    # where absent. By solver because one Capabilities may serve a backend's Verlet and PBD
+    # classes alike.
     meshes: tuple[str, ...] = ()
     moving_colliders: tuple[str, ...] = ()
+    boxes: tuple[str, ...] = ()
     self_collision: tuple[str, ...] = ()  # the [self_collision] pass (docs/semantics.md, "Self-collision")
     # the mesh algorithms (MESH_COLLISIONS) it implements, the first its default
     mesh_collisions: tuple[str, ...] = ()
@@ -119,8 +123,13 @@ class Capabilities:
         """Why `backend` cannot simulate `scene` with `solver` (a collider kind or motion it
         lacks), or None."""
         who = backend if solver == "verlet" else f"{backend} {solver}"
+        for kind in KINDS:
+            if getattr(scene, kind.plural) and kind not in self.collider_kinds(solver):
+                takers = ", ".join(_declaring(kind.capability, solver)) or "no backend yet"
+                return f"{who} does not take {kind.name} colliders (they run on: {takers})"
         if scene.meshes and solver not in self.meshes:
-            return f"{who} does not take mesh colliders yet (it takes: sphere, cylinder, plane; {_takers('meshes', solver)})"
+            kinds = ", ".join(kind.name for kind in self.collider_kinds(solver))
+            return f"{who} does not take mesh colliders yet (it takes: {kinds}; {_takers('meshes', solver)})"
         if scene.has_motion and solver not in self.moving_colliders:
             what = (
                 "moving colliders"
@@ -131,6 +140,10 @@ class Capabilities:
         if scene.self_collision is not None and solver not in self.self_collision:
             return f"{who} does not take [self_collision] yet ({_takers('self_collision', solver)})"
         return None
+
+    def collider_kinds(self, solver: str = "verlet") -> tuple:
+        """The collider kinds (colliders/kinds.py) it takes with `solver`, in the step's order."""
+        return tuple(k for k in KINDS if k.capability is None or solver in getattr(self, k.capability))
 
     def adapt(self, options: BackendOptions) -> BackendOptions:
         """`options` less what this backend does not take: how one set of command-line
@@ -167,6 +180,12 @@ class Capabilities:
 
 def _takers(feature: str, solver: str) -> str:
     """'numpy does' (the backends that declare `feature` for `solver`), for a refusal."""
+    names = _declaring(feature, solver)
+    return f"{', '.join(names)} {'does' if len(names) == 1 else 'do'}" if names else "none does yet"
+
+
+def _declaring(feature: str, solver: str) -> list[str]:
+    """The backends whose Capabilities declare `feature` for `solver`, in the registry's order."""
     from clothbench.backends import BACKENDS, backend_class
 
     names = []
@@ -178,7 +197,7 @@ def _takers(feature: str, solver: str) -> str:
                 names.append(name)
         except Exception:  # a backend whose module cannot load here takes nothing here
             continue
-    return f"{', '.join(names)} {'does' if len(names) == 1 else 'do'}" if names else "none does yet"
+    return names
 
 
 @dataclass(frozen=True)

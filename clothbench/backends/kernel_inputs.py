@@ -15,19 +15,22 @@ from functools import lru_cache
 
 import numpy as np
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.colliders.motion import pose
 from clothbench.colliders.self_contact import rest_exclusion
 from clothbench.scene import OFFSET_KIND, Scene, body_pose
 from clothbench.solver import Pbd, Solver
 
-# float4 rows per collider, by collider_rows' keys
-ROWS_PER_COLLIDER = {"spheres": 1, "cylinders": 3, "planes": 2}
+# float4 rows per collider, by collider_rows' keys (colliders/kinds.py)
+ROWS_PER_COLLIDER = {kind.plural: kind.rows for kind in KINDS}
 
 
 def collider_rows(scene: Scene, dtype=np.float32, time: float = 0.0) -> dict[str, np.ndarray]:
     """The colliders as the kernels take them, float64 values rounded once to `dtype` rows of
-    four, in the order the step applies them: spheres (centre, radius); cylinders (start,
-    length), (unit axis, radius), (radial_r, 0); planes (point, 0), (unit normal, 0).
+    four, by kind (colliders/kinds.py `plural`) in the order the step applies them: spheres
+    (centre, radius); cylinders (start, length), (unit axis, radius), (radial_r, 0); boxes
+    (centre, 0), (axis i, half extent i) for i = 0, 1, 2, axis i being column i of its
+    rotation; planes (point, 0), (unit normal, 0).
     A moving collider's rows are its pose at `time` (docs/semantics.md, "Moving colliders"):
     computed in float64 per step and rounded once, the same layout."""
 
@@ -46,14 +49,22 @@ def collider_rows(scene: Scene, dtype=np.float32, time: float = 0.0) -> dict[str
         radial_r = (e * c.radius for e in radial)  # multiplied in float64, rounded once
         return ((*start, c.length), (*axis, c.radius), (*radial_r, 0.0))
 
+    def box(b):
+        rot, center = b.pose_at(time)  # fixed: the file's centre and rotation exactly
+        return ((*center, 0.0), *((*rot[:, i], h) for i, h in enumerate(b.half_extents)))
+
     def plane(p):
         point, normal = placed(p.point, p.motion, p.unit_normal)
         return ((*point, 0.0), (*normal, 0.0))
 
+    layout = {
+        "sphere": lambda s: ((*placed(s.center, s.motion)[0], s.radius),),
+        "cylinder": cylinder,
+        "box": box,
+        "plane": plane,
+    }
     return {
-        "spheres": rows([(*placed(s.center, s.motion)[0], s.radius) for s in scene.spheres]),
-        "cylinders": rows([row for c in scene.cylinders for row in cylinder(c)]),
-        "planes": rows([row for p in scene.planes for row in plane(p)]),
+        kind.plural: rows([row for c in getattr(scene, kind.plural) for row in layout[kind.name](c)]) for kind in KINDS
     }
 
 

@@ -10,10 +10,11 @@ the fastest is kept in
 back without measuring; `--retune` measures again and replaces it. The chosen shape is part
 of the row's mode, so a CSV says what ran.
 
-A choice is `final` or `provisional` (issue 36: a choice made in one busy minute stuck for
-good). The tuning watches the machine while it measures (clothbench.machine_load: other
-processes' CPU, steal); a choice made while the machine was busy, or whose best two candidates
-lie within their own noise, is provisional. The next meeting of a provisional key on a quiet
+A choice is `final` or `provisional`, so that a choice made in one busy minute does not stick
+for good (docs/timing.md, "Kernel shapes chosen on a busy machine"). The tuning watches the
+machine while it measures (clothbench.machine_load: other processes' CPU, steal); a choice
+made while the machine was busy, or whose best two candidates lie within their own noise, is
+provisional. The next meeting of a provisional key on a quiet
 machine (a MIN_WINDOW_S look first) re-measures only its best RECHECK_BEST candidates and the
 default, and that quiet re-measure is final, tie or not (a tie on a quiet machine is a tie:
 either shape is as fast). A busy meeting keeps the provisional choice and measures nothing:
@@ -21,9 +22,8 @@ tuning time spent while busy would only measure the load again; nor does the pro
 measured it, a moment later (a sweep meets a key once per row). A final choice is measured
 again when its key changes (kernel, driver, machine: they are in the key), on --retune, and
 once when a sweep row using it on a quiet machine runs FAR_OFF times its recorded time
-(check_row). Entries written before this had no status: they are read as provisional, since
-nothing says the machine was quiet when they were measured; each costs one small quiet
-re-measure.
+(check_row). An entry without a status (UNMARKED) is read as provisional, since nothing says
+the machine was quiet when it was measured; each costs one small quiet re-measure.
 
 Strict builds stay bit-exact whatever wins: a shape changes how the work is split, never the
 operations done on one particle (each backend's contract test runs every candidate).
@@ -49,9 +49,9 @@ from clothbench.native import cache_dir
 from clothbench.progress import waiting
 
 TUNING_ENV = "CLOTHBENCH_TUNING"
-# turns per candidate: with one timed turn each, the tuner picked a band shape ~20% slower than
-# another at 128^2 on the Zen 5 (docs/pbd.md); with interleaved turns a passing load falls on one
-# turn of every candidate instead of deciding the choice
+# turns per candidate: with one timed turn each, a passing load can decide the choice (the
+# tuner's picks that docs/pbd.md, "Time per step on OpenCL", finds not the fastest); with
+# interleaved turns it falls on one turn of every candidate instead
 TUNING_ROUNDS = 3
 # a provisional choice is re-measured with its best RECHECK_BEST candidates by the stored times,
 # plus the default (the first candidate): for c that is every core, the shape a load hurts most,

@@ -1,5 +1,6 @@
-"""The analytic colliders (sphere, capped cylinder, plane), the keys of their scene-file
-tables, and the pose of any named body."""
+"""The analytic colliders (sphere, capped cylinder, oriented box, plane): their geometry and
+its checks, and the pose of any named body. Their kinds, with the keys of their scene-file
+tables and everything a kernel names them by, are one table: colliders/kinds.py."""
 
 from __future__ import annotations
 
@@ -9,15 +10,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothbench.colliders.mesh import Mesh
-from clothbench.colliders.motion import Motion, pose
+from clothbench.colliders.motion import Motion, euler_degrees, finite3, pose
+from clothbench.solver import finite_number
+from clothbench.errors import SceneError
 
-# The keys each analytic collider's scene-file table needs, and those any collider may add.
-COLLIDER_TABLE_KEYS = {
-    "sphere": ("center", "radius"),
-    "cylinder": ("start", "end", "radius"),
-    "plane": ("point", "normal"),
-}
 COLLIDER_OPTIONAL_KEYS = ("name", "motion")  # any collider may be named and may move
+
+
+def _positive(value, what: str) -> None:
+    if not finite_number(value) or value <= 0:
+        raise SceneError(f"{what} must be > 0, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -28,6 +30,11 @@ class Sphere:
     motion: Motion | None = None
 
     kind = "sphere"
+    anchor = "center"  # the point its motion moves and rotates it about
+
+    def check(self) -> None:
+        finite3(self.center, "sphere center")
+        _positive(self.radius, "sphere radius")
 
 
 @dataclass(frozen=True)
@@ -41,6 +48,14 @@ class Cylinder:
     motion: Motion | None = None
 
     kind = "cylinder"
+    anchor = "start"
+
+    def check(self) -> None:
+        finite3(self.start, "cylinder start")
+        finite3(self.end, "cylinder end")
+        _positive(self.radius, "cylinder radius")
+        if self.length == 0:
+            raise SceneError(f"cylinder start and end must differ (zero-length cylinder at {self.start})")
 
     @property
     def length(self) -> float:
@@ -70,6 +85,33 @@ class Cylinder:
 
 
 @dataclass(frozen=True)
+class Box:
+    """An oriented box: half extents along its own three axes, which are the columns of its
+    rotation (Euler degrees, as a mesh's: motion.euler_degrees). docs/semantics.md, "Box"."""
+
+    center: tuple[float, float, float]
+    half_extents: tuple[float, float, float]
+    rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str = ""
+    motion: Motion | None = None
+
+    kind = "box"
+    anchor = "center"
+
+    def check(self) -> None:
+        finite3(self.center, "box center")
+        finite3(self.half_extents, "box half_extents")
+        finite3(self.rotation, "box rotation")
+        if not all(h > 0 for h in self.half_extents):
+            raise SceneError(f"box half_extents must be > 0, got {self.half_extents!r}")
+
+    def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R, T) in float64 at time t: column i of R is the world direction of its axis i; a
+        fixed box keeps the file's centre exactly, an unrotated one the identity exactly."""
+        return pose(self.center, euler_degrees(self.rotation), self.motion, t)
+
+
+@dataclass(frozen=True)
 class Plane:
     """A one-sided half-space: the solid is where (x - point) . normal < 0."""
 
@@ -79,6 +121,13 @@ class Plane:
     motion: Motion | None = None
 
     kind = "plane"
+    anchor = "point"
+
+    def check(self) -> None:
+        finite3(self.point, "plane point")
+        finite3(self.normal, "plane normal")
+        if not any(self.normal):
+            raise SceneError("plane normal must not be zero")
 
     @property
     def unit_normal(self) -> tuple[float, float, float]:
@@ -86,13 +135,10 @@ class Plane:
         return tuple(x / norm for x in self.normal)
 
 
-COLLIDER_KINDS = {"sphere": Sphere, "cylinder": Cylinder, "plane": Plane}
-# the point a collider's motion moves and rotates it about (docs/semantics.md, "Moving colliders")
-ANCHOR = {"sphere": "center", "cylinder": "start", "plane": "point", "mesh": "position", "frame": "origin"}
-
-
 def body_pose(body, t: float):
-    """(R, T) in float64 of any named body (collider or kinematic frame) at time t."""
-    if isinstance(body, Mesh):
+    """(R, T) in float64 of any named body (collider or kinematic frame) at time t: its motion
+    about its anchor (docs/semantics.md, "Moving colliders"), from its own rotation where it
+    has one (a mesh, a box)."""
+    if isinstance(body, (Mesh, Box)):
         return body.pose_at(t)
-    return pose(getattr(body, ANCHOR[body.kind]), np.eye(3), body.motion, t)
+    return pose(getattr(body, body.anchor), np.eye(3), body.motion, t)

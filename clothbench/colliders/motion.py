@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothbench.errors import SceneError
+from clothbench.solver import finite_number
 
 _MOTION_KEYS = {"velocity", "angular_velocity", "keyframes"}
 _FRAME_KEYS = {"name", "origin", "motion"}
@@ -81,6 +82,7 @@ class Frame:
     motion: Motion | None = None
 
     kind = "frame"
+    anchor = "origin"  # the point its motion moves and rotates it about
 
 
 def pose(anchor, rotation: np.ndarray, motion: Motion | None, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -92,12 +94,9 @@ def pose(anchor, rotation: np.ndarray, motion: Motion | None, t: float) -> tuple
     return rm @ rotation, anchor + d
 
 
-def _finite3(value, what: str) -> tuple[float, float, float]:
-    if (
-        not isinstance(value, (list, tuple))
-        or len(value) != 3
-        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
-    ):
+def finite3(value, what: str) -> tuple[float, float, float]:
+    """Three finite numbers as floats, or one line saying what `what` must be."""
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(finite_number(v) for v in value):
         raise SceneError(f"{what} must be three finite numbers, got {value!r}")
     return tuple(float(v) for v in value)
 
@@ -131,8 +130,8 @@ def motion_from_toml(value, what: str) -> Motion:
             frames.append(
                 (
                     float(k[0]),
-                    _finite3(k[1], f"{what} keyframe displacement"),
-                    _finite3(k[2], f"{what} keyframe rotation"),
+                    finite3(k[1], f"{what} keyframe displacement"),
+                    finite3(k[2], f"{what} keyframe rotation"),
                 )
             )
         times = [f[0] for f in frames]
@@ -140,8 +139,8 @@ def motion_from_toml(value, what: str) -> Motion:
             raise SceneError(f"{what} motion: keyframe times must increase, got {times}")
         return Motion(keyframes=tuple(frames))
     return Motion(
-        velocity=_finite3(value.get("velocity", [0, 0, 0]), f"{what} motion velocity"),
-        angular_velocity=_finite3(value.get("angular_velocity", [0, 0, 0]), f"{what} motion angular_velocity"),
+        velocity=finite3(value.get("velocity", [0, 0, 0]), f"{what} motion velocity"),
+        angular_velocity=finite3(value.get("angular_velocity", [0, 0, 0]), f"{what} motion angular_velocity"),
     )
 
 
@@ -169,7 +168,7 @@ def frames_from_toml(raw, where: str) -> tuple[Frame, ...]:
         out.append(
             Frame(
                 name=table["name"],
-                origin=_finite3(table.get("origin", [0, 0, 0]), "frame origin"),
+                origin=finite3(table.get("origin", [0, 0, 0]), "frame origin"),
                 motion=motion_from_toml(table["motion"], f"frame {table['name']!r}") if "motion" in table else None,
             )
         )

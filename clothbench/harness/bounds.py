@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS, fmt
 
@@ -189,9 +190,17 @@ def measure_here(threads: int, array_mib: int) -> dict:
     if nothing:  # a clock that did not advance, or a test the compiler emptied: no bound from it
         raise ClothbenchError(f"machine bounds: the {', '.join(nothing)} test measured no rate")
     return dict(
-        threads=threads, triad_gb_s=triad, copy_gb_s=scale, triad_pass_gb_s=triad_pass, copy_pass_gb_s=scale_pass,
-        f32=asdict(f32), f64=asdict(f64), array_mib=array_mib, compiler=compiler().version, seconds=0.0,
-    )  # fmt: skip
+        threads=threads,
+        triad_gb_s=triad,
+        copy_gb_s=scale,
+        triad_pass_gb_s=triad_pass,
+        copy_pass_gb_s=scale_pass,
+        f32=asdict(f32),
+        f64=asdict(f64),
+        array_mib=array_mib,
+        compiler=compiler().version,
+        seconds=0.0,
+    )
 
 
 # --- counting --------------------------------------------------------------------------
@@ -241,6 +250,7 @@ COUNTS = {
         spring=Ops(fp=19, sqrt=1, div=1),  # d 3, L2 5, L-rest 1, k* 1, s*d 3, -bv 3, force+ 3
         sphere=Ops(fp=14, sqrt=1, div=1),
         cylinder=Ops(fp=42, sqrt=1, div=1),
+        box=Ops(fp=28),  # docs/semantics.md, "Box": d 3, three dot3 15, depths 3, push 7
         plane=Ops(fp=14),
         face=Ops(fp=23, sqrt=1, div=3),  # normals: one face of the ring
         normal=Ops(fp=5, sqrt=1, div=3),  # normals: the sum made a unit vector
@@ -250,6 +260,7 @@ COUNTS = {
         spring=Ops(fp=10, rsqrt=1),
         sphere=Ops(fp=9, sqrt=1, div=1),
         cylinder=Ops(fp=32, sqrt=1, div=1),
+        box=Ops(fp=19),  # the dot3s and the push contracted to FMAs
         plane=Ops(fp=9),
         face=Ops(fp=18, sqrt=1, div=3),
         normal=Ops(fp=3, sqrt=1, div=3),
@@ -258,8 +269,9 @@ COUNTS = {
 PRECISION_BYTES = {"f32": 4, "f64": 8}
 
 
-def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: bool = False,
-               layout: str = BOUND_LAYOUT) -> Ops:  # fmt: skip
+def step_count(
+    scene, precision: str = "f32", *, strict: bool = False, normals: bool = False, layout: str = BOUND_LAYOUT
+) -> Ops:
     """Bytes streamed and operations done by one Verlet step of `scene` with the state in
     `layout` (LAYOUT_ELEMENTS). float64 has only the strict arithmetic (the numpy
     reference): its count is the strict one."""
@@ -272,9 +284,7 @@ def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: 
     elements = LAYOUT_ELEMENTS[layout] + (NORMAL_ELEMENTS if normals else 0)
     per_particle = (
         c["particle"]
-        + c["sphere"] * len(scene.spheres)
-        + c["cylinder"] * len(scene.cylinders)
-        + c["plane"] * len(scene.planes)
+        + sum((c[kind.name] * len(getattr(scene, kind.plural)) for kind in KINDS), Ops())
         + (c["normal"] if normals else Ops())
     )
     total = Ops(bytes=elements * PRECISION_BYTES[precision] * particles) + per_particle * particles
@@ -284,8 +294,16 @@ def step_count(scene, precision: str = "f32", *, strict: bool = False, normals: 
     return total
 
 
-def step_bound_ms(scene, precision: str, bounds: MachineBounds | None, *, strict: bool = False,
-                  normals: bool = False, solver=None, layout: str = BOUND_LAYOUT) -> dict | None:  # fmt: skip
+def step_bound_ms(
+    scene,
+    precision: str,
+    bounds: MachineBounds | None,
+    *,
+    strict: bool = False,
+    normals: bool = False,
+    solver=None,
+    layout: str = BOUND_LAYOUT,
+) -> dict | None:
     """The lower bound on one step's wall time on this machine, in ms, with its parts; None
     without measured bounds, or for the pbd solver (docs/bounds.md: not counted)."""
     from clothbench.solver import Pbd
@@ -304,16 +322,33 @@ def step_bound_ms(scene, precision: str, bounds: MachineBounds | None, *, strict
     return dict(
         bound_ms=max(memory_ms, arithmetic_ms),
         bound_kind="memory" if memory_ms >= arithmetic_ms else "arithmetic",
-        memory_ms=memory_ms, arithmetic_ms=arithmetic_ms, divider_ms=divider_ms, rsqrt_ms=rsqrt_ms, fp_ms=fp_ms,
-        bytes=work.bytes, fp=work.fp, sqrt=work.sqrt, div=work.div, rsqrt=work.rsqrt,
-    )  # fmt: skip
+        memory_ms=memory_ms,
+        arithmetic_ms=arithmetic_ms,
+        divider_ms=divider_ms,
+        rsqrt_ms=rsqrt_ms,
+        fp_ms=fp_ms,
+        bytes=work.bytes,
+        fp=work.fp,
+        sqrt=work.sqrt,
+        div=work.div,
+        rsqrt=work.rsqrt,
+    )
 
 
 # --- CSV cells -------------------------------------------------------------------------
 
 
-def bound_columns(scene, precision: str, ms_median, solver=None, *, strict: bool = False, normals: bool = False,
-                  bounds: MachineBounds | None = None, layout: str = BOUND_LAYOUT) -> dict[str, str]:  # fmt: skip
+def bound_columns(
+    scene,
+    precision: str,
+    ms_median,
+    solver=None,
+    *,
+    strict: bool = False,
+    normals: bool = False,
+    bounds: MachineBounds | None = None,
+    layout: str = BOUND_LAYOUT,
+) -> dict[str, str]:
     """The row's bound_ms, bound_kind and bound_fraction cells ('' where there is no bound).
     `strict` counts the strict arithmetic (the default, fast, is the smaller count: a bound
     for either mode); `layout` the bytes of one kernel's state rather than the least any

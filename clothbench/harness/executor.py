@@ -167,8 +167,9 @@ def run_isolated(
             left = None if timeout is None else timeout - (time.monotonic() - t0)
             if left is not None and left <= 0:
                 _kill(process)
-                return Outcome("timeout", note=f"ran past the {timeout:g} s limit and was killed",
-                               wall_s=time.monotonic() - t0)  # fmt: skip
+                return Outcome(
+                    "timeout", note=f"ran past the {timeout:g} s limit and was killed", wall_s=time.monotonic() - t0
+                )
             if not receive.poll(left if left is None else min(left, 1.0)):
                 if not process.is_alive() and not receive.poll(0):
                     process.join()
@@ -358,9 +359,15 @@ class DaskExecutor(Executor):
         limit = self.timeout if timeout == -1.0 else timeout
         method = start_method(fork_safe=False)  # a worker's process holds threads and sockets: a clean child
         return self.client.submit(
-            run_on_worker, fn, args, kwargs, limit, method,
-            resources={"timing": 1} if timing else None, pure=False,
-        )  # fmt: skip
+            run_on_worker,
+            fn,
+            args,
+            kwargs,
+            limit,
+            method,
+            resources={"timing": 1} if timing else None,
+            pure=False,
+        )
 
     @staticmethod
     def as_completed(futures):
@@ -416,7 +423,15 @@ def executor_for(scheduler: str | None = None, jobs: int = 1, timeout: float | N
 
 
 __all__ = [
-    "DEFAULT_ROW_TIMEOUT", "DaskExecutor", "LocalExecutor", "Outcome", "RowError", "crash_note", "executor_for", "fork_safe",
-    "run_isolated", "runner",
+    "DEFAULT_ROW_TIMEOUT",
+    "DaskExecutor",
+    "LocalExecutor",
+    "Outcome",
+    "RowError",
+    "crash_note",
+    "executor_for",
+    "fork_safe",
+    "run_isolated",
+    "runner",
     "start_method",
-]  # fmt: skip
+]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from clothbench.colliders.motion import euler_degrees
 from clothbench.colliders.self_contact import contact_measure
 from clothbench.scene import OFFSETS, Scene
 from clothbench.solver import Solver
@@ -51,6 +52,12 @@ def max_penetration(pos: np.ndarray, scene: Scene) -> float:
         rho = np.linalg.norm(d - np.outer(t, u), axis=1)
         # inside: the shortest way out is the smallest of side, start cap and end cap
         depth = np.minimum(np.minimum(c.radius - rho, t), c.length - t)
+        worst = max(worst, float(depth.max()))
+    for b in scene.boxes:
+        # at its placement in the file, as every collider here: |coordinate| along each axis
+        local = np.abs((xyz - np.array(b.center)) @ euler_degrees(b.rotation))
+        # inside: the shortest way out is through the face pair of least penetration
+        depth = (np.array(b.half_extents) - local).min(axis=1)
         worst = max(worst, float(depth.max()))
     for p in scene.planes:
         depth = -((xyz - np.array(p.point)) @ np.array(p.unit_normal))

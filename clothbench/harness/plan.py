@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 from typing import Iterable
 
 from clothbench.backends import BACKENDS, BackendOptions, availability, backend_class
+from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver, Verlet
@@ -179,7 +180,7 @@ def without_motion(scene: Scene) -> Scene:
         return tuple(replace(b, motion=None) for b in bodies)
 
     return scene.replace(
-        spheres=still(scene.spheres), cylinders=still(scene.cylinders), planes=still(scene.planes),
+        **{kind.plural: still(getattr(scene, kind.plural)) for kind in KINDS},
         meshes=still(scene.meshes), frames=still(scene.frames), pin_attach=None,
     )  # fmt: skip
 

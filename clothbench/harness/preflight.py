@@ -11,9 +11,8 @@ from typing import Iterable
 from clothbench.errors import ClothbenchError
 
 # n*n float4 arrays of the working precision a row holds at its peak (state, ping-pong copy,
-# the step's temporaries: numpy forms the 12 neighbours' differences at once), as measured:
-# the peak RSS of `clothbench run --grid 512` over that of --grid 8 is 83 MiB in f32 (the
-# temporaries are partly float64) and 105 MiB in f64; the estimate rounds up (96, 104).
+# the step's temporaries: numpy forms the 12 neighbours' differences at once): the measured
+# peak, rounded up (docs/bounds.md, "The memory a row needs").
 ARRAYS = {"f32": 24, "f64": 13}
 REFERENCE_ARRAYS = 13  # the float64 run a sweep row is compared with
 ITEMSIZE = {"f32": 4, "f64": 8}

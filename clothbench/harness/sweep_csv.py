@@ -132,14 +132,39 @@ COLUMN_DOCS: dict[str, str] = {
 COLUMNS: tuple[str, ...] = tuple(COLUMN_DOCS)
 # What identifies a row: a sweep measures each key once, and --resume skips keys in the file.
 KEY_COLUMNS = (
-    "backend", "solver", "pbd_method", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
-    "mesh_triangles", "mesh_collision", "motion", "self_collision",
-)  # fmt: skip
+    "backend",
+    "solver",
+    "pbd_method",
+    "scene",
+    "grid",
+    "precision",
+    "strict",
+    "transfer",
+    "generic",
+    "local_size",
+    "mesh_triangles",
+    "mesh_collision",
+    "motion",
+    "self_collision",
+)
 MEASUREMENT_COLUMNS = (
-    "ms_median", "ms_min", "ms_max", "ms_iqr", "chunk_ms", "device_ms_median", "device_timer", "particles_per_s",
-    "ms_per_sim_s", "warmup_s", "finite", "max_penetration_m", "self_pairs", "self_min_distance_m", "err_rms_m",
+    "ms_median",
+    "ms_min",
+    "ms_max",
+    "ms_iqr",
+    "chunk_ms",
+    "device_ms_median",
+    "device_timer",
+    "particles_per_s",
+    "ms_per_sim_s",
+    "warmup_s",
+    "finite",
+    "max_penetration_m",
+    "self_pairs",
+    "self_min_distance_m",
+    "err_rms_m",
     "err_max_m",
-)  # fmt: skip
+)
 NOTE_MAX = 300  # characters
 RETRY_STATUSES = ("failed", "crashed", "timeout")  # what --retry-failed measures again
 
@@ -191,9 +216,13 @@ class SweepFile:
     """
 
     def __init__(
-        self, path: str | os.PathLike, resume: bool = False, retry: Iterable[str] = (),
-        columns: tuple[str, ...] = COLUMNS, what: str = "sweep",
-    ):  # fmt: skip
+        self,
+        path: str | os.PathLike,
+        resume: bool = False,
+        retry: Iterable[str] = (),
+        columns: tuple[str, ...] = COLUMNS,
+        what: str = "sweep",
+    ):
         self.path = Path(path)
         self.retry = frozenset(retry)
         self.columns, self.what = tuple(columns), what

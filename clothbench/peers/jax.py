@@ -108,7 +108,7 @@ def step(pos, prev, w, c: dict, springs, colliders):
     acc = force * w + c["g"]
     new = (2 * pos - prev) + acc * c["dt2"]
     new = jnp.where(free, new, pos)  # pinned particles do not move
-    for kind, k in zip(colliders, c["colliders"]):  # spheres, then cylinders, then planes
+    for kind, k in zip(colliders, c["colliders"]):  # spheres, cylinders, boxes, then planes
         new = COLLIDE[kind](new, free, **k)
     return new
 
@@ -141,12 +141,26 @@ def _collide_cylinder(x, free, a, u, length, r, radial_r):
     return jnp.where(inside, pushed, x)
 
 
+def _collide_box(x, free, c, ax0, ax1, ax2, h0, h1, h2):
+    d = x - c
+    l0, l1, l2 = dot3(d, ax0), dot3(d, ax1), dot3(d, ax2)  # the box's own coordinates
+    p0, p1, p2 = h0 - jnp.abs(l0), h1 - jnp.abs(l1), h2 - jnp.abs(l2)  # depth through each face pair
+    inside = (p0 > 0) & (p1 > 0) & (p2 > 0) & free
+    # out through the face of least penetration, ties to the lower axis, on the particle's side
+    take1 = p1 < p0
+    take2 = p2 < jnp.where(take1, p1, p0)
+    lk = jnp.where(take2, l2, jnp.where(take1, l1, l0))
+    hk = jnp.where(take2, h2, jnp.where(take1, h1, h0))
+    axis = jnp.where(take2, ax2, jnp.where(take1, ax1, ax0))
+    return jnp.where(inside, x + axis * (jnp.where(lk >= 0, hk, -hk) - lk), x)
+
+
 def _collide_plane(x, free, p0, nrm):
     dist = dot3(x - p0, nrm)
     return jnp.where((dist < 0) & free, x - nrm * dist, x)
 
 
-COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "plane": _collide_plane}
+COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "box": _collide_box, "plane": _collide_plane}
 
 
 class JaxBackend(Backend):
@@ -154,7 +168,7 @@ class JaxBackend(Backend):
     device_timer = ""  # no device clock read: a peer is timed as a user would time it
     # a sweep times fast only: a strict row after a fast one in the same process is refused
     # (JAX started with FMA), and a fast row after a strict one would not be JAX's default
-    capabilities = Capabilities(device=True, sweep_variants=({"strict": False},))
+    capabilities = Capabilities(device=True, boxes=("verlet",), sweep_variants=({"strict": False},))
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
@@ -168,9 +182,9 @@ class JaxBackend(Backend):
             raise ClothbenchError(
                 f"jax has no device {options.device!r} here ({type(e).__name__}: {why}); try cpu"
             ) from None
-        # XLA's CPU runtime flushes subnormal results to zero on its threads (measured: 6
-        # values of the weightless scene after 300 steps; --xla_cpu_ftz=false does not stop
-        # it), so a strict run says where it parts from NumPy (harness/strict_watch.py)
+        # XLA's CPU runtime flushes subnormal results to zero on its threads (docs/peers.md;
+        # --xla_cpu_ftz=false does not stop it), so a strict run says where it parts from NumPy
+        # (harness/strict_watch.py)
         self.flushes_subnormals = self._device.platform == "cpu"
         if self._device.platform == "cpu" and _cpu_without_fma() and not options.strict:
             self.mode_suffix = "/no-fma"  # a strict run started JAX here: fast runs without FMA too

@@ -1,7 +1,7 @@
 """Numba (peer): the step as one `@njit(parallel=True)` prange loop, as Numba users write it.
 
 docs/semantics.md, scalar float32 code over (n*n, 4) arrays: a prange over rows, the 12
-neighbours in the documented order, the scene's colliders (spheres, then cylinders, then
+neighbours in the documented order, the scene's colliders (spheres, cylinders, boxes, then
 planes) as float4 rows (kernel_inputs.collider_rows). Fast mode compiles with
 `fastmath=True` (LLVM may contract, reorder and vectorise); strict mode with Numba's
 default IEEE arithmetic, which does neither and is bit-exact with the NumPy float32
@@ -52,7 +52,7 @@ def _kernel(fastmath: bool):
     # no cache=True: both variants come from this one closure and numba's on-disk cache
     # does not tell them apart, so the JIT runs once per process (in the warm-up)
     @njit(parallel=True, fastmath=fastmath)
-    def step(pos, prev, n, dt, dt2, k, b, g, rest, spheres, cylinders, planes):
+    def step(pos, prev, n, dt, dt2, k, b, g, rest, spheres, cylinders, boxes, planes):
         """One step; writes x_new into prev (see the module docstring)."""
         for row in prange(n):
             for col in range(n):
@@ -128,6 +128,26 @@ def _kernel(fastmath: bool):
                             n0, n1, n2 = n0 - q0, n1 - q1, n2 - q2
                         else:
                             n0, n1, n2 = n0 + u0 * to_end, n1 + u1 * to_end, n2 + u2 * to_end
+                for m in range(boxes.shape[0] // 4):  # then boxes, in scene order
+                    j = 4 * m  # rows: (centre, 0), (axis i, half extent i) for i = 0, 1, 2
+                    e0, e1, e2 = n0 - boxes[j, 0], n1 - boxes[j, 1], n2 - boxes[j, 2]
+                    lk = zero
+                    least = zero
+                    axis = -1  # the axis of least penetration so far; -1: not strictly inside
+                    for a in range(3):
+                        r = j + 1 + a
+                        ell = (e0 * boxes[r, 0] + e1 * boxes[r, 1]) + e2 * boxes[r, 2]
+                        depth = boxes[r, 3] - abs(ell)
+                        if not depth > zero:
+                            axis = -1
+                            break
+                        if axis < 0 or depth < least:  # ties go to the lower axis
+                            axis, least, lk = r, depth, ell
+                    if axis >= 0:  # out onto the face on its side (+ at l == 0)
+                        move = (boxes[axis, 3] if lk >= zero else -boxes[axis, 3]) - lk
+                        n0 = n0 + boxes[axis, 0] * move
+                        n1 = n1 + boxes[axis, 1] * move
+                        n2 = n2 + boxes[axis, 2] * move
                 for m in range(planes.shape[0] // 2):  # then planes, in scene order
                     j = 2 * m  # rows: (point, 0), (unit normal, 0)
                     v0, v1, v2 = planes[j + 1, 0], planes[j + 1, 1], planes[j + 1, 2]
@@ -144,7 +164,7 @@ def _kernel(fastmath: bool):
 class NumbaBackend(Backend):
     name = "numba"
     device_timer = ""  # no device clock read: a peer is timed as a user would time it
-    capabilities = Capabilities(sweep_variants=({"strict": False}, {"strict": True}))
+    capabilities = Capabilities(boxes=("verlet",), sweep_variants=({"strict": False}, {"strict": True}))
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
@@ -164,7 +184,7 @@ class NumbaBackend(Backend):
             c.b,
             np.array(c.g, dtype=np.float32),
             np.array([c.rest[kind] for kind in OFFSET_KIND], dtype=np.float32),  # by offset
-            *(colliders[kind] for kind in ("spheres", "cylinders", "planes")),
+            *(colliders[kind.plural] for kind in self.capabilities.collider_kinds()),  # its step's arguments
         )
         n2 = scene.particles
         self.pos = np.zeros((n2, 4), dtype=np.float32)

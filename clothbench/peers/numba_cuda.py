@@ -208,7 +208,10 @@ class NumbaCudaBackend(Backend):
             c.b,
             cuda.to_device(np.array(c.g, dtype=np.float32)),
             cuda.to_device(np.array([c.rest[kind] for kind in OFFSET_KIND], dtype=np.float32)),  # by offset
-            *(cuda.to_device(np.ascontiguousarray(colliders[kind])) for kind in ("spheres", "cylinders", "planes")),
+            *(
+                cuda.to_device(np.ascontiguousarray(colliders[kind.plural]))
+                for kind in self.capabilities.collider_kinds()  # its kernel's arguments
+            ),
         )
         n2 = scene.particles
         self._blocks = -(-n2 // THREADS_PER_BLOCK)

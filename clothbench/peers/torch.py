@@ -26,7 +26,7 @@ from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
-from clothbench.backends.numpy.verlet import neighbour_regions
+from clothbench.backends.numpy.verlet import ARGUMENTS, neighbour_regions
 
 _INSTALL = "pip install 'clothbench[peers]'"
 torch = None  # the torch module, imported on first use: clothbench imports without it
@@ -86,7 +86,7 @@ def step(pos, prev, w, free, c: dict, springs, colliders, sqrt):
     acc = force * w + c["g"]
     new = (2 * pos - prev) + acc * c["dt2"]
     new = torch.where(free, new, pos)  # pinned particles do not move
-    for kind, k in colliders:  # spheres, then cylinders, then planes
+    for kind, k in colliders:  # spheres, cylinders, boxes, then planes
         new = COLLIDE[kind](new, free, sqrt, **k)
     return new
 
@@ -119,12 +119,26 @@ def _collide_cylinder(x, free, sqrt, a, u, length, r, radial_r):
     return torch.where(inside, pushed, x)
 
 
+def _collide_box(x, free, sqrt, c, ax0, ax1, ax2, h0, h1, h2):
+    d = x - c
+    l0, l1, l2 = dot3(d, ax0), dot3(d, ax1), dot3(d, ax2)  # the box's own coordinates
+    p0, p1, p2 = h0 - torch.abs(l0), h1 - torch.abs(l1), h2 - torch.abs(l2)  # depth through each face pair
+    inside = (p0 > 0) & (p1 > 0) & (p2 > 0) & free
+    # out through the face of least penetration, ties to the lower axis, on the particle's side
+    take1 = p1 < p0
+    take2 = p2 < torch.where(take1, p1, p0)
+    lk = torch.where(take2, l2, torch.where(take1, l1, l0))
+    hk = torch.where(take2, h2, torch.where(take1, h1, h0))
+    axis = torch.where(take2, ax2, torch.where(take1, ax1, ax0))
+    return torch.where(inside, x + axis * (torch.where(lk >= 0, hk, -hk) - lk), x)
+
+
 def _collide_plane(x, free, sqrt, p0, nrm):
     dist = dot3(x - p0, nrm)
     return torch.where((dist < 0) & free, x - nrm * dist, x)
 
 
-COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "plane": _collide_plane}
+COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "box": _collide_box, "plane": _collide_plane}
 
 
 def collider_tensors(scene: Scene, tensor) -> list[tuple[str, dict]]:
@@ -147,6 +161,8 @@ def collider_tensors(scene: Scene, tensor) -> list[tuple[str, dict]]:
                 {"a": vec(a), "u": vec(u), "length": tensor(a[3]), "r": tensor(u[3]), "radial_r": vec(radial_r)},
             )
         )
+    for block in rows["boxes"].reshape(-1, 4, 4):  # (centre, 0), (axis i, half extent i): as the reference takes them
+        out.append(("box", {name: tensor(value) for name, value in ARGUMENTS["box"](*block).items()}))
     for p, nrm in rows["planes"].reshape(-1, 2, 4):
         out.append(("plane", {"p0": vec(p), "nrm": vec(nrm)}))
     return out
@@ -175,7 +191,7 @@ def _compiler_missing(torch, device) -> str:
 class TorchBackend(Backend):
     name = "torch"
     device_timer = ""  # no device clock read: a peer is timed as a user would time it
-    capabilities = Capabilities(device=True, sweep_variants=({"strict": False}, {"strict": True}))
+    capabilities = Capabilities(device=True, boxes=("verlet",), sweep_variants=({"strict": False}, {"strict": True}))
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)

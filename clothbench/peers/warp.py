@@ -2,7 +2,7 @@
 
 docs/semantics.md, written as Warp users write it: one thread per particle, vec3
 arithmetic, `wp.length_sq`, the stencil unrolled with `wp.static`, the colliders
-(spheres, then cylinders, then planes) in small float4 arrays (kernel_inputs.collider_rows).
+(spheres, cylinders, boxes, then planes) in small float4 arrays (kernel_inputs.collider_rows).
 Ping-pong without copies: particle i reads prev[i] only itself, so it writes x_new
 there, and the two arrays swap roles (prev_out = pos, as the semantics ask).
 
@@ -107,6 +107,7 @@ def _kernel(wp):
         rest: wp.array(dtype=float),
         spheres: wp.array(dtype=wp.vec4),
         cylinders: wp.array(dtype=wp.vec4),
+        boxes: wp.array(dtype=wp.vec4),
         planes: wp.array(dtype=wp.vec4),
     ):
         """pos[i] is x(t), prev[i] is x(t - dt) and receives x(t + dt)."""
@@ -179,6 +180,30 @@ def _kernel(wp):
                         x_new = x_new - qa
                     else:
                         x_new = x_new + u * to_end
+            for m in range(boxes.shape[0] // 4):  # then boxes, in scene order
+                cr = boxes[4 * m]  # (centre, 0), then (axis i, half extent i) for i = 0, 1, 2
+                r0, r1, r2 = boxes[4 * m + 1], boxes[4 * m + 2], boxes[4 * m + 3]
+                e = x_new - wp.vec3(cr[0], cr[1], cr[2])
+                ax0, ax1, ax2 = wp.vec3(r0[0], r0[1], r0[2]), wp.vec3(r1[0], r1[1], r1[2]), wp.vec3(r2[0], r2[1], r2[2])
+                l0 = (e[0] * ax0[0] + e[1] * ax0[1]) + e[2] * ax0[2]  # the box's own coordinates
+                l1 = (e[0] * ax1[0] + e[1] * ax1[1]) + e[2] * ax1[2]
+                l2 = (e[0] * ax2[0] + e[1] * ax2[1]) + e[2] * ax2[2]
+                p0, p1, p2 = r0[3] - wp.abs(l0), r1[3] - wp.abs(l1), r2[3] - wp.abs(l2)  # depth through each face pair
+                if p0 > 0.0 and p1 > 0.0 and p2 > 0.0:  # strictly inside: out through the least deep face
+                    u = ax0
+                    lk = l0
+                    hk = r0[3]
+                    pk = p0
+                    if p1 < pk:  # ties go to the lower axis
+                        u = ax1
+                        lk = l1
+                        hk = r1[3]
+                        pk = p1
+                    if p2 < pk:
+                        u = ax2
+                        lk = l2
+                        hk = r2[3]
+                    x_new = x_new + u * (wp.where(lk >= 0.0, hk, -hk) - lk)  # the face on its side
             for m in range(planes.shape[0] // 2):  # then planes, in scene order
                 pr = planes[2 * m]  # (point, 0)
                 nr = planes[2 * m + 1]  # (unit normal, 0)
@@ -198,7 +223,7 @@ class WarpBackend(Backend):
     device_timer = ""  # no device clock read: a peer is timed as a user would time it
     # --strict and fast run the same kernel, Warp's CPU default being IEEE already (module
     # docstring): one sweep variant
-    capabilities = Capabilities(device=True)
+    capabilities = Capabilities(device=True, boxes=("verlet",))
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
@@ -225,8 +250,8 @@ class WarpBackend(Backend):
             wp.vec3(*c.g),
             wp.array(rest, dtype=float, device=self._device),
             *(
-                wp.array(colliders[kind], dtype=wp.vec4, device=self._device)
-                for kind in ("spheres", "cylinders", "planes")
+                wp.array(colliders[kind.plural], dtype=wp.vec4, device=self._device)
+                for kind in self.capabilities.collider_kinds()  # its kernel's arguments
             ),
         ]
 

@@ -29,17 +29,46 @@ from clothbench.harness.sweep_csv import KEY_COLUMNS, parse_chunks
 
 # CSV columns copied into each entry as numbers, when the row has them.
 NUMBER_FIELDS = (
-    "grid", "particles", "springs", "dt", "steps", "repeats", "ms_median", "ms_min", "ms_max", "ms_iqr",
-    "device_ms_median", "particles_per_s", "ms_per_sim_s", "warmup_s", "max_penetration_m",
-    "err_rms_m", "err_max_m", "bound_ms", "specialised_speedup",
-)  # fmt: skip
+    "grid",
+    "particles",
+    "springs",
+    "dt",
+    "steps",
+    "repeats",
+    "ms_median",
+    "ms_min",
+    "ms_max",
+    "ms_iqr",
+    "device_ms_median",
+    "particles_per_s",
+    "ms_per_sim_s",
+    "warmup_s",
+    "max_penetration_m",
+    "err_rms_m",
+    "err_max_m",
+    "bound_ms",
+    "specialised_speedup",
+)
 # ... as true/false ...
 BOOL_FIELDS = ("peer", "strict", "generic", "finite")
 # ... and as text.
 TEXT_FIELDS = (
-    "backend", "solver", "pbd_method", "mode", "precision", "transfer", "local_size", "device", "scene",
-    "status", "note", "timed_region", "env", "git_commit", "timestamp",
-)  # fmt: skip
+    "backend",
+    "solver",
+    "pbd_method",
+    "mode",
+    "precision",
+    "transfer",
+    "local_size",
+    "device",
+    "scene",
+    "status",
+    "note",
+    "timed_region",
+    "env",
+    "git_commit",
+    "timestamp",
+)
 # Key columns that the name leaves to the mode (added only where two names would clash).
 _NAMED = ("backend", "solver", "pbd_method", "scene", "grid")
 
@@ -116,12 +145,21 @@ def benchmark_entries(rows: list[dict[str, str]]) -> list[dict]:
             entry["chunk_ms"] = chunks
         entries.append(entry)
         if ok and chunks:
-            entries.append({
-                **common, "name": f"{name}_median", "run_type": "aggregate", "repetitions": len(chunks),
-                "threads": 1, "aggregate_name": "median", "aggregate_unit": "time", "iterations": steps,
-                "real_time": statistics.median(chunks), "time_unit": "ms",
-                **{k: v for k, v in _own_fields(row).items() if k in ("backend", "mode", "grid", "device")},
-            })  # fmt: skip
+            entries.append(
+                {
+                    **common,
+                    "name": f"{name}_median",
+                    "run_type": "aggregate",
+                    "repetitions": len(chunks),
+                    "threads": 1,
+                    "aggregate_name": "median",
+                    "aggregate_unit": "time",
+                    "iterations": steps,
+                    "real_time": statistics.median(chunks),
+                    "time_unit": "ms",
+                    **{k: v for k, v in _own_fields(row).items() if k in ("backend", "mode", "grid", "device")},
+                }
+            )
     return entries
 
 

@@ -34,7 +34,7 @@ OBJ_DIGITS = 10
 OBJ_TOLERANCE = 0.5 * 10.0**-OBJ_DIGITS  # m
 # The floor patch a plane is drawn as: this many times the scene's box on a side, about its centre.
 PLANE_PATCH = 4.0
-WRITTEN_KINDS = {"sphere", "cylinder", "plane"}  # the analytic collider kinds _colliders writes (and meshes)
+WRITTEN_KINDS = {"sphere", "cylinder", "box", "plane"}  # the analytic collider kinds _colliders writes (and meshes)
 METADATA_KEY = "clothbench"  # the stage's customLayerData entry naming the run (read back by read_usd)
 INSTALL = "pip install usd-core (or clothbench's extra: pip install 'clothbench[export]')"
 
@@ -210,6 +210,11 @@ class UsdWriter:
             local[:3, 0], local[:3, 1] = perpendicular(u)
             local[:3, 2], local[:3, 3] = u, u * half
             place(cylinder, c, local)
+        for i, b in enumerate(scene.boxes):  # USD's cube has edges of 2: scaled to the half extents in the body frame
+            box = UsdGeom.Cube.Define(stage, f"/World/Colliders/box_{i}")
+            box.CreateSizeAttr(2.0)
+            box.CreateExtentAttr([Gf.Vec3f(-1.0), Gf.Vec3f(1.0)])
+            place(box, b, np.diag([*b.half_extents, 1.0]))
         lo, hi = scene_bounds(scene)
         half_patch = PLANE_PATCH * float(np.max(hi - lo)) / 2
         for i, p in enumerate(scene.planes):  # a square patch of the half-space's surface, centred below the scene

@@ -33,8 +33,7 @@ MAX_SERIES = 8  # more lines than this in one panel and a reader stops telling t
 COLORS_OF = {"CPU": "#404040", "OpenCL": "#1f77b4", "GL": "#2ca02c", "CUDA": "#d62728", PEERS: "#ff7f0e"}
 NATIVE_COLOR = "black"  # the c backend's fast line, drawn in every panel as the native CPU line
 # distinct at a glance and in print; a panel's series take them in order
-PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f",
-           "#bcbd22")  # fmt: skip
+PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#7f7f7f", "#bcbd22")
 MARKERS = ("o", "s", "D", "^", "v", "<", ">", "p", "h", "*")
 FRONT_COLOR = "black"
 # float32 rounding moves equally correct kernels' errors a few per cent apart: closer than
@@ -165,16 +164,34 @@ def draw_front(ax, points: list[tuple[float, float, str]], labelled: bool = True
         return []
     xs, ys = [p[0] for p in points], [p[1] for p in points]
     ax.step(xs, ys, where="post", color=FRONT_COLOR, linewidth=1.1, alpha=0.75, zorder=4, label="Pareto front")
-    ax.plot(xs, ys, linestyle="none", marker="o", markersize=9, markerfacecolor="none",
-            markeredgecolor=FRONT_COLOR, markeredgewidth=1.0, zorder=5)  # fmt: skip
+    ax.plot(
+        xs,
+        ys,
+        linestyle="none",
+        marker="o",
+        markersize=9,
+        markerfacecolor="none",
+        markeredgecolor=FRONT_COLOR,
+        markeredgewidth=1.0,
+        zorder=5,
+    )
     if not labelled:
         return []
     labels = [
-        ax.annotate(label, (x, y), xytext=LABEL_OFFSET, textcoords="offset points", ha="right", va="top",
-                    fontsize=6.5, zorder=6, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
-                    arrowprops=LEADER)
+        ax.annotate(
+            label,
+            (x, y),
+            xytext=LABEL_OFFSET,
+            textcoords="offset points",
+            ha="right",
+            va="top",
+            fontsize=6.5,
+            zorder=6,
+            bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
+            arrowprops=LEADER,
+        )
         for x, y, label in points
-    ]  # fmt: skip
+    ]
     for label in labels:
         label.arrow_patch.set_visible(False)  # shown by fit_labels where it moves the label off its point
     return labels
@@ -208,8 +225,12 @@ def _place_labels(fig: Figure, labels: list) -> list:
     renderer = fig.canvas.get_renderer()
     own = set(map(id, labels))
     axes = list(dict.fromkeys(label.axes for label in labels))
-    placed = [_text_box(t, renderer) for ax in axes for t in ax.texts
-              if id(t) not in own and t.get_visible() and t.get_text().strip()]  # fmt: skip
+    placed = [
+        _text_box(t, renderer)
+        for ax in axes
+        for t in ax.texts
+        if id(t) not in own and t.get_visible() and t.get_text().strip()
+    ]
     boxes = []
     for label in labels:
         label.xyann = LABEL_OFFSET
@@ -280,8 +301,16 @@ def draw_bound_lines(ax, rows: list, x: Callable, y: Callable) -> bool:
     for machine, points in by_machine.items():
         xs = sorted(points)
         label = "machine bound" + (f" ({machine})" if len(by_machine) > 1 else "")
-        ax.plot(xs, [min(points[v]) for v in xs], color=BOUND_COLOR, linewidth=2.4, alpha=0.7,
-                linestyle=(0, (6, 2)), zorder=1, label=label)  # fmt: skip
+        ax.plot(
+            xs,
+            [min(points[v]) for v in xs],
+            color=BOUND_COLOR,
+            linewidth=2.4,
+            alpha=0.7,
+            linestyle=(0, (6, 2)),
+            zorder=1,
+            label=label,
+        )
     return bool(by_machine)
 
 
@@ -289,14 +318,24 @@ def draw_native_line(ax, rows: list, x: Callable, y: Callable) -> bool:
     """The c backend's fast float32 Verlet rows as a thin black line: the native CPU line
     every other panel is read against (the chapter's CPU line). Whether a line was drawn."""
     native = sorted(
-        (r for r in rows if r.backend == "c" and not r.strict and r.precision == "f32" and r.solver == "verlet"
-         and not r.local_size),
+        (
+            r
+            for r in rows
+            if r.backend == "c" and not r.strict and r.precision == "f32" and r.solver == "verlet" and not r.local_size
+        ),
         key=x,
-    )  # fmt: skip
+    )
     if not native:
         return False
-    ax.plot([x(r) for r in native], [y(r) for r in native], color=NATIVE_COLOR, linewidth=1.0, linestyle=":",
-            zorder=2, label="c fast: the native CPU line")  # fmt: skip
+    ax.plot(
+        [x(r) for r in native],
+        [y(r) for r in native],
+        color=NATIVE_COLOR,
+        linewidth=1.0,
+        linestyle=":",
+        zorder=2,
+        label="c fast: the native CPU line",
+    )
     return True
 
 
@@ -363,8 +402,9 @@ def panel_axes(body, count: int, cols: int = 3, wide_first: bool = False, key: b
     for i in range(count):
         span = 2 if (i == 0 and wide_first and cols > 1) else 1
         r, c = divmod(cell, cols)
-        axes.append(body.add_subplot(grid[r, c : c + span], sharex=axes[0] if axes else None,
-                                     sharey=axes[0] if axes else None))  # fmt: skip
+        axes.append(
+            body.add_subplot(grid[r, c : c + span], sharex=axes[0] if axes else None, sharey=axes[0] if axes else None)
+        )
         cell += span
     key_axes = None
     if key:
@@ -379,8 +419,9 @@ def key_legend(key_axes, handles: list) -> None:
     span = len(key_axes.get_subplotspec().colspan)
     for h in handles:
         h.set_label(textwrap.fill(h.get_label(), 50))
-    key_axes.legend(handles=handles, loc="center", ncol=min(len(handles), span), fontsize=7.5, frameon=False,
-                    handlelength=2.4)  # fmt: skip
+    key_axes.legend(
+        handles=handles, loc="center", ncol=min(len(handles), span), fontsize=7.5, frameon=False, handlelength=2.4
+    )
 
 
 def plain_log_labels(ax, axis) -> None:
@@ -411,8 +452,16 @@ def panel_legend(ax, ncol: int | None = None, handles: list | None = None) -> No
         if hasattr(h, "set_label"):
             h.set_label(textwrap.fill(h.get_label(), 60))
     if handles:
-        ax.legend(handles=handles, fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=ncol,
-                  frameon=False, handlelength=2.6, columnspacing=1.2)  # fmt: skip
+        ax.legend(
+            handles=handles,
+            fontsize=6.5,
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.16),
+            ncol=ncol,
+            frameon=False,
+            handlelength=2.6,
+            columnspacing=1.2,
+        )
 
 
 def save_figure(fig: Figure, path: Path, dpi: int = PNG_DPI) -> list[Path]:

@@ -25,8 +25,15 @@ from clothbench.analysis.convergence import cheapest_at
 from clothbench.reports import accuracy_plots, plots, tables
 from clothbench.reports.figures_common import FRONT_TOLERANCE, is_peer, pareto_front
 from clothbench.reports.results_files import (
-    ACCURACY, ARTEFACTS, STABILITY, SWEEP, WHAT, ResultsFile, accuracy_result, analysis_rows,
-)  # fmt: skip
+    ACCURACY,
+    ARTEFACTS,
+    STABILITY,
+    SWEEP,
+    WHAT,
+    ResultsFile,
+    accuracy_result,
+    analysis_rows,
+)
 from clothbench.variant_names import iterations_display, model_display
 
 STYLE = """
@@ -108,8 +115,14 @@ def slug(text: str) -> str:
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "section"
 
 
-def table(head: list[str], rows: list[list], caption: str = "", row_classes: list[str] | None = None,
-          best: set[tuple[int, int]] = frozenset(), right: set[int] = frozenset()) -> Html:  # fmt: skip
+def table(
+    head: list[str],
+    rows: list[list],
+    caption: str = "",
+    row_classes: list[str] | None = None,
+    best: set[tuple[int, int]] = frozenset(),
+    right: set[int] = frozenset(),
+) -> Html:
     """A table; numbers (and the `right` columns) right-aligned, numbers formatted by num(),
     None shown as '–'; `best` marks (row, column) cells."""
     out = ["<table>"]
@@ -225,28 +238,41 @@ def page(title: str, intro: list[Html], sections: list[Section]) -> str:
 # A sweep figure's title and what it shows, by the file name reports/plots.py gives it;
 # a figure it draws that is not named here is still shown, titled after its file.
 SWEEP_FIGURES = {
-    "time_vs_grid": ("Time per step against grid size",
-                     "The chapter's Figures 22.5 and 22.6 for this machine: median ms per step, bars from the "
-                     "fastest to the slowest timed chunk."),
-    "throughput": ("Throughput against particle count",
-                   "Particles per second, with the fitted exponent p of time ∝ N^p per line: p ≈ 1, the cost "
-                   "grows linearly; p < 1, the hardware is not yet full."),
-    "speed_vs_error": ("Speed against error",
-                       "Compute ms per simulated second against the RMS error to the float64 reference; the "
-                       "Pareto front joins the configurations that no other beats on both."),
+    "time_vs_grid": (
+        "Time per step against grid size",
+        "The chapter's Figures 22.5 and 22.6 for this machine: median ms per step, bars from the "
+        "fastest to the slowest timed chunk.",
+    ),
+    "throughput": (
+        "Throughput against particle count",
+        "Particles per second, with the fitted exponent p of time ∝ N^p per line: p ≈ 1, the cost "
+        "grows linearly; p < 1, the hardware is not yet full.",
+    ),
+    "speed_vs_error": (
+        "Speed against error",
+        "Compute ms per simulated second against the RMS error to the float64 reference; the "
+        "Pareto front joins the configurations that no other beats on both.",
+    ),
     "local_size": ("Time per step against work-group size", "Backends that have a work-group or block size."),
-}  # fmt: skip
+}
 ACCURACY_FIGURES = {
-    "speed_vs_error": ("Speed against error",
-                       "Cost against the error to the converged float64 answer of each line's own model, dt "
-                       "halved along each line; the Pareto front's runs are listed in the table below."),
-    "convergence": ("Convergence", "Error against dt with the fitted order; dotted: rounding (float64 at the same dt)."),
-}  # fmt: skip
+    "speed_vs_error": (
+        "Speed against error",
+        "Cost against the error to the converged float64 answer of each line's own model, dt "
+        "halved along each line; the Pareto front's runs are listed in the table below.",
+    ),
+    "convergence": (
+        "Convergence",
+        "Error against dt with the fitted order; dotted: rounding (float64 at the same dt).",
+    ),
+}
 STABILITY_FIGURES = {
-    "stability_map": ("Stability against the bound",
-                      "The largest stable dt against stiffness, measured by bisection, beside the linearised "
-                      "bound 2/ω of the lattice, its stretched form and Gershgorin's."),
-}  # fmt: skip
+    "stability_map": (
+        "Stability against the bound",
+        "The largest stable dt against stiffness, measured by bisection, beside the linearised "
+        "bound 2/ω of the lattice, its stretched form and Gershgorin's.",
+    ),
+}
 MACHINE_COLUMNS = ("cpu", "cores", "python", "packages", "env")
 
 
@@ -271,15 +297,21 @@ def study(files: list[ResultsFile], figures: Figures) -> tuple[list[Html], list[
         elif f not in paired.values():
             sections.append(artefacts_section(f, f"PBD artefacts: {f.name}"))
     inputs = [
-        [Html(f'<a href="#{section_id(f)}">{esc(f.path)}</a>'), WHAT[f.kind], len(f.rows),
-         len(f.ok_rows()) if "status" in f.rows[0] else len(f.rows)]
+        [
+            Html(f'<a href="#{section_id(f)}">{esc(f.path)}</a>'),
+            WHAT[f.kind],
+            len(f.rows),
+            len(f.ok_rows()) if "status" in f.rows[0] else len(f.rows),
+        ]
         for f in files
-    ]  # fmt: skip
+    ]
     intro = [
-        Html('<p class="lead">One page for a whole study: every figure drawn from the CSVs below, inline, '
-             "and the tables beside them.</p>"),
+        Html(
+            '<p class="lead">One page for a whole study: every figure drawn from the CSVs below, inline, '
+            "and the tables beside them.</p>"
+        ),
         table(["file", "what", "rows", "rows ok"], inputs),
-    ]  # fmt: skip
+    ]
     return intro, sections
 
 
@@ -326,24 +358,41 @@ def machine_section(files: list[ResultsFile]) -> Section:
             per_file = machines.setdefault(tuple(r[c] for c in MACHINE_COLUMNS), {})
             per_file[f.name] = per_file.get(f.name, 0) + 1
     if machines:
-        sec.body.append(table(
-            ["machine", "cpu", "logical cores", "python", "driver environment", "rows from"],
-            [[f"#{i}", m[0], m[1], m[2], m[4] or "none set", ", ".join(f"{n} ({k})" for n, k in per_file.items())]
-             for i, (m, per_file) in enumerate(machines.items(), start=1)],
-        ))  # fmt: skip
+        sec.body.append(
+            table(
+                ["machine", "cpu", "logical cores", "python", "driver environment", "rows from"],
+                [
+                    [
+                        f"#{i}",
+                        m[0],
+                        m[1],
+                        m[2],
+                        m[4] or "none set",
+                        ", ".join(f"{n} ({k})" for n, k in per_file.items()),
+                    ]
+                    for i, (m, per_file) in enumerate(machines.items(), start=1)
+                ],
+            )
+        )
     for f in partial:
         recorded = [c for c in MACHINE_COLUMNS if c in f.rows[0]]
-        sec.body.append(paragraph(f"{f.name} records only {', '.join(recorded)}: "
-                                  + "; ".join(", ".join(_values(f.rows, c)) or "none" for c in recorded)))  # fmt: skip
+        sec.body.append(
+            paragraph(
+                f"{f.name} records only {', '.join(recorded)}: "
+                + "; ".join(", ".join(_values(f.rows, c)) or "none" for c in recorded)
+            )
+        )
     differ = [c for i, c in enumerate(MACHINE_COLUMNS) if len({m[i] for m in machines}) > 1]
     cpus = {r["cpu"] for f in full + partial for r in f.rows if r.get("cpu")}
     if len(cpus) > 1 and "cpu" not in differ:
         differ.insert(0, "cpu")
     if differ:
-        sec.body.append(notice(
-            f"The rows come from at least {max(len(machines), len(cpus))} different machines or set-ups (they "
-            f"differ in {', '.join(differ)}): compare numbers within one machine, or two with clothbench compare."
-        ))  # fmt: skip
+        sec.body.append(
+            notice(
+                f"The rows come from at least {max(len(machines), len(cpus))} different machines or set-ups (they "
+                f"differ in {', '.join(differ)}): compare numbers within one machine, or two with clothbench compare."
+            )
+        )
     elif full or partial:
         sec.body.append(paragraph("Every row that records its machine was measured on this one."))
     for i, packages in enumerate(dict.fromkeys(m[3] for m in machines), start=1):
@@ -357,29 +406,35 @@ def machine_section(files: list[ResultsFile]) -> Section:
                 names = devices.setdefault((r["backend"], r["device"], driver_cell(r)), [])
                 names += [] if f.name in names else [f.name]
     if devices:
-        sec.body.append(table(
-            ["backend", "device, as its driver names it", "driver", "in"],
-            [[b, d, v, ", ".join(n)] for (b, d, v), n in devices.items()],
-            row_classes=["peer" if is_peer(b) else "" for b, _, _ in devices],
-        ))  # fmt: skip
+        sec.body.append(
+            table(
+                ["backend", "device, as its driver names it", "driver", "in"],
+                [[b, d, v, ", ".join(n)] for (b, d, v), n in devices.items()],
+                row_classes=["peer" if is_peer(b) else "" for b, _, _ in devices],
+            )
+        )
     runs = []
     for f in files:
         dates, commits = sorted({s[:10] for s in _values(f.rows, "timestamp")}), _values(f.rows, "git_commit")
         if dates or commits:
             when = f"measured {dates[0]}" + (f" to {dates[-1]}" if len(dates) > 1 else "") + ", " if dates else ""
-            runs.append(f"<li>{esc(f.name)}: {esc(when)}clothbench commit{'s' * (len(commits) > 1)} "
-                        f"{esc(', '.join(commits) or 'not recorded')}</li>")  # fmt: skip
+            runs.append(
+                f"<li>{esc(f.name)}: {esc(when)}clothbench commit{'s' * (len(commits) > 1)} "
+                f"{esc(', '.join(commits) or 'not recorded')}</li>"
+            )
     if runs:
         sec.body.append(Html(f"<ul>{''.join(runs)}</ul>"))
     if any("+dirty" in c for f in files for c in _values(f.rows, "git_commit")):
         sec.body.append(Html("<p>'+dirty': the commit had changes not yet committed.</p>"))
     silent = [f.name for f in files if f not in full and f not in partial]
     if silent:
-        sec.body.append(paragraph(
-            f"{', '.join(silent)} record{'s' * (len(silent) == 1)} no machine (cpu, cores, python, packages, "
-            "environment, commit): sweep CSVs record all of it, as do accuracy and stability CSVs written since "
-            "they took the same columns."
-        ))  # fmt: skip
+        sec.body.append(
+            paragraph(
+                f"{', '.join(silent)} record{'s' * (len(silent) == 1)} no machine (cpu, cores, python, packages, "
+                "environment, commit): sweep CSVs record all of it, as do accuracy and stability CSVs written since "
+                "they took the same columns."
+            )
+        )
     return sec
 
 
@@ -392,12 +447,14 @@ def sweep_section(f: ResultsFile, figures: Figures) -> Section:
     chunks = ", ".join(f"{r} chunks × {s} steps" for r, s in sorted({(r["repeats"], r["steps"]) for r in ok}))
     own = sorted({r["backend"] for r in ok if r["peer"] != "true"})
     peers = sorted({r["backend"] for r in ok if r["peer"] == "true"})
-    sec.body.append(paragraph(
-        f"Scene {', '.join(_values(ok, 'scene'))}, grids {', '.join(f'{g}×{g}' for g in sorted({int(r['grid']) for r in ok}))}, "
-        f"dt {', '.join(f'{float(d) * 1e3:g} ms' for d in _values(ok, 'dt'))}; {chunks} timed after warm-up "
-        f"(median, min, max). Backends: {', '.join(own) or 'none'}; peers: {', '.join(peers) or 'none'}. "
-        f"{len(ok)} of {len(f.rows)} rows ok."
-    ))  # fmt: skip
+    sec.body.append(
+        paragraph(
+            f"Scene {', '.join(_values(ok, 'scene'))}, grids {', '.join(f'{g}×{g}' for g in sorted({int(r['grid']) for r in ok}))}, "
+            f"dt {', '.join(f'{float(d) * 1e3:g} ms' for d in _values(ok, 'dt'))}; {chunks} timed after warm-up "
+            f"(median, min, max). Backends: {', '.join(own) or 'none'}; peers: {', '.join(peers) or 'none'}. "
+            f"{len(ok)} of {len(f.rows)} rows ok."
+        )
+    )
     folder = figures.folder_for(f.path.stem)
     report = plots.plot_sweep(f.path, folder)
     sec.body += _inline_all(figures, folder, SWEEP_FIGURES)
@@ -405,32 +462,64 @@ def sweep_section(f: ResultsFile, figures: Figures) -> Section:
     sec.children.append(ms_per_step_section(ok, sec.id))
     ratios = tables.peer_ratios(f.rows)
     if ratios:
-        sec.children.append(Section("Peers against clothbench", f"{sec.id}-peers", [table(
-            ["grid", "fastest GPU-style backend", "ms/step", "fastest peer", "ms/step", "peer / it"],
-            [[f"{r['grid']}×{r['grid']}", r["ours"], r["ours_ms"], r["peer"], r["peer_ms"], Html(f"{num(r['ratio'], 2)}×")]
-             for r in ratios],
-            caption="Per grid, clothbench's fastest float32 backend (any mode, the runtime's work-group size) "
-                    "against the fastest peer (reports/tables.py peer_ratios).", right={5},
-        )]))  # fmt: skip
+        sec.children.append(
+            Section(
+                "Peers against clothbench",
+                f"{sec.id}-peers",
+                [
+                    table(
+                        ["grid", "fastest GPU-style backend", "ms/step", "fastest peer", "ms/step", "peer / it"],
+                        [
+                            [
+                                f"{r['grid']}×{r['grid']}",
+                                r["ours"],
+                                r["ours_ms"],
+                                r["peer"],
+                                r["peer_ms"],
+                                Html(f"{num(r['ratio'], 2)}×"),
+                            ]
+                            for r in ratios
+                        ],
+                        caption="Per grid, clothbench's fastest float32 backend (any mode, the runtime's work-group size) "
+                        "against the fastest peer (reports/tables.py peer_ratios).",
+                        right={5},
+                    )
+                ],
+            )
+        )
     sec.children.append(sweep_pareto_section(ok, sec.id))
     if len({r.get("solver") or "verlet" for r in ok}) > 1:
         sec.children.append(sweep_solvers_section(ok, sec.id))
     doubtful = _doubtful_rows(ok)
     if doubtful:
-        sec.children.append(Section("Rows whose figure may not hold", f"{sec.id}-doubtful", [table(
-            ["backend", "mode", "grid", "ms/step", "why"], doubtful,
-            caption="Measured while the machine was busy (the busy and load columns) or with chunks spread over "
-                    "10 % of their median (harness/noise.py): measure them again on a quiet machine before "
-                    "reading a ratio from them.", right={2, 3},
-        )]))  # fmt: skip
+        sec.children.append(
+            Section(
+                "Rows whose figure may not hold",
+                f"{sec.id}-doubtful",
+                [
+                    table(
+                        ["backend", "mode", "grid", "ms/step", "why"],
+                        doubtful,
+                        caption="Measured while the machine was busy (the busy and load columns) or with chunks spread over "
+                        "10 % of their median (harness/noise.py): measure them again on a quiet machine before "
+                        "reading a ratio from them.",
+                        right={2, 3},
+                    )
+                ],
+            )
+        )
     bad = [r for r in f.rows if r["status"] != "ok"]
     if bad:
         groups: dict[tuple, list[str]] = {}
         for r in bad:
             groups.setdefault((r["backend"], r["status"], r.get("note", "")), []).append(f"{r['mode']} n={r['grid']}")
-        sec.children.append(Section("Rows not measured", f"{sec.id}-bad", [table(
-            ["backend", "status", "rows", "why"], [[b, s, len(w), n] for (b, s, n), w in groups.items()]
-        )]))  # fmt: skip
+        sec.children.append(
+            Section(
+                "Rows not measured",
+                f"{sec.id}-bad",
+                [table(["backend", "status", "rows", "why"], [[b, s, len(w), n] for (b, s, n), w in groups.items()])],
+            )
+        )
     return sec
 
 
@@ -467,10 +556,20 @@ def ms_per_step_section(ok: list[dict], parent: str) -> Section:
         column = [(row[j], i) for i, row in enumerate(body) if row[j] is not None]
         if column:
             best.add((min(column)[1], j))
-    return Section("ms per step", f"{parent}-ms", [table(
-        ["backend, mode", "device"] + [f"{g}×{g}" for g in grids], body, row_classes=classes, best=best,
-        caption="Median ms per step; bold: the fastest at that grid. Peers are marked.", right=set(range(2, 2 + len(grids))),
-    )])  # fmt: skip
+    return Section(
+        "ms per step",
+        f"{parent}-ms",
+        [
+            table(
+                ["backend, mode", "device"] + [f"{g}×{g}" for g in grids],
+                body,
+                row_classes=classes,
+                best=best,
+                caption="Median ms per step; bold: the fastest at that grid. Peers are marked.",
+                right=set(range(2, 2 + len(grids))),
+            )
+        ],
+    )
 
 
 def sweep_pareto_section(ok: list[dict], parent: str) -> Section:
@@ -481,18 +580,30 @@ def sweep_pareto_section(ok: list[dict], parent: str) -> Section:
         mine = [r for r in ok if int(r["grid"]) == grid and not r["local_size"] and r["err_rms_m"]]
         for r in pareto_front(mine, cost=_sweep_cost, error=lambda r: float(r["err_rms_m"]), tolerance=FRONT_TOLERANCE):
             error = float(r["err_rms_m"])
-            body.append([f"{grid}×{grid}", Html(num(error) + " <small>(the float64 reference)</small>") if error == 0
-                         else error, _sweep_cost(r), f"{r['backend']} {r['mode']}", r["device"]])  # fmt: skip
+            body.append(
+                [
+                    f"{grid}×{grid}",
+                    Html(num(error) + " <small>(the float64 reference)</small>") if error == 0 else error,
+                    _sweep_cost(r),
+                    f"{r['backend']} {r['mode']}",
+                    r["device"],
+                ]
+            )
             classes.append("peer" if r["peer"] == "true" else "")
     if not body:
         sec.body.append(paragraph("No row has an error measurement: there is no front to find."))
         return sec
-    sec.body.append(table(
-        ["grid", "RMS error (m)", "ms per simulated second", "backend, mode", "device"], body, row_classes=classes,
-        right={1}, caption="At each grid, the rows no other row beats on both speed and error (errors within "
-                           f"{FRONT_TOLERANCE:.0%} count as equal, as in the figure), from the most accurate to the "
-                           "cheapest: the fastest platform at each error.",
-    ))  # fmt: skip
+    sec.body.append(
+        table(
+            ["grid", "RMS error (m)", "ms per simulated second", "backend, mode", "device"],
+            body,
+            row_classes=classes,
+            right={1},
+            caption="At each grid, the rows no other row beats on both speed and error (errors within "
+            f"{FRONT_TOLERANCE:.0%} count as equal, as in the figure), from the most accurate to the "
+            "cheapest: the fastest platform at each error.",
+        )
+    )
     return sec
 
 
@@ -518,14 +629,24 @@ def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
     for (backend, grid), at in cost.items():
         if "Verlet" not in at or len(at) < 2:
             continue
-        cells = [Html(f"{num(at[m])}" + (f" (×{num(at[m] / at['Verlet'], 2)})" if m != "Verlet" else ""))
-                 if m in at else "–" for m in models]  # fmt: skip
+        cells = [
+            Html(f"{num(at[m])}" + (f" (×{num(at[m] / at['Verlet'], 2)})" if m != "Verlet" else "")) if m in at else "–"
+            for m in models
+        ]
         body.append([backend, f"{grid}×{grid}", *cells])
-    return Section("Verlet against PBD", f"{parent}-solvers", [table(
-        ["backend", "grid", *models], body, right=set(range(2, 2 + len(models))),
-        caption="Compute ms per simulated second, the cheapest float32 mode of each solver (× Verlet's cost). "
+    return Section(
+        "Verlet against PBD",
+        f"{parent}-solvers",
+        [
+            table(
+                ["backend", "grid", *models],
+                body,
+                right=set(range(2, 2 + len(models))),
+                caption="Compute ms per simulated second, the cheapest float32 mode of each solver (× Verlet's cost). "
                 "The same dt: PBD pays off only at steps Verlet cannot take (see Stability).",
-    )])  # fmt: skip
+            )
+        ],
+    )
 
 
 # --- an accuracy run -----------------------------------------------------------------------
@@ -536,42 +657,72 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
     rows, r0 = result.rows, result.rows[0]
     sec = Section(f"Accuracy: {f.name}", section_id(f))
     solvers = list(dict.fromkeys(r.solver for r in rows))
-    sec.body.append(paragraph(
-        f"Scene {r0.scene}, {r0.grid}×{r0.grid}, start {r0.start}, damping {r0.damping:g} N s/m; errors at "
-        f"t = {r0.time_s:g} s against the converged float64 answer of each row's own model; solvers "
-        f"{' and '.join(solvers)}; {len(rows)} runs on {len({r.label for r in rows})} backend modes."
-    ))  # fmt: skip
+    sec.body.append(
+        paragraph(
+            f"Scene {r0.scene}, {r0.grid}×{r0.grid}, start {r0.start}, damping {r0.damping:g} N s/m; errors at "
+            f"t = {r0.time_s:g} s against the converged float64 answer of each row's own model; solvers "
+            f"{' and '.join(solvers)}; {len(rows)} runs on {len({r.label for r in rows})} backend modes."
+        )
+    )
     folder = figures.folder_for(f.path.stem)
     accuracy_plots.plot_speed_vs_error(result, folder / "speed_vs_error.svg")
     accuracy_plots.plot_convergence(result, folder / "convergence.svg")
     sec.body += _inline_all(figures, folder, ACCURACY_FIGURES)
     ok = [r for r in rows if r.status == "ok" and r.disc_rms > 0 and r.ms_per_sim_s > 0]
     front = pareto_front(ok, cost=lambda r: r.ms_per_sim_s, error=lambda r: r.disc_rms, tolerance=FRONT_TOLERANCE)
-    sec.children.append(Section("Pareto front: the cheapest run to each error", f"{sec.id}-pareto", [table(
-        ["RMS error (m)", "ms per simulated second", "backend, mode", "solver", "dt (s)"],
-        [[r.disc_rms, r.ms_per_sim_s, r.label, r.solver, Exact(r.dt)] for r in front],
-        row_classes=["peer" if is_peer(r.backend) else "" for r in front],
-        caption=f"The runs no other run beats on both cost and error (errors within {FRONT_TOLERANCE:.0%} count as "
-                "equal), from the most accurate to the cheapest.",
-    )]))  # fmt: skip
+    sec.children.append(
+        Section(
+            "Pareto front: the cheapest run to each error",
+            f"{sec.id}-pareto",
+            [
+                table(
+                    ["RMS error (m)", "ms per simulated second", "backend, mode", "solver", "dt (s)"],
+                    [[r.disc_rms, r.ms_per_sim_s, r.label, r.solver, Exact(r.dt)] for r in front],
+                    row_classes=["peer" if is_peer(r.backend) else "" for r in front],
+                    caption=f"The runs no other run beats on both cost and error (errors within {FRONT_TOLERANCE:.0%} count as "
+                    "equal), from the most accurate to the cheapest.",
+                )
+            ],
+        )
+    )
     orders = {}
     for r in rows:
         best = orders.setdefault(r.label, [r, math.inf, math.inf])
         if r in ok and r.disc_rms < best[1]:
             best[1:] = [r.disc_rms, r.ms_per_sim_s]
-    sec.children.append(Section("Convergence order per backend and mode", f"{sec.id}-orders", [table(
-        ["backend, mode", "solver", "device", "fitted order", "dts fitted", "smallest error (m)", "its cost (ms/sim s)"],
-        [[label, r.solver, r.device, r.order, r.order_points, e, c] for label, (r, e, c) in orders.items()],
-        row_classes=["peer" if is_peer(r.backend) else "" for r, _, _ in orders.values()],
-        caption="The order of error against dt, fitted where discretisation dominates rounding ('–': it never does).",
-    )]))  # fmt: skip
+    sec.children.append(
+        Section(
+            "Convergence order per backend and mode",
+            f"{sec.id}-orders",
+            [
+                table(
+                    [
+                        "backend, mode",
+                        "solver",
+                        "device",
+                        "fitted order",
+                        "dts fitted",
+                        "smallest error (m)",
+                        "its cost (ms/sim s)",
+                    ],
+                    [[label, r.solver, r.device, r.order, r.order_points, e, c] for label, (r, e, c) in orders.items()],
+                    row_classes=["peer" if is_peer(r.backend) else "" for r, _, _ in orders.values()],
+                    caption="The order of error against dt, fitted where discretisation dominates rounding ('–': it never does).",
+                )
+            ],
+        )
+    )
     if {"verlet", "pbd"} <= set(solvers):
         sec.children.append(accuracy_solvers_section(rows, ok, sec.id))
     bad = [r for r in rows if r.status != "ok"]
     if bad:
-        sec.children.append(Section("Runs that did not finish", f"{sec.id}-bad", [table(
-            ["backend, mode", "dt (s)", "status"], [[r.label, Exact(r.dt), r.status] for r in bad]
-        )]))  # fmt: skip
+        sec.children.append(
+            Section(
+                "Runs that did not finish",
+                f"{sec.id}-bad",
+                [table(["backend, mode", "dt (s)", "status"], [[r.label, Exact(r.dt), r.status] for r in bad])],
+            )
+        )
     if artefacts is not None:
         sec.children.append(artefacts_section(artefacts, f"What PBD changes: {artefacts.name}"))
     return sec
@@ -580,31 +731,53 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
 def accuracy_solvers_section(rows: list, ok: list, parent: str) -> Section:
     """Per decade of error, the cheapest Verlet and PBD runs reaching it (PBD against its own
     converged model and against the mass-spring answer Verlet converges to)."""
-    columns = (("Verlet", "verlet", "disc_rms"), ("PBD, own model", "pbd", "disc_rms"),
-               ("PBD against Verlet's answer", "pbd", "vs_verlet_rms"))  # fmt: skip
+    columns = (
+        ("Verlet", "verlet", "disc_rms"),
+        ("PBD, own model", "pbd", "disc_rms"),
+        ("PBD against Verlet's answer", "pbd", "vs_verlet_rms"),
+    )
     errors = [r.disc_rms for r in ok]
     body = []
     for e in range(math.ceil(math.log10(max(errors))), math.floor(math.log10(min(errors))) - 1, -1):
         cells = []
         for _, solver, attr in columns:
             best = cheapest_at([r for r in ok if r.solver == solver], 10.0**e, attr)
-            cells.append(Html(f"{num(best.ms_per_sim_s)} <small>({esc(best.label)}, dt {num(Exact(best.dt))} s)</small>")
-                         if best else "–")  # fmt: skip
+            cells.append(
+                Html(f"{num(best.ms_per_sim_s)} <small>({esc(best.label)}, dt {num(Exact(best.dt))} s)</small>")
+                if best
+                else "–"
+            )
         body.append([Html(f"≤ {num(Exact(10.0**e))}"), *cells])
-    return Section("Verlet against PBD", f"{parent}-solvers", [table(
-        ["RMS error (m)", *(c[0] for c in columns)], body,
-        caption="The cheapest run reaching each error, in ms of compute per simulated second.",
-    )])  # fmt: skip
+    return Section(
+        "Verlet against PBD",
+        f"{parent}-solvers",
+        [
+            table(
+                ["RMS error (m)", *(c[0] for c in columns)],
+                body,
+                caption="The cheapest run reaching each error, in ms of compute per simulated second.",
+            )
+        ],
+    )
 
 
 def artefacts_section(f: ResultsFile, title: str) -> Section:
     rows = analysis_rows(f)
-    return Section(title, section_id(f), [table(
-        ["model", "dt (s)", "strain at rest", "× Verlet's", "energy change (% of M g L)", "ms per simulated s"],
-        [[r.model, Exact(r.dt), r.hanging_strain, r.strain_ratio, 100 * r.energy_change, r.ms_per_sim_s] for r in rows],
-        caption="PBD's softness (the hanging sheet's strain against Verlet's) and damping (energy gained or lost "
+    return Section(
+        title,
+        section_id(f),
+        [
+            table(
+                ["model", "dt (s)", "strain at rest", "× Verlet's", "energy change (% of M g L)", "ms per simulated s"],
+                [
+                    [r.model, Exact(r.dt), r.hanging_strain, r.strain_ratio, 100 * r.energy_change, r.ms_per_sim_s]
+                    for r in rows
+                ],
+                caption="PBD's softness (the hanging sheet's strain against Verlet's) and damping (energy gained or lost "
                 "undamped), numpy float64. An over-stretched model's energy change is no damping measure.",
-    )])  # fmt: skip
+            )
+        ],
+    )
 
 
 # --- a stability run -------------------------------------------------------------------------
@@ -614,10 +787,12 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
     rows = analysis_rows(f)
     r0 = rows[0]
     sec = Section(f"Stability: {f.name}", section_id(f))
-    sec.body.append(paragraph(
-        f"The largest dt stable for {r0.steps} steps, {r0.grid}×{r0.grid}, b = {r0.damping:g} N s/m, by bisection, "
-        f"on {len({r.label for r in rows})} backend modes and {len({r.kind for r in rows})} scenes."
-    ))  # fmt: skip
+    sec.body.append(
+        paragraph(
+            f"The largest dt stable for {r0.steps} steps, {r0.grid}×{r0.grid}, b = {r0.damping:g} N s/m, by bisection, "
+            f"on {len({r.label for r in rows})} backend modes and {len({r.kind for r in rows})} scenes."
+        )
+    )
     folder = figures.folder_for(f.path.stem)
     accuracy_plots.plot_stability_map(rows, folder / "stability_map.svg")
     sec.body += _inline_all(figures, folder, STABILITY_FIGURES)
@@ -645,14 +820,28 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
             spread = num(ratios[0]) + (f"–{num(ratios[-1])}" if len(ratios) > 1 else "")
             cells.append(Html(f"{'≥ ' if worst.capped else ''}{num(ms(worst.dt_stable))} <small>({spread}×)</small>"))
         body.append([kind, Exact(k), ms(here[0].flat_predicted), ms(here[0].predicted), *cells])
-    sec.children.append(Section("Measured against the bound", f"{sec.id}-bound", [table(
-        ["scene", "k (N/m)", "bound 2/ω, flat (ms)", "this scene's bound (ms)",
-         *(f"{m}: largest stable dt (ms)" for m in models)],
-        body, right=set(range(4, 4 + len(models))),
-        caption="The smallest of the backends' largest stable dt, and in brackets the range over backends of "
-                "measured ÷ the scene's own bound (÷ the flat bound where the scene has none: crumpled, and PBD, "
-                "which has no step limit of its kind). '≥': stable at the bisection's cap; the limit is higher.",
-    )]))  # fmt: skip
+    sec.children.append(
+        Section(
+            "Measured against the bound",
+            f"{sec.id}-bound",
+            [
+                table(
+                    [
+                        "scene",
+                        "k (N/m)",
+                        "bound 2/ω, flat (ms)",
+                        "this scene's bound (ms)",
+                        *(f"{m}: largest stable dt (ms)" for m in models),
+                    ],
+                    body,
+                    right=set(range(4, 4 + len(models))),
+                    caption="The smallest of the backends' largest stable dt, and in brackets the range over backends of "
+                    "measured ÷ the scene's own bound (÷ the flat bound where the scene has none: crumpled, and PBD, "
+                    "which has no step limit of its kind). '≥': stable at the bisection's cap; the limit is higher.",
+                )
+            ],
+        )
+    )
     at_60 = [r for r in rows if r.at_60hz]
     if at_60:
         verdicts = []
@@ -660,10 +849,19 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
             mine = [r for r in at_60 if model(r) == m]
             if mine:
                 verdicts.append([m, sum(1 for r in mine if r.stable_at_60hz), len(mine)])
-        sec.children.append(Section("At dt = 1/60 s", f"{sec.id}-60hz", [table(
-            ["solver", "stable runs", "of"], verdicts,
-            caption="The same scenes and stiffnesses run at a 60 Hz frame's step, on every backend.",
-        )]))  # fmt: skip
+        sec.children.append(
+            Section(
+                "At dt = 1/60 s",
+                f"{sec.id}-60hz",
+                [
+                    table(
+                        ["solver", "stable runs", "of"],
+                        verdicts,
+                        caption="The same scenes and stiffnesses run at a 60 Hz frame's step, on every backend.",
+                    )
+                ],
+            )
+        )
     return sec
 
 

@@ -1,6 +1,6 @@
 """The meshes the renderer draws: the cloth's triangles over its particle grid, unit
-spheres and capped cylinders scaled into place for the colliders, and the triangles of a
-mesh collider as the step sees them, in its body frame."""
+spheres, capped cylinders and cubes scaled into place for the colliders, and the triangles of
+a mesh collider as the step sees them, in its body frame."""
 
 from __future__ import annotations
 
@@ -44,6 +44,22 @@ def cylinder_mesh(segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
         k = np.arange(1, segments + 1)
         indices.append(base + np.stack([np.zeros_like(k), k, k + 1], axis=1))
     return np.vstack(vertices).astype(np.float32), np.vstack(indices).astype(np.uint32)
+
+
+def cube_mesh() -> tuple[np.ndarray, np.ndarray]:
+    """The cube -1..1 on each axis, flat-shaded: (vertices as (x, y, z, nx, ny, nz), indices)."""
+    vertices, indices = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            nrm = np.zeros(3)
+            nrm[axis] = sign
+            u, v = np.eye(3)[(axis + 1) % 3], np.eye(3)[(axis + 2) % 3]
+            if sign < 0:
+                u, v = v, u  # counter-clockwise seen from outside
+            base = len(vertices)
+            vertices += [np.hstack([nrm + a * u + b * v, nrm]) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+            indices += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
+    return np.array(vertices, np.float32), np.array(indices, np.uint32)
 
 
 def triangle_mesh(corners: np.ndarray, shrink: float = 1.0) -> tuple[np.ndarray, np.ndarray]:

@@ -38,13 +38,41 @@ from matplotlib.ticker import FuncFormatter
 
 from clothbench.errors import ClothbenchError
 from clothbench.reports.figures_common import (
-    BOUND_COLOR, FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, MAX_SERIES, PEERS, Chart, display_name,
-    draw_bound_lines, draw_front, draw_native_line, fit_labels, key_legend, panel_axes, panel_legend, pareto_front,
-    plain_log_labels, platform_color, platform_rank, platform_title, save_figure, small_multiples, titled_figure,
-)  # fmt: skip
+    BOUND_COLOR,
+    FRONT_COLOR,
+    FRONT_LEGEND,
+    FRONT_TOLERANCE,
+    MAX_SERIES,
+    PEERS,
+    Chart,
+    display_name,
+    draw_bound_lines,
+    draw_front,
+    draw_native_line,
+    fit_labels,
+    key_legend,
+    panel_axes,
+    panel_legend,
+    pareto_front,
+    plain_log_labels,
+    platform_color,
+    platform_rank,
+    platform_title,
+    save_figure,
+    small_multiples,
+    titled_figure,
+)
 from clothbench.reports.sweep_rows import (
-    REQUIRED, Row, Series, by_variant, by_variant_grid, devices_line, footer, group, load,
-)  # fmt: skip
+    REQUIRED,
+    Row,
+    Series,
+    by_variant,
+    by_variant_grid,
+    devices_line,
+    footer,
+    group,
+    load,
+)
 
 FILES = ("time_vs_grid", "throughput", "speed_vs_error", "local_size")
 MODEL_MARKERS = {"Verlet": "o", "PBD jacobi": "s", "PBD coloured": "D"}
@@ -68,8 +96,9 @@ def _sweep_figure(
     cols = 1 if panels == 1 else 2 if panels in (2, 4) else 3
     nrows = math.ceil(panels / cols)
     width = 9.5 if cols == 1 else 4.8 * cols
-    fig, body = titled_figure(title, width, 6.2 if cols == 1 else nrows * panel_height + 0.8,
-                              devices_line(rows) + "\n" + footer(rows))  # fmt: skip
+    fig, body = titled_figure(
+        title, width, 6.2 if cols == 1 else nrows * panel_height + 0.8, devices_line(rows) + "\n" + footer(rows)
+    )
     body.supxlabel(xlabel, fontsize=9)
     body.supylabel(ylabel, fontsize=9)
     axes, key_axes = panel_axes(body, panels, cols, key=key)
@@ -124,9 +153,16 @@ def _fastest_per_platform(series: list[Series]) -> list[Series]:
             if r.grid not in best or r.ms < best[r.grid].ms:
                 best[r.grid] = r
         name = f"{platform}, {model}" if len(models) > 1 else platform
-        out.append(Series(key=("fastest", platform, model), rows=[best[g] for g in sorted(best)],
-                          label=name, peer=platform == PEERS, pbd=model != "Verlet",
-                          color=platform_color(platform)))  # fmt: skip
+        out.append(
+            Series(
+                key=("fastest", platform, model),
+                rows=[best[g] for g in sorted(best)],
+                label=name,
+                peer=platform == PEERS,
+                pbd=model != "Verlet",
+                color=platform_color(platform),
+            )
+        )
     return out
 
 
@@ -166,13 +202,21 @@ def _line_figure(name: str, title: str, labels: tuple[str, str], rows: list[Row]
 def plot_time_vs_grid(rows: list[Row], report: PlotReport) -> None:
     def draw(ax, i, s):
         err = [[r.ms - r.ms_min for r in s.rows], [r.ms_max - r.ms for r in s.rows]]
-        ax.errorbar([r.grid for r in s.rows], [r.ms for r in s.rows], yerr=err, label=s.label, capsize=2,
-                    elinewidth=0.8, **s.style(i))  # fmt: skip
+        ax.errorbar(
+            [r.grid for r in s.rows],
+            [r.ms for r in s.rows],
+            yerr=err,
+            label=s.label,
+            capsize=2,
+            elinewidth=0.8,
+            **s.style(i),
+        )
         return s.label
 
     labels = ("grid n² (n particles per side; the particles below)", "time per step (ms), median; bars min-max")
-    chart, panels = _line_figure("time_vs_grid", "Computation time per step against grid size", labels, rows, report,
-                                 draw)  # fmt: skip
+    chart, panels = _line_figure(
+        "time_vs_grid", "Computation time per step against grid size", labels, rows, report, draw
+    )
     for ax, (panel, members) in panels:
         mine = [r for s in members for r in s.rows]
         draw_bound_lines(ax, mine, x=lambda r: r.grid, y=lambda r: r.bound_ms)
@@ -233,8 +277,15 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
     models = list(dict.fromkeys(r.model for r in with_err))
     zero = " (error 0, the float64 reference itself, at the dotted line)" if len(positive) < len(with_err) else ""
     xlabel = f"RMS position error against numpy float64 after the timed run (m){zero}"
-    fig, axes, key_axes = _sweep_figure("Speed against error, per grid size", with_err, len(grids), xlabel,
-                                        "compute time per simulated second (ms)", 4.0, key=True)  # fmt: skip
+    fig, axes, key_axes = _sweep_figure(
+        "Speed against error, per grid size",
+        with_err,
+        len(grids),
+        xlabel,
+        "compute time per simulated second (ms)",
+        4.0,
+        key=True,
+    )
     chart = Chart(fig)
     labels, bound = [], False
     for ax, n in zip(axes, grids):
@@ -245,20 +296,41 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
             color = platform_color(platform)
             for model in models:
                 pts = [r for r in mine if platform_of_row[id(r)] == platform and r.model == model]
-                ax.plot([max(r.err_rms, floor) for r in pts], [r.cost for r in pts], linestyle="none",
-                        marker=MODEL_MARKERS.get(model, "^"), markersize=5.5, color=color, alpha=0.85,
-                        markerfacecolor="white" if platform == PEERS else color)  # fmt: skip
+                ax.plot(
+                    [max(r.err_rms, floor) for r in pts],
+                    [r.cost for r in pts],
+                    linestyle="none",
+                    marker=MODEL_MARKERS.get(model, "^"),
+                    markersize=5.5,
+                    color=color,
+                    alpha=0.85,
+                    markerfacecolor="white" if platform == PEERS else color,
+                )
         chart.panels[panel] = platforms
         front = pareto_front(mine, cost=lambda r: r.cost, error=lambda r: r.err_rms, tolerance=FRONT_TOLERANCE)
         chart.fronts[panel] = [label_of[id(r)] for r in front]
         labels += draw_front(ax, [(max(r.err_rms, floor), r.cost, label_of[id(r)]) for r in front])
         for machine in dict.fromkeys(r.raw.get("cpu", "") for r in mine if r.bound_ms):  # one bound per machine
             bound = True
-            ax.axhline(min(r.bound_ms / r.dt for r in mine if r.bound_ms and r.raw.get("cpu", "") == machine),
-                       color=BOUND_COLOR, linewidth=2.4, alpha=0.7, linestyle=(0, (6, 2)), zorder=1)  # fmt: skip
+            ax.axhline(
+                min(r.bound_ms / r.dt for r in mine if r.bound_ms and r.raw.get("cpu", "") == machine),
+                color=BOUND_COLOR,
+                linewidth=2.4,
+                alpha=0.7,
+                linestyle=(0, (6, 2)),
+                zorder=1,
+            )
         ax.axhline(1000.0, color="0.5", linestyle="-.", linewidth=0.8)
-        ax.text(0.01, 1000.0, " real time", transform=ax.get_yaxis_transform(), fontsize=6.5, color="0.35",
-                ha="left", va="bottom")  # fmt: skip
+        ax.text(
+            0.01,
+            1000.0,
+            " real time",
+            transform=ax.get_yaxis_transform(),
+            fontsize=6.5,
+            color="0.35",
+            ha="left",
+            va="bottom",
+        )
         if len(positive) < len(with_err):
             ax.axvline(floor, color="0.5", linestyle=":", linewidth=1)
         ax.set_title(panel, fontsize=9)
@@ -270,8 +342,9 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
     handles = [_marker_key(p, platform_color(p), "o", peers) for p in platforms]
     if len(models) > 1:
         handles += [_marker_key(m, "0.45", MODEL_MARKERS.get(m, "^")) for m in models]
-    handles.append(Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8,
-                          label=FRONT_LEGEND))  # fmt: skip
+    handles.append(
+        Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8, label=FRONT_LEGEND)
+    )
     if bound:
         handles.append(Line2D([], [], color=BOUND_COLOR, linewidth=2.4, linestyle=(0, (6, 2)), label="machine bound"))
     key_legend(key_axes, handles)
@@ -282,9 +355,16 @@ def plot_speed_vs_error(rows: list[Row], report: PlotReport) -> None:
 def _marker_key(label: str, color: str, marker: str, peers: str = "") -> Line2D:
     """A key entry; the peers' names their display names, `peers`."""
     peer = label == PEERS
-    return Line2D([], [], color=color, marker=marker, linestyle="none", markersize=6,
-                  markerfacecolor="white" if peer else color,
-                  label=f"peers ({peers}; not clothbench)" if peer else label)  # fmt: skip
+    return Line2D(
+        [],
+        [],
+        color=color,
+        marker=marker,
+        linestyle="none",
+        markersize=6,
+        markerfacecolor="white" if peer else color,
+        label=f"peers ({peers}; not clothbench)" if peer else label,
+    )
 
 
 def plot_local_size(rows: list[Row], report: PlotReport) -> None:
@@ -314,9 +394,14 @@ def plot_local_size(rows: list[Row], report: PlotReport) -> None:
         else:
             panels += [(backend, [n]) for n in sorted({r.grid for r in mine})]
 
-    fig, axes, _ = _sweep_figure("Time per step against work-group / block size", sized, len(panels),
-                              "work-group / block size (work items); auto (hollow) = the runtime's choice",
-                              "time per step (ms), median; bars min-max", panel_height=4.8)  # fmt: skip
+    fig, axes, _ = _sweep_figure(
+        "Time per step against work-group / block size",
+        sized,
+        len(panels),
+        "work-group / block size (work items); auto (hollow) = the runtime's choice",
+        "time per step (ms), median; bars min-max",
+        panel_height=4.8,
+    )
     report.series["local_size"] = []
     chart = Chart(fig)
     for ax, (backend, panel_grids) in zip(axes, panels):
@@ -341,12 +426,26 @@ def plot_local_size(rows: list[Row], report: PlotReport) -> None:
             report.series["local_size"].append(f"{s.label}, n={n}")
             chart.panels[title].append(f"{s.label}, n={n}")
             err = [[r.ms - r.ms_min for r in pts], [r.ms_max - r.ms for r in pts]]
-            ax.errorbar([r.local_size for r in pts], [r.ms for r in pts], yerr=err, capsize=2, elinewidth=0.7,
-                        label=f"{variant}, n={n}", **style)  # fmt: skip
+            ax.errorbar(
+                [r.local_size for r in pts],
+                [r.ms for r in pts],
+                yerr=err,
+                capsize=2,
+                elinewidth=0.7,
+                label=f"{variant}, n={n}",
+                **style,
+            )
             for r in s.rows:
                 if r.local_size is None:
-                    ax.plot([auto_x], [r.ms], marker=style["marker"], color=shade[n], markersize=6,
-                            markerfacecolor="white", linestyle="none")  # fmt: skip
+                    ax.plot(
+                        [auto_x],
+                        [r.ms],
+                        marker=style["marker"],
+                        color=shade[n],
+                        markersize=6,
+                        markerfacecolor="white",
+                        linestyle="none",
+                    )
         ax.set_xscale("log", base=2)
         ax.set_xticks([auto_x, *sizes])
         ax.set_xticklabels(["auto", *map(str, sizes)])
@@ -547,6 +646,15 @@ def plot_sweep(path, out) -> PlotReport:
 
 # REQUIRED, Row and load are sweep_rows' and stay importable from here (reports/results_files.py)
 __all__ = [
-    "FILES", "REQUIRED", "Row", "PlotReport", "load", "draw_sweep", "plot_sweep", "scaling_exponent", "line_panels",
-    "plot_mesh", "crossover",
-]  # fmt: skip
+    "FILES",
+    "REQUIRED",
+    "Row",
+    "PlotReport",
+    "load",
+    "draw_sweep",
+    "plot_sweep",
+    "scaling_exponent",
+    "line_panels",
+    "plot_mesh",
+    "crossover",
+]

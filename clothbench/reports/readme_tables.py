@@ -72,7 +72,7 @@ def limits_markdown(rows: list[dict]) -> str:
     for r in limits_rows(rows):
         peer_ms = "–" if r["peer_ms"] is None else f"{r['peer_ms']:.3f}"
         bound = "–" if r["bound_ms"] is None else f"{r['bound_ms']:.3f} ({r['bound_kind']})"
-        # the fastest row's name only where it is not the GPU-style row already named (issue 31 item 19)
+        # the fastest row's name only where it is not the GPU-style row already named
         who = "the same row" if r["fastest_any"] == r["best"] else r["fastest_any"]
         share = "–" if r["fraction"] is None else f"{100 * r['fraction']:.0f} % ({who})"
         lines.append(

@@ -3,7 +3,7 @@
 The cloth is the n x n sheet as indexed triangles (kernels/render_cloth.*), each grid quad
 split along its (r, c)-(r+1, c+1) diagonal as in docs/normals.md, lit on both sides with the
 particles' normals and patterned with a checker so folds show. The colliders are meshes
-(kernels/render_collider.*): spheres, capped cylinders, a square patch of each plane, and
+(kernels/render_collider.*): spheres, capped cylinders, boxes, a square patch of each plane, and
 each [[mesh]] collider's own triangles (flat-shaded, as the step sees them); a moving one is
 drawn at its pose for the frame's time (colliders/motion.py).
 A frame shows x(t), the state the last step read, with its normals: what the GL kernels
@@ -28,7 +28,14 @@ import numpy as np
 
 from clothbench.backends import BackendOptions, capabilities, create_backend
 from clothbench.backends.gl import context as gl_context
-from clothbench.reports.meshes import cloth_indices, cylinder_mesh, perpendicular, sphere_mesh, triangle_mesh
+from clothbench.reports.meshes import (
+    cloth_indices,
+    cube_mesh,
+    cylinder_mesh,
+    perpendicular,
+    sphere_mesh,
+    triangle_mesh,
+)
 from clothbench.errors import ClothbenchError
 from clothbench.harness.normals import grid_normals
 from clothbench.reports.render_bounds import motion_matrix, placement_matrix, scene_bounds
@@ -185,6 +192,11 @@ class Renderer:
                 model[:3, 0], model[:3, 1], model[:3, 2] = e1 * r, e2 * r, u * (c.length - 2 * trim)
                 model[:3, 3] = np.array(c.start) + u * trim
                 shapes.append(_Shape(mesh, model, COLLIDER_COLOUR, body=c))
+        if self.scene.boxes:
+            mesh = vao(*cube_mesh())
+            for b in self.scene.boxes:  # the cube scaled to its half extents, then placed
+                model = placement_matrix(b) @ np.diag([*(h * COLLIDER_SHRINK for h in b.half_extents), 1.0])
+                shapes.append(_Shape(mesh, model, COLLIDER_COLOUR, body=b))
         if self.scene.planes:
             lo, hi = scene_bounds(self.scene)
             half = 4.0 * float(np.max(hi - lo))

@@ -38,10 +38,18 @@ def _mesh_box(mesh, t: float) -> tuple[np.ndarray, np.ndarray]:
     return world.min(axis=0), world.max(axis=0)
 
 
+def _box_box(box, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """The world-axis box around a box collider's eight corners at time t."""
+    rotation, centre = box.pose_at(t)
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    world = (signs * np.array(box.half_extents)) @ rotation.T + centre
+    return world.min(axis=0), world.max(axis=0)
+
+
 def scene_bounds(scene: Scene, duration: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """A box around where the cloth goes and the colliders: the sheet, as far down as it is
     long when pinned (hanging, stretched by its weight: HANG), or down to the lowest collider
-    when it lands on them, and every sphere, cylinder and mesh; not below a floor. Over
+    when it lands on them, and every sphere, cylinder, box and mesh; not below a floor. Over
     `duration` seconds a moving collider is boxed at several times, and a sheet whose pins
     follow a body is boxed where the body carries it."""
     times = np.linspace(0.0, duration, BOUND_SAMPLES) if duration > 0 else np.zeros(1)
@@ -52,6 +60,7 @@ def scene_bounds(scene: Scene, duration: float = 0.0) -> tuple[np.ndarray, np.nd
         shifts = [_pose_matrix(scene.body(scene.pin_attach), t)[:3, 3] - start for t in times]
         lo, hi = lo + np.min(shifts, axis=0), hi + np.max(shifts, axis=0)
     mesh_boxes = [_mesh_box(m, t) for m in scene.meshes for t in (times if m.motion else [0.0])]
+    mesh_boxes += [_box_box(b, t) for b in scene.boxes for t in (times if b.motion else [0.0])]
     lowest = [s.center[1] - s.radius for s in scene.spheres]
     lowest += [min(c.start[1], c.end[1]) - c.radius for c in scene.cylinders]
     lowest += [b[0][1] for b in mesh_boxes]

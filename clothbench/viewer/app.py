@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.backends.gl import context as gl_context
 from clothbench.errors import ClothbenchError
 from clothbench.reports.render import write_gif
@@ -281,7 +282,7 @@ class Viewer:
             "frame_ms": round(root.ms, 4),
             "fps": round(self.fps, 2) if self.fps else None,
             "drawn_from": self.source,
-            "colliders": {k: len(getattr(s.scene, k)) for k in ("spheres", "cylinders", "planes")},
+            "colliders": {k.plural: len(getattr(s.scene, k.plural)) for k in KINDS},
             "keys": keys,
             "events": s.take_events(),
             "profiler": root.as_dict(root.ms),

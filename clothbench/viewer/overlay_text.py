@@ -3,6 +3,7 @@ event and the keys (bottom left)."""
 
 from __future__ import annotations
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.viewer.draw import DIM, WARN, wrap
 from clothbench.viewer.keys import backend_key_span, help_lines, key_of
 from clothbench.viewer.session import has_stages
@@ -49,7 +50,7 @@ def run_lines(viewer, profile) -> list:
             rms, worst = s.error
             lines.append(f"error     vs float64 NumPy since step {s.shadow_since:,}:")
             lines.append(f"          RMS {rms:.2e} m, max {worst:.2e} m")
-    colliders = [f"{k} {len(getattr(scene, k))}" for k in ("spheres", "cylinders", "planes") if getattr(scene, k)]
+    colliders = [f"{k.plural} {len(getattr(scene, k.plural))}" for k in KINDS if getattr(scene, k.plural)]
     lines.append("colliders " + (", ".join(colliders) or "none") + ("   wireframe" if viewer.wireframe else ""))
     if s.options.strict and b.options.strict and b.flushes_subnormals:
         lines.append(("note      this driver flushes subnormal floats:", WARN))

@@ -30,7 +30,7 @@ from clothbench.solver import Solver
 from clothbench.viewer.keys import COLLIDER_KEYS, GRID_KEYS, backend_keys
 from clothbench.viewer.profiler import FrameProfile, GLTimer
 
-SHADOW_MAX_GRID = 128  # float64 NumPy keeps up with a frame up to here (~2 ms/step at 128)
+SHADOW_MAX_GRID = 128  # float64 NumPy keeps up with a frame up to here (docs/view.md, "The shadow run")
 KINDS = {"sphere": "spheres", "cylinder": "cylinders", "plane": "planes"}
 # Colliders a toggle adds to a scene that has none of that kind: the built-in scenes' own.
 DEFAULT_SCENES = {"sphere": "sphere", "cylinder": "cylinder", "plane": "cylinder"}

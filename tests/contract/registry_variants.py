@@ -14,9 +14,12 @@ from conftest import require  # tests/conftest.py
 STRICT = BackendOptions(strict=True)
 
 
-def backend_params(solver: str = "verlet", builds: bool = False, needs: str | None = None) -> list:
+def backend_params(
+    solver: str = "verlet", builds: bool = False, needs: str | None = None, takes: str | None = None
+) -> list:
     """pytest params: each backend that implements `solver` (and, with `needs`, declares that
-    capability); with `builds`, once per kernel build it declares (specialised, generic)."""
+    capability; with `takes`, takes that scene feature for `solver`: "meshes" or
+    "moving_colliders"); with `builds`, once per kernel build it declares (specialised, generic)."""
     params = []
     for name, entry in BACKENDS.items():
         if solver not in entry.solvers():
@@ -26,6 +29,8 @@ def backend_params(solver: str = "verlet", builds: bool = False, needs: str | No
             continue
         caps = backend_class(name, solver).capabilities
         if needs is not None and not getattr(caps, needs):
+            continue
+        if takes is not None and solver not in getattr(caps, takes):
             continue
         generics = (False, True) if builds and caps.generic else (False,)
         for generic in generics:

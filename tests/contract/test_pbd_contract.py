@@ -11,7 +11,7 @@ from clothbench.harness import reference, simulate
 from clothbench.scene import Cylinder, Plane, Sphere, load_scene
 from clothbench.solver import PBD_METHODS, Pbd
 
-from conftest import assert_bit_exact
+from conftest import assert_bit_exact, setup
 from registry_variants import backend_params, options, usable
 
 AT_60HZ = 1 / 60
@@ -55,6 +55,21 @@ def test_strict_pbd_matches_numpy_f32_bit_for_bit_after_200_steps(param, scene_n
         pos, prev = simulate(name, scene, solver, 200, options(name, "pbd", strict=True, shape=shape))
         assert_bit_exact(pos, ref_pos, f"{name} {shape} {method} {scene_name} pos")
         assert_bit_exact(prev, ref_prev, f"{name} {shape} {method} {scene_name} prev")
+
+
+@pytest.mark.parametrize("grid", [4, STRICT_GRID])  # 4: the border code only
+@pytest.mark.parametrize("param", backend_params("pbd", needs="strict"))
+def test_strict_chebyshev_jacobi_matches_numpy_bit_for_bit(param, grid):
+    # the extrapolation y = omega (y - before) + before, of the iterate and of every lambda,
+    # in the reference's order, in every kernel shape; the curtain file's PBD settings at 60 Hz
+    name, _ = usable(param)
+    run = setup("curtain", grid).replace(solver="pbd", method="jacobi", iterations=10, dt=AT_60HZ)
+    scene, solver = run.scene, run.solver.replace(chebyshev_rho=0.99)
+    ref_pos, ref_prev = reference(scene, solver, 60, "f32")
+    for shape in shapes_of(name, scene, solver):
+        pos, prev = simulate(name, scene, solver, 60, options(name, "pbd", strict=True, shape=shape))
+        assert_bit_exact(pos, ref_pos, f"{name} {shape} n={grid} pos")
+        assert_bit_exact(prev, ref_prev, f"{name} {shape} n={grid} prev")
 
 
 @pytest.mark.parametrize("param", backend_params("pbd", needs="local_size"))

@@ -42,7 +42,7 @@ def _energies(v, scene, steps, every):
 def test_undamped_energy_stays_in_its_band_for_100000_steps(variant):
     if variant.options.strict and variant.backend != "numpy":
         # a strict variant steps bit for bit as numpy f32 does (the contract's strict tests),
-        # so its 100,000 steps are numpy-f32's here, made once: torch strict took 3 minutes of CI
+        # so its 100,000 steps are numpy-f32's here, made once rather than again per strict variant
         pytest.skip("strict: bit-exact to numpy f32 (the contract), whose 100,000 steps this test runs")
     scene = DRAPE.scene.replace(damping=0.0)
     e0 = total_energy(*SOLVER.initial_state(scene, np.float64), scene, SOLVER.dt).total

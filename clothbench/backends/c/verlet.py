@@ -29,6 +29,7 @@ import os
 import numpy as np
 
 from clothbench import environment
+from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.native import build_library, compiler, no_compiler_reason
 from clothbench.scene import Scene
@@ -94,9 +95,7 @@ def build_flags(scene: Scene, precision: str, strict: bool) -> tuple[str, ...]:
     arithmetic (native.build_library keys its cache by the CPU too)."""
     defines = [
         f"-DCLOTH_N={scene.grid}",
-        f"-DCLOTH_SPHERES={len(scene.spheres)}",
-        f"-DCLOTH_CYLINDERS={len(scene.cylinders)}",
-        f"-DCLOTH_PLANES={len(scene.planes)}",
+        *(f"-D{kind.count_name('c')}={len(getattr(scene, kind.plural))}" for kind in kinds_in("c")),
     ]
     defines += ["-DCLOTH_DOUBLE"] * (precision == "f64") + ["-DCLOTH_STRICT"] * strict
     defines += [SELF_FLAG] * (scene.self_collision is not None)
@@ -166,6 +165,7 @@ class CBackend(Backend):
         strict=True,
         shapes=True,  # the thread count
         sweep_variants=({"strict": True}, {"strict": False}),  # f32 unless the sweep asks for f64
+        boxes=("verlet",),
         self_collision=("verlet",),
     )
 
@@ -180,7 +180,7 @@ class CBackend(Backend):
         c = VerletConstants.of(scene, solver, t)  # rounded once, docs/semantics.md
         self._numbers = np.array((c.k, c.b, c.dt, c.dt2, *c.g, *c.rest), dtype=t)
         rows = collider_rows(scene, t)
-        table = [rows[kind].reshape(-1) for kind in ("spheres", "cylinders", "planes")]
+        table = [rows[kind.plural].reshape(-1) for kind in kinds_in("c")]  # the kernel's order
         self._colliders = np.concatenate([*table, np.zeros(1, t)])  # never empty: a valid pointer
         # the state buffers, x|y|z planes: _state[0] holds x(t), _state[1] x(t - dt), and with
         # [self_collision] _state[2] the pass's output, the next x(t + dt)
@@ -205,9 +205,8 @@ class CBackend(Backend):
 
     def _fewer_threads_if_busy(self) -> str:
         """On a busy machine, the threads the others leave free for this run, not the tuned
-        count (tuning.threads_for_this_run; measured in docs/c.md, "Under load": 32^2 fast 6.3 us
-        a step quiet on two threads, 16.6 us beside one busy process, one thread there 11.5).
-        The count is the user's with OMP_NUM_THREADS or --shape."""
+        count (tuning.threads_for_this_run): there fewer threads run faster (docs/c.md,
+        "Under load"). The count is the user's with OMP_NUM_THREADS or --shape."""
         from clothbench.backends.tuning import threads_for_this_run
 
         user = self.options.shape is not None or omp_num_threads() is not None
@@ -240,7 +239,7 @@ class CBackend(Backend):
             "compiler": cc.version if cc else "",
             "kernel": hashlib.sha256(read_kernel(KERNEL_FILE).encode()).hexdigest()[:12],
             "grid": str(s.grid),
-            "colliders": f"{len(s.spheres)}/{len(s.cylinders)}/{len(s.planes)}",
+            "colliders": "/".join(str(len(getattr(s, kind.plural))) for kind in kinds_in("c")),
             "precision": self.options.precision,
             "arithmetic": "strict" if self.options.strict else "fast",
         } | ({"self_collision": "on"} if s.self_collision is not None else {})

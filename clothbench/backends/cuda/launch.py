@@ -24,12 +24,13 @@ from functools import lru_cache
 
 import numpy as np
 
+from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.variant_names import TRANSFERS as ALL_TRANSFERS
 from clothbench.backends.kernel_inputs import (
-    ROWS_PER_COLLIDER, MeshConstants, VerletConstants, collider_rows, pin_targets, pose_rows,
+    MeshConstants, VerletConstants, collider_rows, pin_targets, pose_rows,
 )  # fmt: skip
 
 TRANSFERS = ALL_TRANSFERS["cuda"]  # the first is the default
@@ -247,11 +248,13 @@ class PingPong:
         moving = scene.has_motion
         if generic:
             colliders = []
-            for kind, rows in collider_rows(scene).items():
+            table = collider_rows(scene)
+            for kind in kinds_in("cuda"):  # the kinds verlet_cloth.cu takes, each a buffer and a count
+                rows = table[kind.plural]
                 if not moving:  # a moving scene's rows are in the per-step table
                     # never a zero-size buffer: its pointer is passed even when no collider is read
                     colliders.append(runtime.alloc(rows if len(rows) else np.zeros((1, 4), np.float32)))
-                colliders.append(np.int32(len(rows) // ROWS_PER_COLLIDER[kind]))
+                colliders.append(np.int32(len(rows) // kind.rows))
             self.scene_args = (*kernel_constants(scene, solver).values(), *colliders)
         self.mesh_args: tuple = ()
         if scene.meshes:  # uploaded once: the body frame does not change when a mesh moves

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import c_float, read_kernel, resolve_includes
 from clothbench.scene import Scene
@@ -53,7 +54,7 @@ from clothbench.backends.cuda.runtime import (  # noqa: F401 (re-exported: tests
 from clothbench.backends.cuda.launch import (
     AUTO_BLOCK, TRANSFERS, PingPong, attached_pins, kernel_constants, motion_rows,
 )  # fmt: skip
-from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, collider_rows
+from clothbench.backends.kernel_inputs import collider_rows
 
 __all__ = ["AUTO_BLOCK", "TRANSFERS", "PingPong", "CudaBackend", "kernel_constants", "kernel_defines"]
 
@@ -105,12 +106,13 @@ def kernel_defines(
     for name, value in kernel_constants(scene, solver).items():
         literal = str(value) if name == "n" else c_float(value)
         defines.append(f"-DCLOTH_{name.upper()}={literal}")
-    for kind, rows in collider_rows(scene).items():
-        singular = kind[:-1].upper()
-        defines.append(f"-DCLOTH_{singular}_COUNT={len(rows) // ROWS_PER_COLLIDER[kind]}")
+    table = collider_rows(scene)
+    for kind in kinds_in("cuda"):  # the kinds verlet_cloth.cu takes
+        rows = table[kind.plural]
+        defines.append(f"-D{kind.count_name('cuda')}={len(rows) // kind.rows}")
         if len(rows) and not moving:  # a moving scene's rows are per step, not compiled in
             items = ",".join("{" + ",".join(c_float(v) for v in row) + "}" for row in rows)
-            defines.append(f"-DCLOTH_{kind.upper()}={{{items}}}")
+            defines.append(f"-DCLOTH_{kind.plural.upper()}={{{items}}}")
     if scene.meshes:  # the triangles are buffers (launch.mesh_buffers): too large for literals
         defines += [f"-DCLOTH_MESH_COUNT={len(scene.meshes)}", *mesh]
     if moving:
@@ -283,6 +285,7 @@ class CudaBackend(Backend):
         # meshes (kernels/collide_mesh.cuh) and per-step poses (launch.py: MotionTable), both kernels
         meshes=("verlet",),
         moving_colliders=("verlet",),
+        boxes=("verlet",),  # collide_box, fixed and moving, both kernels
         mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "copy"}),
     )
@@ -333,10 +336,11 @@ class CudaBackend(Backend):
             "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
             "arithmetic": "strict" if o.strict else "fast", "generic": str(o.generic),
             "normals": str(o.normals), "transfer": self.transfer, "local_size": str(o.local_size or "auto"),
-            # only where the scene has them, so that the keys of other scenes stay as they were
+            # only where the scene has them, so that a scene without them keeps its key
             **({"meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
                           f"{self.mesh_collision}"} if s.meshes else {}),
             **({"motion": "per-step poses"} if s.has_motion else {}),
+            **({"boxes": str(len(s.boxes))} if s.boxes else {}),
         }  # fmt: skip
 
     def _pingpong(self, shape: str) -> PingPong:

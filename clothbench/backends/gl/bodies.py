@@ -9,30 +9,28 @@ from functools import lru_cache
 
 import numpy as np
 
+from clothbench.colliders.kinds import KIND, KINDS, kinds_in
 from clothbench.kernel_source import glsl_float
 from clothbench.scene import Scene
 from clothbench.backends.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
 
 
-# The collider kinds, in the order the step applies them (kernels/collide_KIND.glsl).
-COLLIDER_KINDS = ("sphere", "cylinder", "plane")
-
-
 def collider_kinds(scene: Scene, generic: bool) -> tuple[str, ...]:
-    """The collider kinds a program for `scene` handles: the ones it has, or all (generic)."""
-    if generic:
-        return COLLIDER_KINDS
-    groups = (scene.spheres, scene.cylinders, scene.planes)
-    return tuple(kind for kind, group in zip(COLLIDER_KINDS, groups) if group)
+    """The collider kinds a program for `scene` handles, in the step's order (colliders/kinds.py,
+    those with a kernels/collide_KIND.glsl): the ones it has, or all (generic)."""
+    return tuple(k.name for k in kinds_in("glsl") if generic or getattr(scene, k.plural))
 
 
 # how collide() reads one collider of each kind from the per-step rows (MOTION_ROW: the
-# scene moves), at the offsets body_defines gives (spheres first, at 0)
+# scene moves), at the offsets motion_offsets gives (MOTION_SPHERES, ...)
 _MOVING_CALLS = {
-    "sphere": "    for (int i = 0; i < SPHERE_COUNT; ++i)\n        x = collide_sphere(x, MOTION_ROW(i));\n",
+    "sphere": "    for (int i = 0; i < SPHERE_COUNT; ++i)\n        x = collide_sphere(x, MOTION_ROW(MOTION_SPHERES + i));\n",
     "cylinder": "    for (int i = 0; i < CYLINDER_COUNT; ++i)\n"
     "        x = collide_cylinder(x, MOTION_ROW(MOTION_CYLINDERS + 3 * i), MOTION_ROW(MOTION_CYLINDERS + 3 * i + 1),\n"
     "                             MOTION_ROW(MOTION_CYLINDERS + 3 * i + 2).xyz);\n",
+    "box": "    for (int i = 0; i < BOX_COUNT; ++i)\n"
+    "        x = collide_box(x, MOTION_ROW(MOTION_BOXES + 4 * i), MOTION_ROW(MOTION_BOXES + 4 * i + 1),\n"
+    "                        MOTION_ROW(MOTION_BOXES + 4 * i + 2), MOTION_ROW(MOTION_BOXES + 4 * i + 3));\n",
     "plane": "    for (int i = 0; i < PLANE_COUNT; ++i)\n"
     "        x = collide_plane(x, MOTION_ROW(MOTION_PLANES + 2 * i).xyz, MOTION_ROW(MOTION_PLANES + 2 * i + 1).xyz);\n",
 }
@@ -44,7 +42,7 @@ def collider_source(kinds: tuple[str, ...], meshes: bool = False, moving: bool =
     (kernels/collide_mesh.glsl, only where the scene has meshes). A kind the program does not
     handle is not in its source at all. `moving`: the analytic colliders' rows are this
     step's (MOTION_ROW), not the file's constants (docs/semantics.md, "Moving colliders")."""
-    calls = "".join(_MOVING_CALLS[kind] if moving else f"    x = collide_{kind}s(x);\n" for kind in kinds)
+    calls = "".join(_MOVING_CALLS[kind] if moving else f"    x = collide_{KIND[kind].plural}(x);\n" for kind in kinds)
     parts = [f'#include "collide_{kind}.glsl"\n' for kind in kinds]
     if meshes:
         parts.append('#include "collide_mesh.glsl"\n')
@@ -60,16 +58,16 @@ def collider_source(kinds: tuple[str, ...], meshes: bool = False, moving: bool =
 
 def motion_offsets(scene: Scene) -> dict[str, int]:
     """Where each part of one step's rows sits (MOTION_ROW, vec4s): the analytic colliders as
-    collider_rows lays them out (spheres from 0, cylinders, planes), three pose rows per mesh
-    (row i of R, T.i in w), one row per attached pin (its target, 0)."""
-    spheres, cylinders, planes = len(scene.spheres), 3 * len(scene.cylinders), 2 * len(scene.planes)
-    meshes = spheres + cylinders + planes
-    pins = meshes + 3 * len(scene.meshes)
+    collider_rows lays them out (MOTION_SPHERES from 0, then each kind of colliders/kinds.py in
+    the step's order), three pose rows per mesh (row i of R, T.i in w), one row per attached
+    pin (its target, 0)."""
+    offsets, at = {}, 0
+    for kind in KINDS:
+        offsets[f"MOTION_{kind.plural.upper()}"] = at
+        at += kind.rows * len(getattr(scene, kind.plural))
+    pins = at + 3 * len(scene.meshes)
     attached = len(scene.pinned()) if scene.pin_attach is not None else 0
-    return dict(
-        MOTION_CYLINDERS=spheres, MOTION_PLANES=spheres + cylinders, MOTION_MESHES=meshes,
-        MOTION_PINS=pins, MOTION_STRIDE=max(1, pins + attached),
-    )  # fmt: skip
+    return dict(offsets, MOTION_MESHES=at, MOTION_PINS=pins, MOTION_STRIDE=max(1, pins + attached))
 
 
 def motion_rows(scene: Scene, time: float) -> np.ndarray:
@@ -78,7 +76,7 @@ def motion_rows(scene: Scene, time: float) -> np.ndarray:
     offsets = motion_offsets(scene)
     out = np.zeros((offsets["MOTION_STRIDE"], 4), dtype=np.float32)
     rows = collider_rows(scene, np.float32, time)
-    analytic = np.concatenate([rows["spheres"], rows["cylinders"], rows["planes"]])
+    analytic = np.concatenate([rows[kind.plural] for kind in KINDS])
     out[: len(analytic)] = analytic
     for m, mesh in enumerate(scene.meshes):
         out[offsets["MOTION_MESHES"] + 3 * m : offsets["MOTION_MESHES"] + 3 * m + 3] = pose_block(mesh, time)

@@ -48,7 +48,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
     capabilities = Capabilities(
         local_size=True, generic=True, normals=True, gl=True, shapes=True,
         sweep_variants=({"strict": True}, {"strict": False}),
-        meshes=("verlet",), moving_colliders=("verlet",),  # compute_pbd.py declares its own
+        meshes=("verlet",), moving_colliders=("verlet",), boxes=("verlet",),  # compute_pbd.py declares its own
         mesh_collisions=("accelerated", "naive"),  # the same bits (kernels/collide_mesh.glsl)
     )  # fmt: skip
 

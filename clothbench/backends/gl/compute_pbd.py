@@ -34,16 +34,15 @@ STAGES = {"predict": 0, "jacobi": 1, "coloured": 2, "collide": 3, "update": 4, "
 PARTS = {"all": 0, "interior": 1, "border": 2}  # of a Jacobi pass, as the kernel's
 # The constraint passes read positions through imageBuffer views of their buffers where the
 # driver allows a view that large: llvmpipe gathers image loads and loads SSBOs lane by lane
-# (measured at n = 256: Jacobi 1.5-2x, coloured 1.2x faster). Tests turn it off to check the
-# SSBO path.
+# (docs/pbd.md, "Launches"). Tests turn it off to check the SSBO path.
 PREFER_IMAGE_READS = True
 # The coloured method can run an iteration's 12 batches in one dispatch of one work-group of
 # SWEEP_LOCAL_SIZE invocations (barriers between batches), up to this many particles, instead
 # of a dispatch per batch (docs/pbd.md, "Launches"). Off (0): on llvmpipe one work-group is
-# one thread, and measured slower than 12 dispatches at 64^2 to 256^2. Tests set it to check
-# that the sweep is exact; the mode says /coloured-sweep when it runs.
+# one thread, so the sweep loses to 12 dispatches there (the same section). Tests set it to
+# check that the sweep is exact; the mode says /coloured-sweep when it runs.
 COLOURED_SWEEP_MAX_PARTICLES = 0
-SWEEP_LOCAL_SIZE = 256  # measured faster than 1024 on llvmpipe; GL 4.3 guarantees up to 1024
+SWEEP_LOCAL_SIZE = 256  # llvmpipe's better of 256 and 1024 (docs/pbd.md); GL 4.3 guarantees up to 1024
 
 
 def jacobi_parts(n: int) -> list[tuple[str, int]]:
@@ -63,6 +62,7 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
         sweep_variants=({"strict": True}, {"strict": False}),
         meshes=("pbd",),
         moving_colliders=("pbd",),
+        boxes=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # compute.py's default, the same bits
     )
 

@@ -23,22 +23,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.errors import BackendUnavailable, ClothbenchError
 from clothbench.kernel_source import glsl_float, read_kernel, resolve_includes
 from clothbench.scene import Scene
 from clothbench.solver import Solver
 from clothbench.backends.base import Availability, BackendOptions
-from clothbench.backends.kernel_inputs import ROWS_PER_COLLIDER, VerletConstants, collider_rows
+from clothbench.backends.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.gl.driver import GLDriverInfo, gl_driver
 from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_context.X)
-    COLLIDER_KINDS, MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
+    MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
     GLBodies, MeshBuffers, body_defines, collider_kinds, collider_source, mesh_layout, motion_offsets,
     motion_rows, pin_slots, pose_block,
 )  # fmt: skip
 
 INSTALL_HINT = "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for --gl osmesa"  # README
 MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs
-DEFAULT_LOCAL_SIZE = 64  # 64 to 1024 measured the same at n = 256 on llvmpipe; 32 and less slower
+DEFAULT_LOCAL_SIZE = 64  # the smallest not slower on llvmpipe (docs/llvmpipe.md, "The kernel shapes of glsl-compute")
 MAX_GROUPS_X = 65535  # GL guarantees this many work groups per dimension, no more
 
 # Renderers that run the shaders on the host CPU: their timer queries are the host's clock, not
@@ -580,7 +581,7 @@ def constant_defines(scene: Scene, solver: Solver, generic: bool) -> dict[str, o
     program serves every scene.
     """
     if generic:
-        worst = max(len(scene.spheres), len(scene.cylinders), len(scene.planes))
+        worst = max(len(getattr(scene, kind.plural)) for kind in KINDS)
         if worst > MAX_GENERIC_COLLIDERS:
             raise ClothbenchError(
                 f"--generic takes up to {MAX_GENERIC_COLLIDERS} colliders of each kind, the scene "
@@ -610,10 +611,12 @@ def scene_defines(scene: Scene) -> dict[str, object]:
         return f"vec4[{len(rows)}]({items})"
 
     defines: dict[str, object] = {"N_VALUE": scene.grid}
-    for kind, rows in collider_rows(scene).items():
+    table = collider_rows(scene)
+    for kind in KINDS:
+        rows = table[kind.plural]
         if len(rows):
-            defines[f"{kind[:-1].upper()}_COUNT"] = len(rows) // ROWS_PER_COLLIDER[kind]
-            defines[f"{kind.upper()}_VALUE"] = vec4s(rows)
+            defines[kind.count_name("glsl")] = len(rows) // kind.rows
+            defines[f"{kind.plural.upper()}_VALUE"] = vec4s(rows)
     return defines
 
 
@@ -629,9 +632,7 @@ def set_constant_uniforms(program, scene: Scene, solver: Solver) -> None:
         "b": c.b,
         "g": c.g,
         "rest": list(c.rest),
-        "num_spheres": len(scene.spheres),
-        "num_cylinders": len(scene.cylinders),
-        "num_planes": len(scene.planes),
+        **{kind.count_name("glsl-uniform"): len(getattr(scene, kind.plural)) for kind in KINDS},
     }
     for name, value in values.items():
         if name in program:  # the compiler drops uniforms a program does not use

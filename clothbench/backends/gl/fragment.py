@@ -36,6 +36,7 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
     capabilities = Capabilities(
         generic=True, normals=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}),
         meshes=("verlet",), moving_colliders=("verlet",),  # on GL 4.3: storage buffers in the shader
+        boxes=("verlet",),  # kernels/collide_box.glsl
         mesh_collisions=("accelerated", "naive"),  # kernels/collide_mesh.glsl, as glsl-compute's
     )  # fmt: skip
     shader_stage = "fragment"
@@ -49,7 +50,7 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
         self.mode_suffix = gl_context.mode_suffix(self.gl)
         self.image_reads = PREFER_IMAGE_READS and self.gl.version_code >= 420
         n = scene.grid
-        # Without normals there is no third target: writing zeros to one cost 16% at n = 256.
+        # Without normals there is no third target: even writing zeros to one costs (docs/llvmpipe.md).
         targets = 3 if options.normals else 2
         with self.gl:
             ctx = self.gl.ctx

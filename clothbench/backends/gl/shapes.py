@@ -11,8 +11,8 @@ operations done on one particle, so every shape of a strict build is bit-exact w
   dispatch (kernels/verlet_cloth_steps.comp), on grids of up to MULTI_STEP_MAX_PARTICLES;
   the neighbours' positions go through shared memory where 6 floats per particle fit in the
   driver's GL_MAX_COMPUTE_SHARED_MEMORY_SIZE, else through a scratch storage buffer.
-An explicit --local-size fixes the shape to "wg=L" with no tuning (and no shape in the mode,
-as before shapes existed); --shape and --local-size exclude each other.
+An explicit --local-size fixes the shape to "wg=L" with no tuning (and no shape in the mode);
+--shape and --local-size exclude each other.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from __future__ import annotations
 import ctypes
 from dataclasses import dataclass
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
 from clothbench.scene import Scene
 from clothbench.backends.base import BackendOptions
@@ -124,15 +125,23 @@ def tuning_key(backend) -> dict[str, str]:
     return {
         "driver": backend.driver,
         "grid": str(scene.grid),
-        "colliders": f"{len(scene.spheres)}s{len(scene.cylinders)}c{len(scene.planes)}p",
+        "colliders": collider_counts(scene),
         "arithmetic": "strict" if options.strict else "fast",
         "generic": str(options.generic),
         "normals": str(options.normals),
         "reads": "image" if backend.image_reads else "ssbo",
-        # only where the scene has them, so that the choices measured before meshes stay valid
+        # only where the scene has them, so that a scene without them keeps its key and its choice
         **({"meshes": f"{triangles}t/{backend.mesh_collision}"} if scene.meshes else {}),
         **({"motion": "moving"} if scene.has_motion else {}),
     }
+
+
+def collider_counts(scene) -> str:
+    """'1s0c2p': the scene's colliders per kind (colliders/kinds.py), by the kind's initial; a
+    kind not every backend takes (a box) only where the scene has one, so that the choices
+    measured before that kind existed stay valid."""
+    counts = ((kind, len(getattr(scene, kind.plural))) for kind in KINDS)
+    return "".join(f"{count}{kind.name[0]}" for kind, count in counts if count or kind.capability is None)
 
 
 def time_shape(backend, name: str) -> float:

@@ -222,7 +222,8 @@ def collide_mesh(
 class Bodies:
     """Per-step collider constants and attached-pin positions of a scene with meshes, moving
     colliders or pins attached to a body; `collide` applies every collider in the step's
-    order (spheres, cylinders, planes, meshes). Steps are counted from the last upload."""
+    order (the analytic kinds of colliders/kinds.py, then the meshes). Steps are counted from
+    the last upload."""
 
     def __init__(self, scene, dt: float, dtype, analytic_constants, collide_analytic):
         self.scene, self.dt, self.dtype = scene, dt, dtype

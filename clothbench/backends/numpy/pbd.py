@@ -37,6 +37,7 @@ class NumpyPbdBackend(GridPlanes, Backend):
         NumpyBackend.capabilities,
         meshes=("verlet", "pbd"),
         moving_colliders=("verlet", "pbd"),
+        boxes=("verlet", "pbd"),
         self_collision=("verlet", "pbd"),
     )
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from clothbench.colliders.kinds import KINDS
 from clothbench.environment import cpu_model
 from clothbench.scene import OFFSET_KIND, OFFSETS, Scene
 from clothbench.solver import Verlet
@@ -76,6 +77,7 @@ class NumpyBackend(GridPlanes, Backend):
         sweep_variants=({"precision": "f32"}, {"precision": "f64"}),
         meshes=("verlet",),
         moving_colliders=("verlet",),  # pbd.py adds "pbd" to its copy
+        boxes=("verlet",),
         self_collision=("verlet",),
         mesh_collisions=("naive",),  # its chunked loop gives the naive loop's bits (collide_mesh.py)
     )
@@ -138,7 +140,7 @@ class NumpyBackend(GridPlanes, Backend):
             return new
         if contact is not None:
             contact(new)
-        for kind, constants in self.colliders:  # spheres, then cylinders, then planes
+        for kind, constants in self.colliders:  # in the order of colliders/kinds.py
             COLLIDE[kind](new, self.free, **constants)
         return new
 
@@ -147,17 +149,39 @@ def collider_constants(scene: Scene, t, time: float = 0.0) -> list[tuple[str, di
     """(kind, constants) of every collider in the order the step applies them, from
     kernel_inputs.collider_rows in the working precision, shaped for (3, n, n) planes."""
     rows = collider_rows(scene, t, time)  # time: the poses of moving colliders
-
-    def vec(row):
-        return row[:3].reshape(3, 1, 1)
-
-    spheres = [("sphere", {"c": vec(s), "r": s[3]}) for s in rows["spheres"]]
-    cylinders = [
-        ("cylinder", {"a": vec(a), "u": vec(u), "length": a[3], "r": u[3], "radial_r": vec(radial_r)})
-        for a, u, radial_r in rows["cylinders"].reshape(-1, 3, 4)  # (start, length), (axis, r), (radial_r, 0)
+    return [
+        (kind.name, ARGUMENTS[kind.name](*block))
+        for kind in KINDS
+        for block in rows[kind.plural].reshape(-1, kind.rows, 4)
     ]
-    planes = [("plane", {"p0": vec(p), "nrm": vec(nrm)}) for p, nrm in rows["planes"].reshape(-1, 2, 4)]
-    return spheres + cylinders + planes
+
+
+def _vec(row):
+    return row[:3].reshape(3, 1, 1)
+
+
+# Each kind's float4 rows (kernel_inputs.collider_rows) as its response's arguments: arrays
+# and scalars only, which CuPy's peer moves to its device (peers/cupy_numpy.py).
+ARGUMENTS = {
+    "sphere": lambda s: {"c": _vec(s), "r": s[3]},  # (centre, radius)
+    "cylinder": lambda a, u, radial_r: {  # (start, length), (axis, r), (radial_r, 0)
+        "a": _vec(a),
+        "u": _vec(u),
+        "length": a[3],
+        "r": u[3],
+        "radial_r": _vec(radial_r),
+    },
+    "box": lambda c, ax0, ax1, ax2: {  # (centre, 0), (axis i, half extent i)
+        "c": _vec(c),
+        "ax0": _vec(ax0),
+        "ax1": _vec(ax1),
+        "ax2": _vec(ax2),
+        "h0": ax0[3],
+        "h1": ax1[3],
+        "h2": ax2[3],
+    },
+    "plane": lambda p, nrm: {"p0": _vec(p), "nrm": _vec(nrm)},  # (point, 0), (unit normal, 0)
+}
 
 
 def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -168,7 +192,7 @@ def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def _collide_sphere(x, free, c, r) -> None:
+def collide_sphere(x, free, c, r) -> None:
     d = x - c
     length2 = dot3(d, d)
     length = np.sqrt(length2)
@@ -184,7 +208,7 @@ def _collide_sphere(x, free, c, r) -> None:
     np.copyto(x, pushed, where=inside)
 
 
-def _collide_cylinder(x, free, a, u, length, r, radial_r) -> None:
+def collide_cylinder(x, free, a, u, length, r, radial_r) -> None:
     d = x - a
     t = dot3(d, u)  # axial coordinate (m) from the start cap
     q = u * t
@@ -206,11 +230,31 @@ def _collide_cylinder(x, free, a, u, length, r, radial_r) -> None:
     np.copyto(x, pushed, where=inside)
 
 
-def _collide_plane(x, free, p0, nrm) -> None:
+def collide_box(x, free, c, ax0, ax1, ax2, h0, h1, h2) -> None:
+    """docs/semantics.md, "Box": a particle strictly inside is moved along the axis of least
+    penetration to the face on its side (ties to the lower axis, the + face at l == 0)."""
+    d = x - c
+    l0, l1, l2 = dot3(d, ax0), dot3(d, ax1), dot3(d, ax2)  # its coordinates along the box's axes
+    p0, p1, p2 = h0 - np.abs(l0), h1 - np.abs(l1), h2 - np.abs(l2)  # depth through each pair of faces
+    inside = (p0 > 0) & (p1 > 0) & (p2 > 0) & free
+    if not inside.any():
+        return
+    take1 = p1 < p0
+    least = np.where(take1, p1, p0)
+    take2 = p2 < least
+    lk = np.where(take2, l2, np.where(take1, l1, l0))
+    hk = np.where(take2, h2, np.where(take1, h1, h0))
+    axis = np.where(take2, ax2, np.where(take1, ax1, ax0))
+    s = np.where(lk >= 0, hk, -hk)
+    np.copyto(x, x + axis * (s - lk), where=inside)
+
+
+def collide_plane(x, free, p0, nrm) -> None:
     dist = dot3(x - p0, nrm)
     inside = (dist < 0) & free
     if inside.any():
         np.copyto(x, x - nrm * dist, where=inside)
 
 
-COLLIDE = {"sphere": _collide_sphere, "cylinder": _collide_cylinder, "plane": _collide_plane}
+# each kind's response in the reference, by the name colliders/kinds.py gives it
+COLLIDE = {kind.name: globals()[kind.function("numpy")] for kind in KINDS}

@@ -1,9 +1,10 @@
 """What both OpenCL solvers (verlet.py, pbd.py) do the same way for meshes, moving colliders
 and pins attached to a body (docs/semantics.md; the kernel side is kernels/collide_mesh.cl
 and the CLOTH_MESHES / CLOTH_PER_STEP / CLOTH_ATTACHED_PINS parts of each solver's kernel):
-the collider table with its mesh rows, the mesh buffers (uploaded once), the per-particle pin
-slots, and the per-step constants (tables and pin targets) evaluated on the host in float64
-and rounded once, uploaded STEPS_PER_UPLOAD at a time.
+the analytic collider kinds the kernels take (collider_counts), the collider table with its
+mesh rows, the mesh buffers (uploaded once), the per-particle pin slots, and the per-step
+constants (tables and pin targets) evaluated on the host in float64 and rounded once,
+uploaded STEPS_PER_UPLOAD at a time.
 
 A "step" here is one table: a Verlet step, or a PBD substep (docs/pbd.md, "Colliders, motion
 and attached pins"); `period` is its length in seconds, so table j of the clock's count is at
@@ -16,6 +17,7 @@ from functools import cached_property
 
 import numpy as np
 
+from clothbench.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.backends.kernel_inputs import MeshConstants, collider_rows, pin_targets, pose_rows
 
@@ -24,6 +26,13 @@ MESH_FILE = "collide_mesh.cl"  # in the program's source only where the scene ha
 # backend's steps per multi-step launch; the table buffer's size is this many tables
 # (bounded by the device's constant-buffer size).
 STEPS_PER_UPLOAD = 256
+
+
+def collider_counts(scene) -> tuple[tuple[object, int], ...]:
+    """(kind, count) of every analytic collider kind the OpenCL kernels take (collide.cl),
+    in the table's and the step's order (colliders/kinds.py): the build's CLOTH_* counts, the
+    generic kernel's count arguments, the table's parts and the tuning key all read it."""
+    return tuple((kind, len(getattr(scene, kind.plural))) for kind in kinds_in("opencl"))
 
 
 class OpenCLBodiesMixin:
@@ -73,7 +82,7 @@ class OpenCLBodiesMixin:
         """The collider table at `time` (collide.cl's rows, then collide_mesh.cl's MESH_ROWS
         per mesh: R's rows with the margin, its square and closedness, T, the box)."""
         rows = collider_rows(self.scene, np.float32, time)
-        parts = [rows["spheres"], rows["cylinders"], rows["planes"]]
+        parts = [rows[kind.plural] for kind, _ in collider_counts(self.scene)]
         for mesh, c in zip(self.scene.meshes, self._meshes):
             rot, trans = pose_rows(mesh, time)
             extra = (c.margin, c.margin2, np.float32(c.closed), 0.0, 0.0, 0.0)

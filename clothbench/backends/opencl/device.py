@@ -19,6 +19,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import read_kernel, resolve_includes
 from clothbench.backends.base import Availability, BackendOptions
 from clothbench.backends.opencl import runtimes
+from clothbench.backends.opencl.bodies import collider_counts
 from clothbench.backends.opencl.build_log import compiler_log
 from clothbench.backends.opencl.isolated import in_child_per_device
 from clothbench.backends.opencl.runtimes import INTEL_EXTRA
@@ -43,7 +44,7 @@ PROBE_CACHE = "opencl-probe"  # <cache>/tuning/opencl-probe.json: each device's 
 # at the smallest grid the benchmarks report (at 128² launch overhead decides, not the step).
 TIMING_GRID, TIMING_STEPS = 256, 10
 # Times closer than this are a tie, given to the earlier runtime in RUNTIME_ORDER: run to run
-# on a shared 2-core machine the same device's time moved by 20% and more.
+# the same device's time moves by more (docs/opencl-devices.md, "The default device").
 TIE_MARGIN = 0.10
 
 # Module-level caches, so that a sweep building many backends builds each program once.
@@ -399,10 +400,9 @@ def build_program(context, source: str, options: tuple[str, ...]):
 def shape_options(scene, vector_width: int) -> tuple[str, ...]:
     """The build options that specialise a program to the scene's shape: the grid side, the
     count of each collider kind it has, and the particles per work item."""
-    counts = (("SPHERES", len(scene.spheres)), ("CYLINDERS", len(scene.cylinders)), ("PLANES", len(scene.planes)))
     return (
         f"-DCLOTH_N={scene.grid}",
-        *(f"-DCLOTH_{kind}={count}" for kind, count in counts if count),
+        *(f"-D{kind.count_name('opencl')}={count}" for kind, count in collider_counts(scene) if count),
         f"-DCLOTH_VECTOR_WIDTH={vector_width}",
     )
 

@@ -97,6 +97,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         sweep_variants=({"strict": True}, {"strict": False}),
         meshes=("pbd",),
         moving_colliders=("pbd",),
+        boxes=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # verlet.py's default, for the same reason
     )
 

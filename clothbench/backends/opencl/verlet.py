@@ -64,7 +64,7 @@ from clothbench.variant_names import TRANSFERS
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.backends.kernel_inputs import VerletConstants
 from clothbench.backends.opencl import verlet_shapes as shapes
-from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.opencl.bodies import OpenCLBodiesMixin, collider_counts
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -90,6 +90,7 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         shapes=True,  # verlet_shapes.py; the specialised build only
         meshes=("verlet",),  # not opencl/pbd.py, whose Capabilities are its own
         moving_colliders=("verlet",),
+        boxes=("verlet",),
         # the first is the default: faster from a few hundred triangles up (docs/opencl.md)
         mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "per-step"}),
@@ -208,10 +209,9 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
 
     def _generic_launches(self):
         """The float4 kernel, one work item per particle; n and the counts are arguments."""
-        i32, s = np.int32, self.scene
-        dtypes = [None] * 4 + [i32, *self._constant_dtypes, None, i32, i32, i32]
-        args = (i32(self.n), *self._constants, self._colliders)
-        args += (i32(len(s.spheres)), i32(len(s.cylinders)), i32(len(s.planes)))
+        i32, counts = np.int32, collider_counts(self.scene)
+        dtypes = [None] * 4 + [i32, *self._constant_dtypes, None] + [i32] * len(counts)
+        args = (i32(self.n), *self._constants, self._colliders, *(i32(count) for _, count in counts))
         return [(self._kernel("verlet_cloth", dtypes), self.n2, args)]
 
     def _specialised_launches(self, shape: shapes.KernelShape):

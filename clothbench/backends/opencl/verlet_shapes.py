@@ -22,17 +22,18 @@ import re
 from dataclasses import dataclass
 
 from clothbench.errors import ClothbenchError
+from clothbench.backends.opencl.bodies import collider_counts
 
 # Floats before and after the x, y, z planes of a state buffer (CLOTH_PAD in the kernel): the
 # rows kernels' masked loads reach one float past either end. 16 keeps the planes 64-byte aligned.
 PAD = 16
-# work items per work-group of rows/vN/wg=32: it and the runtime's choice won in turn (by
-# 0-30%, 64^2 to 512^2, docs/opencl.md); 8, 32 and 128 were level with each other
+# work items per work-group of rows/vN/wg=32: it and the runtime's choice won in turn, and 8, 32
+# and 128 ran level (docs/opencl.md, "What was profiled")
 WORK_GROUP = 32
-STEPS_PER_LAUNCH = 32  # 8, 32 and 128 steps per launch were level at 32^2-128^2
-STEPS_WORK_GROUP = 1  # its one work-group: 1, 16 and 64 work items were level; 1 fits any device
-# the multi-step kernel runs on one core: at 128^2 it was within 10% of the two-core rows
-# kernels, either side, so on larger grids it cannot win
+STEPS_PER_LAUNCH = 32  # 8, 32 and 128 ran level (docs/opencl.md, "What was profiled")
+STEPS_WORK_GROUP = 1  # its one work-group: 1, 16 and 64 work items ran level; 1 fits any device
+# the multi-step kernel runs on one core: at 128^2 it already runs level with the two-core rows
+# kernels (docs/opencl.md, "What was profiled"), so on larger grids it cannot win
 STEPS_MAX_GRID = 128
 
 
@@ -76,8 +77,8 @@ def candidates(device, scene, options) -> tuple[KernelShape, ...]:
     """The shapes worth measuring for this device and scene, the default first (what an
     untuned run, CLOTHBENCH_TUNING=off, runs): rows/vN where the grid is at least N wide,
     since it was the fastest untuned shape on every runtime measured; the split kernels at
-    the device's preferred float width P (the specialised build as it was before shapes) as
-    a candidate, and the only shape on narrower grids.
+    the device's preferred float width P (two launches a step: interior and border) as a
+    candidate, and the only shape on narrower grids.
 
     The others at the native float width N (16 with AVX-512), which won on all three
     runtimes measured here (docs/opencl.md); N/2, 4 and 1 (scalar code, the runtime's own
@@ -107,7 +108,7 @@ def tuning_key(device, scene, options, source: str, mesh_collision: str | None =
     """What a shape's speed depends on: the device and its driver, the scene's shape (its
     meshes, their search and whether anything moves included), the arithmetic, what else the
     step does, and the kernel source (an edit measures again)."""
-    bodies = {}
+    bodies, counts = {}, collider_counts(scene)
     if scene.meshes:
         bodies["meshes"] = f"{'/'.join(str(m.geometry.triangles) for m in scene.meshes)} {mesh_collision}"
     if scene.has_motion:
@@ -117,13 +118,16 @@ def tuning_key(device, scene, options, source: str, mesh_collision: str | None =
         "platform": device.platform.version,
         "driver": device.driver_version,
         "grid": str(scene.grid),
-        "colliders": f"{len(scene.spheres)}/{len(scene.cylinders)}/{len(scene.planes)}",
+        # the kinds every backend takes by count; a kind not every backend takes (a box) its
+        # own key, only where the scene has it: the keys measured before stay valid
+        "colliders": "/".join(str(count) for kind, count in counts if kind.capability is None),
+        **{kind.plural: str(count) for kind, count in counts if kind.capability and count},
         "arithmetic": "strict" if options.strict else "fast",
         "normals": str(bool(options.normals)),
         "transfer": options.transfer or "resident",
         "local_size": str(options.local_size or "auto"),
         "source": hashlib.sha256(source.encode()).hexdigest()[:16],
-        **bodies,  # absent without meshes or motion: the keys measured before stay valid
+        **bodies,  # absent without meshes or motion: a scene without them keeps its key
     }
 
 
