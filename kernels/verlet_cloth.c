@@ -352,15 +352,9 @@ enum { S_THICKNESS, S_THICKNESS2, S_RELAX, S_INV_CELL, S_COUNT };
 #define FLOOR(v) __builtin_floorf(v)
 #endif
 
-/* Buckets: the smallest power of two >= n*n (and >= 2); folded to a constant by the compiler. */
-INLINE int bucket_bits(void)
-{
-    int bits = 1;
-    while ((1LL << bits) < (long long)N2)
-        ++bits;
-    return bits;
-}
-#define BUCKETS (1 << bucket_bits())
+/* Buckets: the smallest power of two >= n*n (and >= 2); a constant (clz of a constant folds). */
+#define BUCKET_BITS (N2 > 2 ? 32 - __builtin_clz((unsigned)N2 - 1u) : 1)
+#define BUCKETS (1 << BUCKET_BITS)
 #define NOWHERE BUCKETS /* the bucket of a particle with a coordinate that is not finite: no pair */
 
 typedef struct {
@@ -386,7 +380,7 @@ INLINE int bucket_of(int kx, int ky, int kz)
 {
     unsigned long long id = (unsigned long long)(kx + KEY_LIMIT) | ((unsigned long long)(ky + KEY_LIMIT) << 21) |
                             ((unsigned long long)(kz + KEY_LIMIT) << 42);
-    return (int)((id * 0x9E3779B97F4A7C15ull) >> (64 - bucket_bits()));
+    return (int)((id * 0x9E3779B97F4A7C15ull) >> (64 - BUCKET_BITS));
 }
 
 INLINE int clamp_key(int k) { return k < -KEY_LIMIT ? -KEY_LIMIT : k > KEY_LIMIT - 1 ? KEY_LIMIT - 1 : k; }
