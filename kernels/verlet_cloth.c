@@ -8,6 +8,9 @@
  *                          collider counts (clothbench/model/colliders/kinds.py): each kind's loop
  *                          unrolls, an absent kind vanishes.
  *   CLOTH_DOUBLE           float64 (the fast reference for accuracy figures); else float32.
+ *   CLOTH_SELF             the scene's [self_collision] pass (docs/semantics.md, "Self-collision")
+ *                          between the position update and the colliders; without it nothing of
+ *                          the pass is compiled.
  *   CLOTH_STRICT           every operation in the order docs/semantics.md fixes, damping once
  *                          per spring, sqrt and '/': with -ffp-contract=off and no fast math
  *                          the result is NumPy's bit for bit (float32 and float64 alike).
@@ -236,7 +239,11 @@ INLINE void integrate(const constants *c, const real *colliders, int i, real spr
     real ny = ((real)2 * y - yp) + (c->gy + (fy - damp * (y - yp)) * w) * c->dt2;
     real nz = ((real)2 * z - zp) + (c->gz + (fz - damp * (z - zp)) * w) * c->dt2;
 #endif
+#ifdef CLOTH_SELF
+    (void)colliders; /* the colliders act after the self-collision pass (contact_row) */
+#else
     collide(colliders, &nx, &ny, &nz);
+#endif
     int pinned = w == 0; /* never integrated nor collided */
     q[i] = pinned ? x : nx;
     q[N2 + i] = pinned ? y : ny;
@@ -324,11 +331,280 @@ static void step_row(const constants *c, const real *colliders, int row, const r
     border_particle(c, colliders, row, N - 1, p, q, w);
 }
 
+#ifdef CLOTH_SELF
+/* --- self-collision (docs/semantics.md, "Self-collision") ------------------------------------
+ * After every particle's position update (written over x(t-dt) in q, uncollided), one Jacobi
+ * projection reads q and writes x(t+dt), collided, into a third buffer: the three buffers
+ * rotate, so nothing is copied. The search is a uniform grid of cells, hashed into BUCKETS
+ * buckets and sorted by a counting sort in ascending particle order (deterministic, no atomics).
+ * A particle's corrections are summed in ascending j, each partner once, as the definition sums
+ * them, whatever order its 27 cells' buckets deliver them in (push). A hash collision or a
+ * clamped key only adds candidates, which the distance test rejects. */
+
+/* The pass's numbers, as the host packs them (kernel_inputs.SelfCollisionConstants). */
+enum { S_THICKNESS, S_THICKNESS2, S_RELAX, S_INV_CELL, S_COUNT };
+
+#define KEY_LIMIT (1 << 20) /* cell coordinates are clamped to [-KEY_LIMIT, KEY_LIMIT - 1] */
+
+#ifdef CLOTH_DOUBLE
+#define FLOOR(v) __builtin_floor(v)
+#else
+#define FLOOR(v) __builtin_floorf(v)
+#endif
+
+/* Buckets: the smallest power of two >= n*n (and >= 2); a constant (clz of a constant folds). */
+#define BUCKET_BITS (N2 > 2 ? 32 - __builtin_clz((unsigned)N2 - 1u) : 1)
+#define BUCKETS (1 << BUCKET_BITS)
+#define NOWHERE BUCKETS /* the bucket of a particle with a coordinate that is not finite: no pair */
+
+typedef struct {
+    real thickness, thickness2, relax, inv_cell;
+    long long exclude2;         /* dr^2 + dc^2 < exclude2 apart on the grid: closer at rest, excluded */
+    unsigned char joined[5][5]; /* [dr + 2][dc + 2]: a stencil offset (a spring joins them) */
+    int *bucket;                /* n*n: each particle's bucket */
+    int *order;                 /* n*n: the particles by bucket, ascending index within one */
+    int *start;                 /* BUCKETS + 3: bucket b holds order[start[b] .. start[b + 1]) */
+} contact;
+
+/* floor(v * inv_cell) in the working precision, clamped (v finite). */
+INLINE int cell_key(real v, real inv_cell)
+{
+    real k = FLOOR(v * inv_cell);
+    k = k < (real)-KEY_LIMIT ? (real)-KEY_LIMIT : k;
+    k = k > (real)(KEY_LIMIT - 1) ? (real)(KEY_LIMIT - 1) : k;
+    return (int)k;
+}
+
+/* The cell (kx, ky, kz) (clamped keys) hashed to a bucket: Fibonacci hashing of its 63-bit id. */
+INLINE int bucket_of(int kx, int ky, int kz)
+{
+    unsigned long long id = (unsigned long long)(kx + KEY_LIMIT) | ((unsigned long long)(ky + KEY_LIMIT) << 21) |
+                            ((unsigned long long)(kz + KEY_LIMIT) << 42);
+    return (int)((id * 0x9E3779B97F4A7C15ull) >> (64 - BUCKET_BITS));
+}
+
+INLINE int clamp_key(int k) { return k < -KEY_LIMIT ? -KEY_LIMIT : k > KEY_LIMIT - 1 ? KEY_LIMIT - 1 : k; }
+
+/* Each particle's bucket, for one row of q (the positions the pass reads). */
+static void bucket_row(const contact *ct, int row, const real *restrict q)
+{
+    for (int i = row * N; i < row * N + N; ++i) {
+        real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
+        int finite = __builtin_isfinite(x) && __builtin_isfinite(y) && __builtin_isfinite(z);
+        ct->bucket[i] = finite ? bucket_of(cell_key(x, ct->inv_cell), cell_key(y, ct->inv_cell),
+                                           cell_key(z, ct->inv_cell))
+                               : NOWHERE;
+    }
+}
+
+/* The counting sort: particles by bucket, ascending index within a bucket (one thread). */
+static void sort_buckets(const contact *ct)
+{
+    int *start = ct->start;
+    for (int b = 0; b < BUCKETS + 3; ++b)
+        start[b] = 0;
+    for (int i = 0; i < N2; ++i) /* the count of bucket b at start[b + 2] */
+        start[ct->bucket[i] + 2] += 1;
+    for (int b = 2; b < BUCKETS + 3; ++b) /* start[b + 1]: the first slot of bucket b */
+        start[b] += start[b - 1];
+    for (int i = 0; i < N2; ++i) /* ... then, filled, its end: bucket b is [start[b], start[b + 1]) */
+        ct->order[start[ct->bucket[i] + 1]++] = i;
+}
+
+/* Whether (i, j) is a pair (not neighbours, closer than the thickness, not coincident), with
+ * d = x_i - x_j and its L2; i at (x, y, z) = q_i, grid row and col. */
+INLINE int close_pair(const contact *ct, int i, int row, int col, int j, const real *restrict q, real x, real y,
+                      real z, real *d, real *L2)
+{
+    int dr = j / N - row, dc = j % N - col;
+    if (j == i || (long long)dr * dr + (long long)dc * dc < ct->exclude2)
+        return 0;
+    if (dr >= -2 && dr <= 2 && dc >= -2 && dc <= 2 && ct->joined[dr + 2][dc + 2])
+        return 0;
+    d[0] = x - q[j];
+    d[1] = y - q[N2 + j];
+    d[2] = z - q[2 * N2 + j];
+    *L2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2];
+    return *L2 < ct->thickness2 && *L2 > 0; /* coincident: no direction, nothing added */
+}
+
+/* One pair's correction of i, added to corr (docs/semantics.md, in its order). */
+INLINE void add_push(const contact *ct, real wi, real wj, const real *d, real L2, real *corr)
+{
+    real L = SQRT(L2);
+    real share = wi / (wi + wj); /* i's part of the shortfall, by inverse mass */
+    real s = ct->relax * (ct->thickness - L);
+    s = s * share;
+    s = s / L;
+    corr[0] = corr[0] + d[0] * s;
+    corr[1] = corr[1] + d[1] * s;
+    corr[2] = corr[2] + d[2] * s;
+}
+
+#define MAX_HITS 32 /* pairs of one particle sorted on the stack; more take the merge */
+
+/* The pass for free particle i at (x, y, z) = q_i (w_i > 0): its corrections from every pair,
+ * in ascending j, added to it when it has one. The candidates are tested first in the cells'
+ * order, most failing; the few pairs found are then summed in ascending j. A particle with
+ * more than MAX_HITS pairs merges its buckets' runs (each ascending) by smallest j instead. */
+static void push(const contact *ct, int i, const real *restrict q, const real *restrict w, real *x, real *y, real *z)
+{
+    int kx = cell_key(*x, ct->inv_cell), ky = cell_key(*y, ct->inv_cell), kz = cell_key(*z, ct->inv_cell);
+    int next[27], end[27], runs = 0;
+    for (int dz = -1; dz <= 1; ++dz)
+        for (int dy = -1; dy <= 1; ++dy)
+            for (int dx = -1; dx <= 1; ++dx) {
+                int b = bucket_of(clamp_key(kx + dx), clamp_key(ky + dy), clamp_key(kz + dz));
+                int from = ct->start[b], to = ct->start[b + 1], seen = from == to;
+                for (int r = 0; r < runs && !seen; ++r)
+                    seen = next[r] == from; /* a bucket met twice (hashing, clamping) counts once */
+                if (!seen) {
+                    next[runs] = from;
+                    end[runs++] = to;
+                }
+            }
+    const int row = i / N, col = i % N;
+    const real wi = w[i];
+    real d[3], L2, corr[3] = {0, 0, 0};
+    int hits[MAX_HITS], count = 0;
+    for (int r = 0; r < runs; ++r)
+        for (int k = next[r]; k < end[r]; ++k) {
+            int j = ct->order[k];
+            if (close_pair(ct, i, row, col, j, q, *x, *y, *z, d, &L2)) {
+                if (count < MAX_HITS)
+                    hits[count] = j;
+                ++count;
+            }
+        }
+    if (count == 0)
+        return; /* a particle with no pair keeps its bits */
+    if (count <= MAX_HITS) {
+        for (int a = 1; a < count; ++a) /* insertion sort: ascending j */
+            for (int b = a; b > 0 && hits[b - 1] > hits[b]; --b) {
+                int t = hits[b];
+                hits[b] = hits[b - 1], hits[b - 1] = t;
+            }
+        for (int h = 0; h < count; ++h) {
+            close_pair(ct, i, row, col, hits[h], q, *x, *y, *z, d, &L2);
+            add_push(ct, wi, w[hits[h]], d, L2, corr);
+        }
+    } else {
+        for (;;) {
+            int best = -1, j = N2;
+            for (int r = 0; r < runs; ++r) /* the smallest index at the head of any run */
+                if (next[r] < end[r] && ct->order[next[r]] < j)
+                    j = ct->order[next[r]], best = r;
+            if (best < 0)
+                break;
+            next[best] += 1;
+            if (close_pair(ct, i, row, col, j, q, *x, *y, *z, d, &L2))
+                add_push(ct, wi, w[j], d, L2, corr);
+        }
+    }
+    *x = *x + corr[0];
+    *y = *y + corr[1];
+    *z = *z + corr[2];
+}
+
+/* One row of the pass: q (the updated positions, uncollided) to out, then the colliders. */
+static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
+                        real *restrict out, const real *restrict w)
+{
+    for (int i = row * N; i < row * N + N; ++i) {
+        real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
+        if (w[i] != 0) { /* pinned: neither pushed nor collided */
+            if (w[i] > 0 && ct->bucket[i] != NOWHERE)
+                push(ct, i, q, w, &x, &y, &z);
+            collide(colliders, &x, &y, &z);
+        }
+        out[i] = x;
+        out[N2 + i] = y;
+        out[2 * N2 + i] = z;
+    }
+}
+
+/* The pass's constants and work space from the host's arrays. */
+static contact contact_of(const real *numbers, long long exclude2, int *cells)
+{
+    contact ct;
+    ct.thickness = numbers[S_THICKNESS];
+    ct.thickness2 = numbers[S_THICKNESS2];
+    ct.relax = numbers[S_RELAX];
+    ct.inv_cell = numbers[S_INV_CELL];
+    ct.exclude2 = exclude2;
+    for (int r = 0; r < 5; ++r)
+        for (int c = 0; c < 5; ++c)
+            ct.joined[r][c] = 0;
+    for (int o = 0; o < 12; ++o)
+        ct.joined[DR[o] + 2][DC[o] + 2] = 1;
+    ct.bucket = cells;
+    ct.order = cells + N2;
+    ct.start = cells + 2 * N2;
+    return ct;
+}
+
+/* The ints of work space the host gives cloth_advance: bucket | order | start. */
+int cloth_contact_ints(void) { return 2 * N2 + BUCKETS + 3; }
+#endif
+
+#ifdef CLOTH_SELF
+/* cloth_advance with the pass: three buffers p (x(t)), q (x(t-dt), then the updated positions)
+ * and o (x(t+dt)), which then rotate. Returns steps % 3: how many places (a, b, spare) rotated. */
+static int advance_with_contact(const constants *c, const contact *ct, real *a, real *b, real *spare, const real *w,
+                                const real *colliders, int steps, int threads)
+{
+    if (threads <= 1) { /* no OpenMP runtime call, as in cloth_advance */
+        FP_ENTER;
+        real *p = a, *q = b, *o = spare;
+        for (int s = 0; s < steps; ++s) {
+            for (int row = 0; row < N; ++row) {
+                step_row(c, colliders, row, p, q, w);
+                bucket_row(ct, row, q);
+            }
+            sort_buckets(ct);
+            for (int row = 0; row < N; ++row)
+                contact_row(ct, colliders, row, q, o, w);
+            real *t = q;
+            q = p, p = o, o = t;
+        }
+        FP_LEAVE;
+        return steps % 3;
+    }
+#pragma omp parallel num_threads(threads)
+    {
+        FP_ENTER;
+        const constants local = *c;
+        real *p = a, *q = b, *o = spare;
+        for (int s = 0; s < steps; ++s) {
+#pragma omp for schedule(static)
+            for (int row = 0; row < N; ++row) {
+                step_row(&local, colliders, row, p, q, w);
+                bucket_row(ct, row, q); /* the row this thread just wrote */
+            }
+#pragma omp single
+            sort_buckets(ct);
+            /* each barrier: the pass reads every row's update and the sorted buckets */
+#pragma omp for schedule(static)
+            for (int row = 0; row < N; ++row)
+                contact_row(ct, colliders, row, q, o, w);
+            real *t = q;
+            q = p, p = o, o = t;
+        }
+        FP_LEAVE;
+    }
+    return steps % 3;
+}
+#define CONTACT_PARAMS , real *spare, const real *contact_numbers, long long exclude2, int *cells
+#else
+#define CONTACT_PARAMS
+#endif
+
 /* Advance `steps` steps on `threads` threads. a holds x(t) and b x(t-dt) as x|y|z planes; w
  * the inverse mass. Returns which buffer holds the new x(t) (0: a, 1: b); the other then holds
- * the new x(t-dt). */
+ * the new x(t-dt). With CLOTH_SELF, `spare` is a third buffer, the pass's numbers and work space
+ * follow, and the return is how many places (a, b, spare) rotated (advance_with_contact). */
 int cloth_advance(real *a, real *b, const real *w, const real *numbers, const real *colliders, int steps,
-                  int threads)
+                  int threads CONTACT_PARAMS)
 {
     constants c;
     c.k = numbers[K_K];
@@ -343,6 +619,10 @@ int cloth_advance(real *a, real *b, const real *w, const real *numbers, const re
         c.kr[kind] = c.k * c.rest[kind];
     }
     c.damp = c.b / c.dt;
+#ifdef CLOTH_SELF
+    const contact ct = contact_of(contact_numbers, exclude2, cells);
+    return advance_with_contact(&c, &ct, a, b, spare, w, colliders, steps, threads);
+#else
     if (threads <= 1) {
         /* no OpenMP runtime call at all: GNU libgomp hangs in a child forked after the parent
          * ran a parallel region, and the host steps such a child on one thread this way */
@@ -370,6 +650,7 @@ int cloth_advance(real *a, real *b, const real *w, const real *numbers, const re
         FP_LEAVE;
     }
     return steps & 1;
+#endif
 }
 
 /* The build's shape, for the host to check it loaded the library it asked for. */

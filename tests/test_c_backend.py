@@ -284,7 +284,7 @@ def test_tuning_chooses_a_candidate_and_remembers_it(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("precision", ["f32", "f64"])
 @pytest.mark.parametrize("strict", [True, False], ids=["strict", "fast"])
-@pytest.mark.parametrize("scene_name", ["drape", "sphere", "all-kinds"])
+@pytest.mark.parametrize("scene_name", ["drape", "sphere", "all-kinds", "fold"])  # fold: with the pass
 def test_gcc_vectorises_the_interior_loop(scene_name, strict, precision):
     # Not a timing: whether GCC reports the interior loop vectorised, for every collider kind.
     # It silently stops when a value is loaded only under a condition (a masked load GCC 12

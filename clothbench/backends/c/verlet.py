@@ -6,6 +6,8 @@ specialised per scene with -D options (grid side, collider counts, precision, ar
 so each shape is a separate cached library. The state lives in two aligned buffers of three
 planes each that the library steps in place and ping-pongs (the kernel's header says how);
 advance(steps) is one ctypes call that runs every step inside one OpenMP parallel region.
+A scene with [self_collision] builds the pass in (-DCLOTH_SELF) and gives it a third buffer,
+which rotates with the other two, and the search's work space; any other scene builds none of it.
 
 Arithmetics (docs/c.md has the flags):
   strict  the documented operation order, no contraction, no fast math: NumPy float32 (and,
@@ -33,12 +35,13 @@ from clothbench.native import build_library, compiler, no_compiler_reason
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
-from clothbench.model.kernel_inputs import VerletConstants, collider_rows
+from clothbench.model.kernel_inputs import SelfCollisionConstants, VerletConstants, collider_rows
 from clothbench.backends.tuning import median_seconds
 from clothbench.kernel_source import read_kernel
 
 KERNEL_FILE = "verlet_cloth.c"
 THREADS_ENV = "OMP_NUM_THREADS"
+SELF_FLAG = "-DCLOTH_SELF"  # the [self_collision] pass, compiled in only for a scene that has it
 ALIGN = 64  # bytes: a cache line, and one AVX-512 vector
 
 # Both arithmetics: optimised for this CPU; no errno from sqrt (so it is one instruction) and
@@ -95,6 +98,7 @@ def build_flags(scene: Scene, precision: str, strict: bool) -> tuple[str, ...]:
         *(f"-D{kind.count_name('c')}={len(getattr(scene, kind.plural))}" for kind in kinds_in("c")),
     ]
     defines += ["-DCLOTH_DOUBLE"] * (precision == "f64") + ["-DCLOTH_STRICT"] * strict
+    defines += [SELF_FLAG] * (scene.self_collision is not None)
     return (*COMMON_FLAGS, *(STRICT_FLAGS if strict else FAST_FLAGS), *defines)
 
 
@@ -136,6 +140,9 @@ def load_library(flags: tuple[str, ...]) -> ctypes.CDLL:
         lib = build_library(KERNEL_FILE, flags)
         p = ctypes.c_void_p
         lib.cloth_advance.argtypes = [p, p, p, p, p, ctypes.c_int, ctypes.c_int]
+        if SELF_FLAG in flags:  # the third buffer, the pass's numbers, exclude2, the work space
+            lib.cloth_advance.argtypes += [p, p, ctypes.c_longlong, p]
+            lib.cloth_contact_ints.restype = ctypes.c_int
         lib.cloth_advance.restype = ctypes.c_int
         lib.cloth_grid.restype = lib.cloth_real_bytes.restype = ctypes.c_int
         _LIBRARIES[flags] = lib
@@ -159,6 +166,7 @@ class CBackend(Backend):
         shapes=True,  # the thread count
         sweep_variants=({"strict": True}, {"strict": False}),  # f32 unless the sweep asks for f64
         boxes=("verlet",),
+        self_collision=("verlet",),
     )
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
@@ -174,12 +182,26 @@ class CBackend(Backend):
         rows = collider_rows(scene, t)
         table = [rows[kind.plural].reshape(-1) for kind in kinds_in("c")]  # the kernel's order
         self._colliders = np.concatenate([*table, np.zeros(1, t)])  # never empty: a valid pointer
-        # the two state buffers, x|y|z planes: _state[0] holds x(t), _state[1] x(t - dt)
-        self._state = [aligned(3 * self.n2, t) for _ in range(2)]
+        # the state buffers, x|y|z planes: _state[0] holds x(t), _state[1] x(t - dt), and with
+        # [self_collision] _state[2] the pass's output, the next x(t + dt)
+        self._contact = self._contact_args(scene, t)
+        self._state = [aligned(3 * self.n2, t) for _ in range(3 if self._contact else 2)]
         self._w = aligned(self.n2, t)
         self._w_prev = self._w  # the prev state's w as uploaded, until a step writes pos's w
         self.threads = thread_count(self.pick_shape(self._tuning_key(), self._time_shape))
         self.run_note = self._fewer_threads_if_busy()
+
+    def _contact_args(self, scene: Scene, t) -> tuple:
+        """cloth_advance's arguments after the spare buffer for [self_collision]: its numbers
+        (rounded once, docs/semantics.md), exclude2, the search's work space; () without the pass."""
+        if scene.self_collision is None:
+            return ()
+        sc = SelfCollisionConstants.of(scene, t)
+        numbers = np.array((sc.thickness, sc.thickness2, sc.relax, sc.inv_cell), dtype=t)
+        # a long long: any E above the grid's largest dr^2 + dc^2 excludes every pair alike
+        exclude2 = min(sc.exclude2, 2 * scene.grid * scene.grid)
+        cells = np.zeros(self._lib.cloth_contact_ints(), dtype=np.int32)
+        return numbers, exclude2, cells
 
     def _fewer_threads_if_busy(self) -> str:
         """On a busy machine, the threads the others leave free for this run, not the tuned
@@ -220,7 +242,7 @@ class CBackend(Backend):
             "colliders": "/".join(str(len(getattr(s, kind.plural))) for kind in kinds_in("c")),
             "precision": self.options.precision,
             "arithmetic": "strict" if self.options.strict else "fast",
-        }
+        } | ({"self_collision": "on"} if s.self_collision is not None else {})
 
     def _time_shape(self, name: str) -> float:
         """Seconds per step of `name` on the scene's start: a few ms of steps, median of 5."""
@@ -253,14 +275,18 @@ class CBackend(Backend):
             raise ClothbenchError("c: advance after close")
         if _OpenMP.broken:  # built before a fork, stepped after it: the same bits on one thread
             self.threads = 1
-        a, b = self._state
-        swapped = self._lib.cloth_advance(
+        a, b = self._state[:2]
+        contact = ()
+        if self._contact:
+            numbers, exclude2, cells = self._contact
+            contact = (self._state[2].ctypes.data, numbers.ctypes.data, exclude2, cells.ctypes.data)
+        rotated = self._lib.cloth_advance(
             a.ctypes.data, b.ctypes.data, self._w.ctypes.data, self._numbers.ctypes.data,
-            self._colliders.ctypes.data, int(steps), self.threads,
+            self._colliders.ctypes.data, int(steps), self.threads, *contact,
         )  # fmt: skip
         _OpenMP.ran = _OpenMP.ran or self.threads > 1
-        if swapped:  # the library wrote x(t) into the second buffer
-            self._state.reverse()
+        if rotated:  # the library wrote x(t) into buffer -rotated (two buffers: the second)
+            self._state = self._state[-rotated:] + self._state[:-rotated]
         self._w_prev = self._w  # prev now carries pos's inverse mass
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
@@ -273,4 +299,4 @@ class CBackend(Backend):
         return out
 
     def close(self) -> None:
-        self._state = [np.zeros(0, self.dtype)] * 2
+        self._state = [np.zeros(0, self.dtype)] * len(self._state)
