@@ -70,7 +70,13 @@ INLINE float dot3(float3 a, float3 b)
 }
 
 #include "collide.cl"
+#if CLOTH_MESHES > 0
+/* collide_mesh.cl holds, beside the scalar collide_meshes() used here, the lane forms of
+ * verlet_cloth.cl's vector kernels; one particle per work item is their one-lane case. */
+#define V 1
+typedef float floatv;
 #include <mesh_colliders>
+#endif
 
 /* predict: the inertial target y = (x + v*h) + g*h^2 and the first iterate xs = y; a pinned
  * particle stays (xs = x), or, following a body, goes to its target at the end of the substep

@@ -60,8 +60,9 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._open_queue(options)
         cl, context = self._cl, self._context
         self._open_bodies(solver.dt / solver.substeps, 1)  # one table per substep, at its end
-        source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
-        self.program = build_program(context, source, self.build_options())
+        # the one program: what it was built from, kept to say what a scene compiles
+        self.source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
+        self.program = build_program(context, self.source, self.build_options())
 
         size = self.n2 * 16  # one float4 per particle
         buffer = lambda: cl.Buffer(context, cl.mem_flags.READ_WRITE, size)  # noqa: E731
