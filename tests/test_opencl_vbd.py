@@ -56,16 +56,17 @@ def test_strict_vbd_with_bodies_matches_numpy_f32_bit_for_bit(name, algorithm):
 @pytest.mark.parametrize("name", ["all kinds", "torus", "carried"])
 def test_fast_vbd_error_is_of_the_order_of_numpy_f32s_own(name):
     # Fast contracts FMAs and takes one rsqrt per spring: O(float32 epsilon) per operation, as
-    # the reference's own roundings. Measured (PoCL, 16^2, 60 steps at 60 Hz, 10 sweeps): fast's
-    # max error from f64 is 0.4-3.4x NumPy f32's (0.5-4 um); 4x with a 1 um floor still catches
-    # a slip in the step (a wrong spring term is millimetres). Not with Chebyshev or the
-    # curtain: contact there turns one particle pushed a substep earlier into millimetres.
+    # the reference's own roundings. Measured (PoCL 3.1, 16^2, 60 steps at 60 Hz, 10 sweeps):
+    # fast's max error from f64 is 1.3-4.4x NumPy f32's (2-8 um). The bound, 8x with a 2 um
+    # floor, still catches a slip in the step: 1% on k alone puts NumPy f32 0.3-2 mm off, 10%
+    # on b 0.9-22 mm. Not with Chebyshev or the curtain: contact there turns one particle
+    # pushed a substep earlier into millimetres.
     scene = every_collider_scene(N) if name == "all kinds" else load_setup(name).scene.replace(grid=N)
     solver = Vbd(dt=1 / 60)
     ref64 = reference(scene, solver, 60, "f64")[0]
     _, f32_max = position_error(reference(scene, solver, 60, "f32")[0], ref64)
     _, fast_max = position_error(simulate("opencl", scene, solver, 60, BackendOptions())[0], ref64)
-    assert fast_max <= 4 * f32_max + 1e-6, f"{name}: fast {fast_max:.3g} m, NumPy f32 {f32_max:.3g} m"
+    assert fast_max <= 8 * f32_max + 2e-6, f"{name}: fast {fast_max:.3g} m, NumPy f32 {f32_max:.3g} m"
 
 
 def test_a_scene_compiles_only_the_parts_it_has():
