@@ -1,6 +1,8 @@
 """The VBD solver's reference (docs/vbd.md): its colouring, its settings, and that it converges
 to the exact implicit-Euler step (clothbench/harness/implicit.py)."""
 
+import csv
+
 import numpy as np
 import pytest
 
@@ -129,3 +131,18 @@ def test_run_takes_solver_vbd_with_iterations_and_substeps(capsys):
     assert "numpy (f32/vbd)" in capsys.readouterr().out
     assert main(["run", "--solver", "vbd", "--pbd-method", "jacobi", "--steps", "1"]) == 2
     assert "--pbd-method applies to the pbd solver only" in capsys.readouterr().err
+
+
+def test_stability_finds_vbd_stable_at_60hz_and_the_cap_at_stiffness_1e5(tmp_path, capsys):
+    # issue 33: the largest stable dt at one substep; VBD holds the bisection's cap (0.1 s)
+    out = tmp_path / "stability.csv"
+    argv = ["stability", "--backends", "numpy", "--solvers", "verlet,vbd", "--grid", "8", "--steps", "100",
+            "--stiffness", "1e5", "--scenes", "flat", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    rows = list(csv.DictReader(open(out, newline="")))
+    vbd = [r for r in rows if r["solver"] == "vbd"]
+    verlet = [r for r in rows if r["solver"] == "verlet"]
+    assert vbd and all(r["capped"] == "True" and r["iterations"] == "10" for r in vbd)
+    assert all(r["at_60hz"] == "stable" for r in vbd)
+    assert all(r["at_60hz"].startswith("unstable") for r in verlet)
+    assert "VBD stays stable in 2 of 2" in capsys.readouterr().out
