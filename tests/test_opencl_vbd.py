@@ -1,8 +1,8 @@
-"""The OpenCL VBD solver beyond the contract (tests/contract/test_vbd_contract.py): meshes,
-moving colliders and pins attached to a body, strict bit for bit with the NumPy float32
-reference with either mesh search, one collider table per substep across an upload of them;
-fast within a few times NumPy float32's own error; a scene compiles only the parts it has; the
-profile names every stage."""
+"""The OpenCL VBD solver beyond the contract (tests/contract/test_vbd_contract.py): strict is
+the NumPy float32 reference bit for bit with meshes, moving colliders and pins attached to a
+body (either mesh search, one collider table per substep across an upload of them) and on every
+runtime here that compiles; fast stays within a few times NumPy float32's own error; a scene
+compiles only the parts it has; the profile names every stage."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from clothbench.backends import BackendOptions, create_backend
+from clothbench.backends.opencl import device
 from clothbench.backends.opencl.bodies import STEPS_PER_UPLOAD
 from clothbench.harness import position_error, reference, simulate
 from clothbench.scene import load_setup
@@ -67,6 +68,18 @@ def test_fast_vbd_error_is_of_the_order_of_numpy_f32s_own(name):
     _, f32_max = position_error(reference(scene, solver, 60, "f32")[0], ref64)
     _, fast_max = position_error(simulate("opencl", scene, solver, 60, BackendOptions())[0], ref64)
     assert fast_max <= 8 * f32_max + 2e-6, f"{name}: fast {fast_max:.3g} m, NumPy f32 {f32_max:.3g} m"
+
+
+def test_strict_vbd_is_bit_exact_on_every_runtime_here_that_compiles():
+    # the Intel CPU runtime as well as PoCL: no runtime may contract or reorder a strict build
+    scene, solver = load_setup("curtain").scene.replace(grid=24), Vbd(dt=1 / 60, chebyshev_rho=0.9)
+    ref_pos, ref_prev = reference(scene, solver, 100, "f32")
+    compiling = [(spec, kind) for spec, dev, kind in device.ordered_devices() if device.compile_error(dev) is None]
+    assert compiling, "no OpenCL device here compiles"
+    for spec, kind in compiling:
+        pos, prev = simulate("opencl", scene, solver, 100, BackendOptions(strict=True, device=spec))
+        assert_bit_exact(pos, ref_pos, f"pos, {kind} ({spec})")
+        assert_bit_exact(prev, ref_prev, f"prev, {kind} ({spec})")
 
 
 def test_a_scene_compiles_only_the_parts_it_has():
