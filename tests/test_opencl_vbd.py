@@ -19,8 +19,6 @@ from clothbench.scene import load_setup
 from clothbench.solver import Vbd
 from conftest import assert_bit_exact, every_collider_scene, require
 
-pytest.importorskip("trimesh", reason="mesh colliders load with trimesh (pip install trimesh)")
-
 N = 16  # as tests/test_pbd_meshes.py: the spacing still drapes over the torus's tube
 # substeps: 5 at 60 steps is 300 tables, more than one upload holds; the torus is touched
 # from about 0.14 s, the paddle sweeps 90 degrees in 1 s, the bar carries the sheet 9 cm in 1 s
@@ -36,7 +34,15 @@ def _opencl():
 
 @functools.lru_cache(maxsize=None)
 def setup(name: str):
-    return load_setup(name).scene.replace(grid=N), Vbd(dt=1 / 60, substeps=SUBSTEPS, chebyshev_rho=0.9)
+    return scene_of(name), Vbd(dt=1 / 60, substeps=SUBSTEPS, chebyshev_rho=0.9)
+
+
+def scene_of(name: str):
+    """Built-in scene `name` at N, or a skip where it has meshes and trimesh is missing."""
+    scene = load_setup(name).scene.replace(grid=N)
+    if scene.meshes:
+        pytest.importorskip("trimesh", reason="mesh colliders load with trimesh (pip install trimesh)")
+    return scene
 
 
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
@@ -62,7 +68,7 @@ def test_fast_vbd_error_is_of_the_order_of_numpy_f32s_own(name):
     # floor, still catches a slip in the step: 1% on k alone puts NumPy f32 0.3-2 mm off, 10%
     # on b 0.9-22 mm. Not with Chebyshev or the curtain: contact there turns one particle
     # pushed a substep earlier into millimetres.
-    scene = every_collider_scene(N) if name == "all kinds" else load_setup(name).scene.replace(grid=N)
+    scene = every_collider_scene(N) if name == "all kinds" else scene_of(name)
     solver = Vbd(dt=1 / 60)
     ref64 = reference(scene, solver, 60, "f64")[0]
     _, f32_max = position_error(reference(scene, solver, 60, "f32")[0], ref64)
@@ -90,7 +96,7 @@ def test_a_scene_compiles_only_the_parts_it_has():
     }
     parts = ("CLOTH_MESHES", "CLOTH_MESH_BVH", "CLOTH_PER_STEP", "CLOTH_ATTACHED_PINS")
     for name, expected in cases.items():
-        scene, solver = load_setup(name).scene.replace(grid=N), Vbd(dt=1 / 60)
+        scene, solver = scene_of(name), Vbd(dt=1 / 60)
         with create_backend("opencl", scene, solver, BackendOptions(strict=True)) as b:
             built = b.build_options()
             has_mesh_code = "closest_point" in b.source
@@ -100,7 +106,7 @@ def test_a_scene_compiles_only_the_parts_it_has():
 
 
 def test_profile_names_every_stage():
-    scene, solver = load_setup("curtain").scene.replace(grid=N), Vbd(dt=1 / 60, chebyshev_rho=0.9)
+    scene, solver = scene_of("curtain"), Vbd(dt=1 / 60, chebyshev_rho=0.9)
     with create_backend("opencl", scene, solver, BackendOptions(strict=True)) as b:
         b.upload(*b.initial_state())
         stages = b.profile_stages(2)
