@@ -613,7 +613,7 @@ INLINE void collide_update_all(cgrid_t X, int first_item, int stride, __global f
                                __constant float4 *colliders MESH_ARG)
 {
     for (int i = first_item; i < N2; i += stride) {
-#if CLOTH_SPHERES + CLOTH_CYLINDERS + CLOTH_PLANES + CLOTH_MESHES > 0
+#if CLOTH_SPHERES + CLOTH_CYLINDERS + CLOTH_BOXES + CLOTH_PLANES + CLOTH_MESHES > 0
         update_particle(i, collide_particle(GRID_GET(X, i), colliders MESH_PASS), x, v, h, damp);
 #else
         update_particle(i, GRID_GET(X, i), x, v, h, damp);

@@ -61,7 +61,7 @@ BACKENDS: dict[str, BackendEntry] = {
         BackendEntry("c", f"{_OWN}.c.verlet:CBackend", summary="native C with OpenMP (CPU line)",
                      display="C (OpenMP)", platform="CPU", gpu_style=False, view_key="F6", fork_safe=False),
         BackendEntry("opencl", f"{_OWN}.opencl.verlet:OpenCLBackend", f"{_OWN}.opencl.pbd:OpenCLPbdBackend",
-                     summary="OpenCL kernel via pyopencl",
+                     vbd=f"{_OWN}.opencl.vbd:OpenCLVbdBackend", summary="OpenCL kernel via pyopencl",
                      display="OpenCL", platform="OpenCL", gpu_style=True, view_key="F3", fork_safe=False),
         BackendEntry("glsl", f"{_OWN}.gl.fragment:GLSLBackend", summary="GLSL fragment shader, FBO ping-pong",
                      display="GLSL", platform="GL", gpu_style=True, view_key="F2", fork_safe=False),
