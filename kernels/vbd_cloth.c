@@ -48,11 +48,12 @@ typedef struct {
         }                             \
     } while (0)
 
-/* One particle's Newton step (docs/vbd.md, "One particle's step"), in place in X: the
- * neighbours are of other colours, so nothing this colour writes is read by it. `interior`
- * (a constant where inlined): all 12 neighbours present, no bounds checks. */
-INLINE void vbd_particle(const vbd_constants *c, int interior, int row, int col, real *restrict X,
-                         const real *restrict y, const real *restrict x0, const real *restrict w)
+/* One particle's Newton step (docs/vbd.md, "One particle's step") from the iterate X: its
+ * new position in (ox, oy, oz). `interior` (a constant where inlined): all 12 neighbours
+ * present, no bounds checks. */
+INLINE void vbd_particle(const vbd_constants *c, int interior, int row, int col, const real *restrict X,
+                         const real *restrict y, const real *restrict x0, const real *restrict w, real *ox,
+                         real *oy, real *oz)
 {
     const int i = row * N + col;
     const real xi = X[i], yi = X[N2 + i], zi = X[2 * N2 + i];
@@ -69,6 +70,7 @@ INLINE void vbd_particle(const vbd_constants *c, int interior, int row, int col,
     real fy = (yi - y[N2 + i]) * c->mh2 + (yi - x0[N2 + i]) * cb;
     real fz = (zi - y[2 * N2 + i]) * c->mh2 + (zi - x0[2 * N2 + i]) * cb;
     real hxx = hd, hyy = hd, hzz = hd, hxy = 0, hxz = 0, hyz = 0;
+#pragma GCC unroll 12 /* whole, before the vectoriser sees the interior loop (a loop in it stops it) */
     for (int o = 0; o < 12; ++o) {
         if (!interior) {
             int r = row + DR[o], cc = col + DC[o];
@@ -110,9 +112,22 @@ INLINE void vbd_particle(const vbd_constants *c, int interior, int row, int col,
     const real py = z1 / d1 - l21 * pz;
     const real px = (fx / hxx - l10 * py) - l20 * pz;
     const int move = (w[i] != 0) & (hxx > 0) & (d1 > 0) & (d2 > 0); /* pinned: never moved */
-    X[i] = move ? xi - px : xi;
-    X[N2 + i] = move ? yi - py : yi;
-    X[2 * N2 + i] = move ? zi - pz : zi;
+    *ox = move ? xi - px : xi;
+    *oy = move ? yi - py : yi;
+    *oz = move ? zi - pz : zi;
+}
+
+/* A bounds-checked particle, in place: the neighbours are of other colours, so nothing this
+ * colour writes is read by it. */
+static void border_vbd_particle(const vbd_constants *c, int row, int col, real *restrict X, const real *restrict y,
+                                const real *restrict x0, const real *restrict w)
+{
+    const int i = row * N + col;
+    real ox, oy, oz;
+    vbd_particle(c, 0, row, col, X, y, x0, w, &ox, &oy, &oz);
+    X[i] = ox;
+    X[N2 + i] = oy;
+    X[2 * N2 + i] = oz;
 }
 
 /* The particles of one colour in `row`: columns first, first + 2, ... */
@@ -121,18 +136,31 @@ static void sweep_row(const vbd_constants *c, int row, int first, real *restrict
 {
     if (row < 2 || row >= N - 2) {
         for (int col = first; col < N; col += 2)
-            vbd_particle(c, 0, row, col, X, y, x0, w);
+            border_vbd_particle(c, row, col, X, y, x0, w);
         return;
     }
     int col = first;
     for (; col < 2; col += 2)
-        vbd_particle(c, 0, row, col, X, y, x0, w);
-    const vbd_constants local = *c; /* as locals: see verlet_cloth.c step_row */
+        border_vbd_particle(c, row, col, X, y, x0, w);
+    /* The interior: every new position into a row buffer, then into X. Written in place, a
+     * lane that keeps its position (pinned) is a masked store at stride 2, which GCC cannot
+     * vectorise (the loop runs scalar); no particle of a colour reads another, so writing
+     * them after all are computed gives the same bits. Numbers as locals: verlet_cloth.c
+     * step_row says why. */
+    const vbd_constants local = *c;
+    const int count = (N - 2 - col + 1) / 2;
+    real ox[N / 2 + 1], oy[N / 2 + 1], oz[N / 2 + 1];
 #pragma omp simd
-    for (int cc = col; cc < N - 2; cc += 2)
-        vbd_particle(&local, 1, row, cc, X, y, x0, w);
+    for (int m = 0; m < count; ++m)
+        vbd_particle(&local, 1, row, col + 2 * m, X, y, x0, w, &ox[m], &oy[m], &oz[m]);
+    for (int m = 0; m < count; ++m) {
+        const int i = row * N + col + 2 * m;
+        X[i] = ox[m];
+        X[N2 + i] = oy[m];
+        X[2 * N2 + i] = oz[m];
+    }
     for (int cc = (N - 2) + (((N - 2) - first) & 1); cc < N; cc += 2) /* the first of the colour >= n-2 */
-        vbd_particle(c, 0, row, cc, X, y, x0, w);
+        border_vbd_particle(c, row, cc, X, y, x0, w);
 }
 
 /* Rows [lo, hi) of this thread's share of `count` rows. */
