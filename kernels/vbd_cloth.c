@@ -130,8 +130,9 @@ static void border_vbd_particle(const vbd_constants *c, int row, int col, real *
     X[2 * N2 + i] = oz;
 }
 
-/* The particles of one colour in `row`: columns first, first + 2, ... */
-static void sweep_row(const vbd_constants *c, int row, int first, real *restrict X, const real *restrict y,
+/* The particles of one colour in `row`: columns first, first + 2, ... Never inlined, so its
+ * `restrict` is about one colour's pass (see PASS below). */
+static __attribute__((noinline)) void sweep_row(const vbd_constants *c, int row, int first, real *restrict X, const real *restrict y,
                       const real *restrict x0, const real *restrict w)
 {
     if (row < 2 || row >= N - 2) {
@@ -167,27 +168,82 @@ static void sweep_row(const vbd_constants *c, int row, int first, real *restrict
 #define SHARE(count, tid, threads, lo, hi) \
     const int lo = (int)((long)(count) * (tid) / (threads)), hi = (int)((long)(count) * ((tid) + 1) / (threads))
 
-/* Every substep of an advance, on thread `tid` of `threads`. */
-static void vbd_run(const vbd_constants *c, const real *omega, const real *colliders, real *restrict x,
-                    real *restrict v, const real *restrict w, real *restrict y, real *restrict X, real *restrict B,
-                    int iterations, int chebyshev, int substeps, int tid, int threads)
+/* The passes over rows [lo, hi) of one thread, each a function of its own, never inlined:
+ * `restrict` holds within one pass (between two barriers), never across a barrier, where
+ * other threads' writes through their own pointers must be seen (measured: with restrict on
+ * vbd_run's buffers, GCC kept values across the barrier, and 2 threads at 4^2 in float64 gave
+ * different bits from run to run). */
+#define PASS static __attribute__((noinline))
+
+/* predict: y = (x + v h) + g h^2; the first iterate y, or x where pinned */
+PASS void predict_rows(const vbd_constants *c, int lo, int hi, const real *restrict x, const real *restrict v,
+                         const real *restrict w, real *restrict y, real *restrict X, real *restrict B, int chebyshev)
 {
-    SHARE(N, tid, threads, lo, hi);
-    real table[COLLIDER_REALS];
+    const real g[3] = {c->gx, c->gy, c->gz};
+    for (int a = 0; a < 3; ++a)
+        for (int i = a * N2 + lo * N; i < a * N2 + hi * N; ++i) {
+            const real ya = (x[i] + v[i] * c->h) + g[a];
+            y[i] = ya;
+            X[i] = w[i - a * N2] != 0 ? ya : x[i];
+        }
+    if (chebyshev) /* the input of sweep 0 */
+        for (int a = 0; a < 3; ++a)
+            for (int i = a * N2 + lo * N; i < a * N2 + hi * N; ++i)
+                B[i] = X[i];
+}
+
+/* Chebyshev after sweep k: X = omega (X - before) + before where free and k > 0; then
+ * `before` takes X, the input of sweep k + 1 */
+PASS void chebyshev_rows(int lo, int hi, int k, real omega, const real *restrict w, real *restrict X,
+                           real *restrict before)
+{
+    for (int a = 0; a < 3; ++a)
+        for (int i = a * N2 + lo * N; i < a * N2 + hi * N; ++i) {
+            const int extrapolate = (k > 0) & (w[i - a * N2] != 0);
+            const real e = extrapolate ? omega * (X[i] - before[i]) + before[i] : X[i];
+            X[i] = e;
+            before[i] = e;
+        }
+}
+
+/* collide (free particles only), then v = (X - x) / h, x = X. Each plane through a pointer
+ * of its own: through one, x[N2 + i] of iteration i is x[i'] of iteration i' = i + N2, and
+ * GCC's predictive commoning carried values across that, writing back rows of the other
+ * threads (measured: 2 threads at 4^2 in float64 gave different bits from run to run). */
+PASS void update_rows(const vbd_constants *c, const real *colliders, int lo, int hi, real *restrict x0,
+                      real *restrict x1, real *restrict x2, real *restrict v0, real *restrict v1, real *restrict v2,
+                      const real *restrict w, const real *restrict X0, const real *restrict X1,
+                      const real *restrict X2)
+{
+    real table[COLLIDER_REALS]; /* as locals: see verlet_cloth.c step_row */
     for (int k = 0; k < COLLIDER_REALS; ++k)
         table[k] = colliders[k];
+    const real h = c->h;
+    for (int i = lo * N; i < hi * N; ++i) {
+        real px = X0[i], py = X1[i], pz = X2[i];
+        collide(table, &px, &py, &pz);
+        const int free = w[i] != 0;
+        px = free ? px : X0[i];
+        py = free ? py : X1[i];
+        pz = free ? pz : X2[i];
+        v0[i] = (px - x0[i]) / h;
+        v1[i] = (py - x1[i]) / h;
+        v2[i] = (pz - x2[i]) / h;
+        x0[i] = px;
+        x1[i] = py;
+        x2[i] = pz;
+    }
+}
+
+/* Every substep of an advance, on thread `tid` of `threads`. No `restrict` here: the buffers
+ * are written by every thread between the barriers. */
+static void vbd_run(const vbd_constants *c, const real *omega, const real *colliders, real *x, real *v,
+                    const real *w, real *y, real *X, real *B, int iterations, int chebyshev, int substeps, int tid,
+                    int threads)
+{
+    SHARE(N, tid, threads, lo, hi);
     for (int s = 0; s < substeps; ++s) {
-        /* predict: y = (x + v h) + g h^2; the first iterate y, or x where pinned */
-        for (int i = lo * N; i < hi * N; ++i) {
-            const int free = w[i] != 0;
-            for (int a = 0; a < 3; ++a) {
-                const real ya = (x[a * N2 + i] + v[a * N2 + i] * c->h) + (a == 0 ? c->gx : a == 1 ? c->gy : c->gz);
-                y[a * N2 + i] = ya;
-                X[a * N2 + i] = free ? ya : x[a * N2 + i];
-                if (chebyshev)
-                    B[a * N2 + i] = X[a * N2 + i]; /* the input of sweep 0 */
-            }
-        }
+        predict_rows(c, lo, hi, x, v, w, y, X, B, chebyshev);
         BARRIER(threads);
         for (int k = 0; k < iterations; ++k) {
             for (int colour = 0; colour < 4; ++colour) {
@@ -201,36 +257,12 @@ static void vbd_run(const vbd_constants *c, const real *omega, const real *colli
             }
             if (chebyshev) {
                 /* B[(k + 1) & 1] holds the input of sweep k - 1, and then of sweep k + 1 */
-                real *before = B + ((k + 1) & 1) * 3 * N2;
-                const real om = omega[k];
-                for (int i = lo * N; i < hi * N; ++i) {
-                    const int extrapolate = (k > 0) & (w[i] != 0);
-                    for (int a = 0; a < 3; ++a) {
-                        const real xa = X[a * N2 + i], ba = before[a * N2 + i];
-                        const real e = extrapolate ? om * (xa - ba) + ba : xa;
-                        X[a * N2 + i] = e;
-                        before[a * N2 + i] = e;
-                    }
-                }
+                chebyshev_rows(lo, hi, k, omega[k], w, X, B + ((k + 1) & 1) * 3 * N2);
                 BARRIER(threads);
             }
         }
-        /* collide (free particles only), then v = (X - x) / h, x = X. The next predict reads
-         * only this thread's rows, so no barrier until after it. */
-        for (int i = lo * N; i < hi * N; ++i) {
-            real px = X[i], py = X[N2 + i], pz = X[2 * N2 + i];
-            collide(table, &px, &py, &pz);
-            const int free = w[i] != 0;
-            px = free ? px : X[i];
-            py = free ? py : X[N2 + i];
-            pz = free ? pz : X[2 * N2 + i];
-            v[i] = (px - x[i]) / c->h;
-            v[N2 + i] = (py - x[N2 + i]) / c->h;
-            v[2 * N2 + i] = (pz - x[2 * N2 + i]) / c->h;
-            x[i] = px;
-            x[N2 + i] = py;
-            x[2 * N2 + i] = pz;
-        }
+        /* the next predict reads only this thread's rows: no barrier until after it */
+        update_rows(c, colliders, lo, hi, x, x + N2, x + 2 * N2, v, v + N2, v + 2 * N2, w, X, X + N2, X + 2 * N2);
     }
 }
 
