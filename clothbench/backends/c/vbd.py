@@ -50,6 +50,9 @@ def load_vbd_library(flags: tuple[str, ...]) -> ctypes.CDLL:
 class CVbdBackend(CBackend):
     """VBD on the CPU: the Verlet class's threads, capabilities and tuning, its own state."""
 
+    # the Verlet class's: its precisions, both arithmetics, thread shapes; neither meshes nor motion
+    capabilities = CBackend.capabilities
+
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
         Backend.__init__(self, scene, solver, options)  # none of the Verlet state
         t = self.dtype = options.dtype
