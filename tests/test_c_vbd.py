@@ -84,7 +84,7 @@ def test_vbd_steps_one_advance_at_a_time_give_the_same_bits(precision):
 
 @pytest.mark.parametrize("precision", ["f32", "f64"])
 @pytest.mark.parametrize("strict", [True, False], ids=["strict", "fast"])
-@pytest.mark.parametrize("scene_name", ["drape", "all-kinds"])
+@pytest.mark.parametrize("scene_name", [pytest.param("drape", marks=pytest.mark.full), "all-kinds"])  # no colliders too
 def test_gcc_vectorises_the_interior_loop_of_a_colour(scene_name, strict, precision):
     # Not a timing: whether GCC reports the loop vectorised. It stops silently when a lane
     # that keeps its value becomes a masked store at stride 2 (kernels/vbd_cloth.c sweep_row)
