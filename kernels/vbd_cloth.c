@@ -132,8 +132,9 @@ static void border_vbd_particle(const vbd_constants *c, int row, int col, real *
 
 /* The particles of one colour in `row`: columns first, first + 2, ... Never inlined, so its
  * `restrict` is about one colour's pass (see PASS below). */
-static __attribute__((noinline)) void sweep_row(const vbd_constants *c, int row, int first, real *restrict X, const real *restrict y,
-                      const real *restrict x0, const real *restrict w)
+static __attribute__((noinline)) void sweep_row(const vbd_constants *c, int row, int first, real *restrict X,
+                                                const real *restrict y, const real *restrict x0,
+                                                const real *restrict w)
 {
     if (row < 2 || row >= N - 2) {
         for (int col = first; col < N; col += 2)
@@ -169,15 +170,13 @@ static __attribute__((noinline)) void sweep_row(const vbd_constants *c, int row,
     const int lo = (int)((long)(count) * (tid) / (threads)), hi = (int)((long)(count) * ((tid) + 1) / (threads))
 
 /* The passes over rows [lo, hi) of one thread, each a function of its own, never inlined:
- * `restrict` holds within one pass (between two barriers), never across a barrier, where
- * other threads' writes through their own pointers must be seen (measured: with restrict on
- * vbd_run's buffers, GCC kept values across the barrier, and 2 threads at 4^2 in float64 gave
- * different bits from run to run). */
+ * `restrict` may hold within one pass (between two barriers), never across a barrier, where
+ * other threads write the same buffers through their own pointers. */
 #define PASS static __attribute__((noinline))
 
 /* predict: y = (x + v h) + g h^2; the first iterate y, or x where pinned */
 PASS void predict_rows(const vbd_constants *c, int lo, int hi, const real *restrict x, const real *restrict v,
-                         const real *restrict w, real *restrict y, real *restrict X, real *restrict B, int chebyshev)
+                       const real *restrict w, real *restrict y, real *restrict X, real *restrict B, int chebyshev)
 {
     const real g[3] = {c->gx, c->gy, c->gz};
     for (int a = 0; a < 3; ++a)
@@ -195,7 +194,7 @@ PASS void predict_rows(const vbd_constants *c, int lo, int hi, const real *restr
 /* Chebyshev after sweep k: X = omega (X - before) + before where free and k > 0; then
  * `before` takes X, the input of sweep k + 1 */
 PASS void chebyshev_rows(int lo, int hi, int k, real omega, const real *restrict w, real *restrict X,
-                           real *restrict before)
+                         real *restrict before)
 {
     for (int a = 0; a < 3; ++a)
         for (int i = a * N2 + lo * N; i < a * N2 + hi * N; ++i) {
