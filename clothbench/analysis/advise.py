@@ -138,6 +138,8 @@ def solver_of(row: AccuracyRow, setup: Setup) -> Solver:
     if row.solver == "pbd" and row.pbd_method:
         solver = setup.solver_for(f"pbd-{row.pbd_method}")
         return solver.replace(dt=row.dt, iterations=row.iterations, substeps=row.substeps)
+    if row.solver == "vbd":
+        return setup.solver_for("vbd").replace(dt=row.dt, iterations=row.iterations, substeps=row.substeps)
     raise ClothbenchError(f"row {row.label!r}: unknown solver {row.solver!r} {row.pbd_method!r}")
 
 

@@ -29,9 +29,10 @@ from clothbench.harness import faults
 from clothbench.harness.executor import fork_safe, runner
 from clothbench.harness.plan import Variant
 from clothbench.harness.simulate import position_error, reference, simulate
+from clothbench.harness.implicit import exact_implicit
 from clothbench.harness.timing import run_timed
 from clothbench.scene import Scene
-from clothbench.solver import Solver, as_verlet
+from clothbench.solver import ITERATIVE, Solver, as_verlet
 from clothbench.variant_names import model_name
 
 F64 = BackendOptions(precision="f64")
@@ -165,8 +166,8 @@ class AccuracyRow:
     steps: int
     solver: str = "verlet"
     pbd_method: str = ""  # PBD only
-    iterations: int | None = None  # PBD only
-    substeps: int | None = None  # PBD only
+    iterations: int | None = None  # PBD and VBD only
+    substeps: int | None = None  # PBD and VBD only
     status: str = "ok"  # "ok", or "unstable at step N: ..."
     ms_per_step: float = float("nan")
     ms_per_sim_s: float = float("nan")  # cost: milliseconds of compute per simulated second
@@ -195,6 +196,11 @@ class AccuracyRow:
     env: str = ""
     git_commit: str = ""
     timestamp: str = ""
+    # VBD only (last, so a file older than them lacks them after the machine columns): against the
+    # exact implicit-Euler step at the same dt (harness/implicit.py), what its sweeps have not
+    # converged; disc_* and vs_verlet_* add implicit Euler's own error
+    vs_exact_rms: float = float("nan")
+    vs_exact_max: float = float("nan")
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -211,7 +217,9 @@ def model_key(scene: Scene, solver: Solver) -> tuple[Scene, Solver]:
 
 
 def pbd_fields(solver: Solver) -> dict:
-    """The PBD columns of a row (none for Verlet)."""
+    """The PBD and VBD columns of a row (none for Verlet)."""
+    if solver.name == "vbd":
+        return dict(iterations=solver.iterations, substeps=solver.substeps)
     if solver.name != "pbd":
         return {}
     return dict(pbd_method=solver.method, iterations=solver.iterations, substeps=solver.substeps)
@@ -325,6 +333,8 @@ def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float):
         row.status = f"unstable at step {result.blowup.step}: {result.blowup.what}"
         return row, None, None
     row.impl_rms, row.impl_max = position_error(result.pos, reference(scene, solver, steps)[0])
+    if solver.name == "vbd":
+        row.vs_exact_rms, row.vs_exact_max = position_error(result.pos, exact_implicit(scene, solver, steps)[0])
     return row, result.pos, result.prev
 
 
@@ -399,9 +409,9 @@ def run_accuracy(
     pbd_dts = sorted(pbd_dts or dts, reverse=True)
 
     def levels(solver: Solver) -> list[float]:
-        return pbd_dts if solver.name == "pbd" else dts
+        return pbd_dts if solver.name in ITERATIVE else dts
 
-    for dt in dts + (pbd_dts if any(v.solver.name == "pbd" for v in variants) else []):
+    for dt in dts + (pbd_dts if any(v.solver.name in ITERATIVE for v in variants) else []):
         steps_for(time_s, dt)  # refuse a bad --time before any work
     models: dict[tuple, tuple[Solver, float]] = {}  # key -> (solver, finest dt)
     verlet_key = None
@@ -479,7 +489,7 @@ def run_accuracy(
     differences = []
     if verlet_ref is not None:
         for k, (s, _) in models.items():
-            if s.name == "pbd":
+            if s.name in ITERATIVE:
                 differences.append(model_difference(models[verlet_key][0], verlet_ref, s, refs[k]))
     first = next(iter(refs.values())) if refs else None
     return AccuracyResult(rows, first, references=named, differences=differences, ref_bulk=ref_bulk)

@@ -1,8 +1,8 @@
 """The measured stability limit: the largest dt that stays stable, by bisection, on three
 scenes (flat, stretched, crumpled), beside the linearised limits of lattice.py.
 
-Both solvers: PBD's stability is bisected like Verlet's, under a cap (PBD_CAP): "stable up
-to the cap". docs/accuracy.md has the numbers and the reasoning.
+Every solver: PBD's and VBD's stability is bisected like Verlet's, under a cap (PBD_CAP):
+"stable up to the cap". docs/accuracy.md has the numbers and the reasoning.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from clothbench.harness import faults
 from clothbench.harness.energy import ENERGY_GROWTH, energy_bound, energy_problem, total_energy
 from clothbench.harness.plan import Variant
 from clothbench.scene import Scene
-from clothbench.solver import Solver
+from clothbench.solver import ITERATIVE, Solver
 
 STABILITY_SCENES = ("flat", "stretched", "crumpled")
 STRETCH = 1.5  # the stretched scene's strain: every spring at 1.5x its rest length
@@ -103,11 +103,13 @@ def stability_problem(
     k-springs), but a PBD cloth released from a strained start (stretched, crumpled) turns the
     strain into motion, as Verlet's does. So the bound also holds the start's elastic energy,
     sum C^2 / (2 compliance): the XPBD potential, k (L - rest)^2 / 2 at the default
-    compliance 1/k. Without it the crumpled sheet springing open reads as a blow-up."""
-    if solver.name != "pbd":
+    compliance 1/k. Without it the crumpled sheet springing open reads as a blow-up. VBD is
+    watched the same way (energy.py), its start's strain energy that of the springs, k."""
+    if solver.name not in ITERATIVE:
         return energy_problem(pos, prev, scene, solver, step, start=start)
     e0, limit = energy_bound(scene, solver, start)
-    springs = scene.replace(stiffness=1.0 / max(min(solver.compliance_for(scene)), 1e-300))
+    stiffness = 1.0 / max(min(solver.compliance_for(scene)), 1e-300) if solver.name == "pbd" else scene.stiffness
+    springs = scene.replace(stiffness=stiffness)
     limit += ENERGY_GROWTH * abs(total_energy(*start, springs, solver.dt).spring)
     with np.errstate(all="ignore"):
         e = total_energy(pos, prev, scene, solver.dt).watched(solver)
@@ -228,7 +230,7 @@ def measure_stability_limit(
     faults.inject(variant.backend)  # a test's fault switch, in the row's worker (harness/faults.py)
     scene = stability_scene(kind, stiffness, grid, damping)
     solver = variant.solver
-    pbd = solver.name == "pbd"
+    pbd = solver.name in ITERATIVE  # PBD or VBD: capped, no lattice prediction
     if cap is None and pbd:
         cap = PBD_CAP
     start = stability_state(scene, kind, seed)
@@ -273,7 +275,9 @@ def measure_stability_limit(
                 lo = mid
             else:
                 hi = mid
-    pbd_fields = dict(pbd_method=solver.method, iterations=solver.iterations) if pbd else {}
+    pbd_fields = dict(iterations=solver.iterations) if pbd else {}
+    if solver.name == "pbd":
+        pbd_fields["pbd_method"] = solver.method
     return StabilityRow(
         kind,
         stiffness,

@@ -15,6 +15,7 @@ from clothbench.cli.study_files import (
     accuracy_file, accuracy_key, add_resume_args, early_cells, finish_accuracy, say_interrupted,
 )  # fmt: skip
 from clothbench.errors import ClothbenchError
+from clothbench.solver import ITERATIVE, SOLVER_SPECS
 
 DEFAULT_LEVELS = 5  # 2 dt .. dt/8 around the scene's dt (docs/accuracy.md: why one coarser)
 ACCURACY_GRID = 32  # a few minutes for every backend; the orders do not change with n
@@ -41,13 +42,13 @@ def register(subparsers) -> None:
     acc.add_argument(
         "--solvers",
         default="verlet",
-        help="comma-separated: verlet (mass-spring), pbd (XPBD, docs/pbd.md; --pbd-methods), pbd-jacobi, "
-        "pbd-coloured (default verlet)",
+        help=f"comma-separated: {', '.join(SOLVER_SPECS)}: verlet (mass-spring), pbd (XPBD, docs/pbd.md; "
+        "--pbd-methods), vbd (implicit Euler, docs/vbd.md; --vbd-iterations) (default verlet)",
     )
     add_pbd_args(acc)
     acc.add_argument(
         "--pbd-dts",
-        help=f"PBD's time steps (default 1/{PBD_DT0_HZ:g} s halved --levels - 1 times: where PBD is used)",
+        help=f"PBD's and VBD's time steps (default 1/{PBD_DT0_HZ:g} s halved --levels - 1 times: where they are used)",
     )
     acc.add_argument(
         "--artefacts",
@@ -78,6 +79,12 @@ def add_pbd_args(p) -> None:
         type=int_list("--pbd-iterations", 1),
         help="comma-separated PBD iteration counts (default: the scene's, 10), one line each",
     )
+    p.add_argument(
+        "--vbd-iterations",
+        type=int_list("--vbd-iterations", 1),
+        help="comma-separated VBD sweep counts (default: the scene's [vbd], 10), one line each: its "
+        "convergence against iterations",
+    )
 
 
 def floats(text: str, what: str) -> list[float]:
@@ -91,11 +98,12 @@ def floats(text: str, what: str) -> list[float]:
     return values
 
 
-def solvers_from_args(args, base, pbd) -> list:
+def solvers_from_args(args, base, pbd, vbd=None) -> list:
     """The solvers --solvers, --pbd-methods and --pbd-iterations name, with `base`'s dt and
     start and the other settings of `pbd` (the scene file's [pbd]). 'pbd' runs --pbd-methods
     (default both); 'pbd-jacobi' and 'pbd-coloured' (the sweep's spelling) name one method
-    each; each PBD method runs every --pbd-iterations count (default pbd's)."""
+    each; each PBD method runs every --pbd-iterations count (default pbd's), and 'vbd' every
+    --vbd-iterations count (default `vbd`'s: the scene file's [vbd])."""
     from clothbench.solver import PBD_METHODS, solver_for_spec
 
     specs = solver_specs(args.solvers)
@@ -112,6 +120,9 @@ def solvers_from_args(args, base, pbd) -> list:
     for kind in dict.fromkeys(s.partition("-")[0] for s in specs):
         if kind == "verlet":
             solvers.append(solver_for_spec("verlet", base, pbd))
+        elif kind == "vbd":
+            one = solver_for_spec("vbd", base, pbd, vbd)
+            solvers += [one.replace(iterations=it) for it in getattr(args, "vbd_iterations", None) or [one.iterations]]
         else:
             solvers += [
                 solver_for_spec(f"pbd-{m}", base, pbd).replace(iterations=it) for m in methods for it in iterations
@@ -170,7 +181,7 @@ def cmd_accuracy(args) -> int:
     base, pbd = setup.solver.replace(**start), setup.pbd.replace(**start)
     if args.levels < 2:
         raise ClothbenchError(f"--levels must be >= 2 to fit an order, got {args.levels}")
-    solvers = solvers_from_args(args, base, pbd)
+    solvers = solvers_from_args(args, base, pbd, setup.vbd.replace(**start))
     # one level coarser than the scene's dt: float32 rounding swamps the error below ~dt/2
     dts = floats(args.dts, "--dts") if args.dts else dt_levels(2 * base.dt, args.levels)
     pbd_dts = floats(args.pbd_dts, "--pbd-dts") if args.pbd_dts else dt_levels(1 / PBD_DT0_HZ, args.levels)
@@ -178,7 +189,7 @@ def cmd_accuracy(args) -> int:
     if not (math.isfinite(time_s) and time_s > 0):
         raise ClothbenchError(f"--time must be > 0, got {args.time}")
     for solver in solvers:
-        for dt in pbd_dts if solver.name == "pbd" else dts:
+        for dt in pbd_dts if solver.name in ITERATIVE else dts:
             check_float32_step(scene, solver.replace(dt=dt))
     out = Path(args.out or f"results/accuracy-{scene.name}.csv")
     outputs = [out, out.with_name(out.stem + "-speed.png"), out.with_name(out.stem + "-convergence.png")]
@@ -186,7 +197,7 @@ def cmd_accuracy(args) -> int:
         check_writable(path, make_folders=args.out is None)  # before the run, not after it; results/ made
     check_memory([scene.grid], ("f64",), jobs=args.jobs)
     variants = variants_for(args.backends, solvers)
-    levels = lambda v: sorted(pbd_dts if v.solver.name == "pbd" else dts, reverse=True)  # noqa: E731
+    levels = lambda v: sorted(pbd_dts if v.solver.name in ITERATIVE else dts, reverse=True)  # noqa: E731
     planned = [(v, v.solver.replace(dt=dt)) for v in variants for dt in levels(v)]
     for _, solver in planned:
         steps_for(time_s, solver.dt)  # a bad --time refused before the file is touched
@@ -272,15 +283,16 @@ def _print_accuracy(result, scene, start, time_s) -> None:
         f"clothbench accuracy: {scene.name} {scene.grid}x{scene.grid}, start={start}, "
         f"k={scene.stiffness:g}, b={scene.damping:g}; errors at t = {time_s:g} s, in metres"
     )
-    pbd = any(r.solver == "pbd" for r in result.rows)
+    pbd = any(r.solver in ITERATIVE for r in result.rows)
+    vbd = any(r.solver == "vbd" for r in result.rows)
     width = max([34] + [len(r.label) + 2 for r in result.rows])
     head = ("backend mode", "dt (s)", "ms/sim s", "disc RMS", "disc max", "impl RMS", "impl max")
-    extra = f"{'vs Verlet':>10}" if pbd else ""
+    extra = (f"{'vs Verlet':>10}" if pbd else "") + (f"{'vs exact':>10}" if vbd else "")
     print(f"{head[0]:<{width}}" + "".join(f"{h:>10}" for h in head[1:]) + extra)
     for r in result.rows:
         fit = "*" if r.in_fit else " "
         status = "" if r.status == "ok" else r.status
-        vs = f"{r.vs_verlet_rms:>10.3g}" if pbd else ""
+        vs = (f"{r.vs_verlet_rms:>10.3g}" if pbd else "") + (f"{r.vs_exact_rms:>10.3g}" if vbd else "")
         print(
             f"{r.label:<{width}}{r.dt:>10.4g}{r.ms_per_sim_s:>10.4g}{r.disc_rms:>10.3g}{r.disc_max:>10.3g}"
             f"{r.impl_rms:>10.3g}{r.impl_max:>10.3g}{vs}  {fit}{status}"
@@ -288,6 +300,8 @@ def _print_accuracy(result, scene, start, time_s) -> None:
     print("disc: against the converged float64 reference of the row's own model (its solver, and")
     print("for PBD its method, iterations, substeps: dt -> 0 with those fixed); impl: against float64")
     print("at the same dt" + ("; vs Verlet: RMS against the converged mass-spring (Verlet) answer" if pbd else ""))
+    if vbd:
+        print("vs exact (VBD): RMS against the exact implicit-Euler step at the same dt (docs/vbd.md)")
     print(f"* = in the order fit (discretisation at least {DOMINANCE:g}x the implementation error)")
     for name, ref in result.references.items():
         state = "converged" if ref.converged else "NOT converged (errors below its uncertainty mean nothing)"
@@ -327,8 +341,12 @@ def _print_cost_at_error(rows) -> None:
     for e in range(hi, lo - 1, -1):
         target = 10.0**e
         cells = []
-        for solver, error in (("verlet", "disc_rms"), ("pbd", "disc_rms"), ("pbd", "vs_verlet_rms")):
+        solvers = [s for s in ITERATIVE if any(r.solver == s for r in rows)]
+        for solver, error in (
+            ("verlet", "disc_rms"),
+            *((s, e) for s in solvers for e in ("disc_rms", "vs_verlet_rms")),
+        ):
             best = cheapest_at([r for r in rows if r.solver == solver], target, error)
-            name = solver if error == "disc_rms" else "pbd vs Verlet's answer"
+            name = solver if error == "disc_rms" else f"{solver} vs Verlet's answer"
             cells.append(f"{name} {best.ms_per_sim_s:.3g} ({best.label}, {best.dt:.3g} s)" if best else f"{name} -")
         print(f"  <= {target:.0e} m: " + " | ".join(cells))

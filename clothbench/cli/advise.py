@@ -180,8 +180,8 @@ def fmt_dt(dt: float) -> str:
 
 
 def solver_text(row) -> str:
-    """'Verlet', 'PBD jacobi 10 it x2 substeps'."""
-    if row.solver != "pbd":
+    """'Verlet', 'PBD jacobi 10 it x2 substeps', 'VBD 10 it'."""
+    if row.solver == "verlet":
         return model_display(row.solver, None)
     sub = f" x{row.substeps} substeps" if row.substeps and row.substeps > 1 else ""
     return f"{model_display(row.solver, row.pbd_method)} {iterations_display(row.iterations)}{sub}"
@@ -252,10 +252,12 @@ def print_advice(advice, scene_arg: str, stiffness: float) -> None:
             f"  error at t = {r.time_s:g} s: max {r.disc_max:.2e} m, RMS {r.disc_rms:.2e} m "
             f"(reference uncertainty {c.uncertainty:.2g} m)"
         )
-        if r.solver == "pbd" and math.isfinite(r.vs_verlet_max):
+        if r.solver != "verlet" and math.isfinite(r.vs_verlet_max):
             print(
                 f"  against the mass-spring (Verlet) answer: max {r.vs_verlet_max:.2e} m, RMS {r.vs_verlet_rms:.2e} m"
             )
+        if r.solver == "vbd" and math.isfinite(r.vs_exact_max):
+            print(f"  against the exact implicit step: max {r.vs_exact_max:.2e} m, RMS {r.vs_exact_rms:.2e} m")
         print(f"  run it: {' '.join(c.config.run_args(scene_arg))}")
         if advice.runners_up:
             print("runners-up, the next cheapest under E (x: cost against the choice's):")
@@ -299,13 +301,16 @@ def _print_none(advice, scene_arg: str) -> None:
         return
     for p in advice.predictions[:3]:
         row = p.pick.row
-        dts = "--pbd-dts" if row.solver == "pbd" else "--dts"
-        spec = f"pbd-{row.pbd_method} --pbd-iterations {row.iterations}" if row.solver == "pbd" else "verlet"
+        dts = "--pbd-dts" if row.solver != "verlet" else "--dts"
+        spec = {
+            "pbd": f"pbd-{row.pbd_method} --pbd-iterations {row.iterations}",
+            "vbd": f"vbd --vbd-iterations {row.iterations}",
+        }.get(row.solver, "verlet")
         print(
             f"  dt: {p.pick.config.label}, {solver_text(row)} at dt {p.dt:.4g} s ({p.steps} steps) is predicted "
             f"from its order {row.order:.2f} (not measured) to reach E, at ~{p.cost:.4g} ms/s"
         )
-        if row.solver == "pbd" and math.isfinite(row.vs_verlet_max):
+        if row.solver != "verlet" and math.isfinite(row.vs_verlet_max):
             print(
                 f"      (E against its own model; at its finest dt it was {row.vs_verlet_max:.2e} m from the mass-spring answer)"
             )

@@ -15,6 +15,7 @@ from clothbench.cli.study_files import (
 )  # fmt: skip
 from clothbench.errors import ClothbenchError
 from clothbench.variant_names import solver_model
+from clothbench.solver import ITERATIVE, SOLVER_SPECS
 
 STABILITY_GRID = 24  # its top frequency is within 1.4 % (omega^2) of the infinite lattice's
 
@@ -36,8 +37,8 @@ def register(subparsers) -> None:
     st.add_argument(
         "--solvers",
         default="verlet",
-        help="comma-separated: verlet, pbd (--pbd-methods), pbd-jacobi, pbd-coloured (default verlet); "
-        "with PBD, every row also says whether dt = 1/60 s is stable",
+        help=f"comma-separated: {', '.join(SOLVER_SPECS)} (pbd: --pbd-methods; vbd: --vbd-iterations; default "
+        "verlet); with PBD or VBD, every row also says whether dt = 1/60 s is stable",
     )
     add_pbd_args(st)
     st.add_argument(
@@ -62,7 +63,7 @@ def cmd_stability(args) -> int:
     from clothbench.progress import LazyProgress
     from clothbench.harness.executor import executor_for, fork_safe
     from clothbench.harness.preflight import check_memory, check_writable
-    from clothbench.solver import Pbd, Verlet
+    from clothbench.solver import Pbd, Vbd, Verlet
 
     sigterm_interrupts()
     check_row_args(args)
@@ -80,8 +81,8 @@ def cmd_stability(args) -> int:
     cap = args.cap if args.cap is not None else PBD_CAP
     if not (math.isfinite(cap) and cap > 0):
         raise ClothbenchError(f"--cap must be > 0, got {args.cap}")
-    solvers = solvers_from_args(args, Verlet(), Pbd())  # the dt is what is bisected
-    check_60hz = any(s.name == "pbd" for s in solvers)
+    solvers = solvers_from_args(args, Verlet(), Pbd(), Vbd())  # the dt is what is bisected
+    check_60hz = any(s.name in ITERATIVE for s in solvers)
     out = Path(args.out or "results/stability.csv")
     png = out.with_suffix(".png")
     for path in (out, png):
@@ -105,7 +106,7 @@ def cmd_stability(args) -> int:
                 futures = [
                     executor.submit(
                         measure_stability_limit, v, kind, k, args.steps, args.grid, args.damping,
-                        cap=cap if v.solver.name == "pbd" else None, check_60hz=check_60hz,
+                        cap=cap if v.solver.name in ITERATIVE else None, check_60hz=check_60hz,
                         fork_safe=fork_safe(v.backend, v.solver.name),
                     )
                     for v, kind, k in todo
@@ -166,10 +167,14 @@ def _print_stability(rows) -> None:
     print("stretched: the same lattice at 1.5x rest length, 12.85 k/m), with the lagged-velocity")
     print("damping (omega^2 dt^2 + 2 (12 b/m) dt = 4). * crumpled has no linear prediction: the")
     print("ratio shown is to the flat limit (docs/accuracy.md explains the difference).")
-    if any(r.solver == "pbd" for r in rows):
+    if any(r.solver in ITERATIVE for r in rows):
         caps = sorted({r.cap for r in rows if r.cap})
+        present = [
+            name for solver, name in (("pbd", "PBD (XPBD)"), ("vbd", "VBD")) if any(r.solver == solver for r in rows)
+        ]
+        has, its = ("has", "its") if len(present) == 1 else ("have", "their")
         print(
-            "PBD (XPBD) has no explicit-step limit to predict: its ratio is to Verlet's flat limit; "
+            f"{' and '.join(present)} {has} no explicit-step limit to predict: {its} ratio is to Verlet's flat limit; "
             f">= means stable at the cap ({', '.join(f'{c:g}' for c in caps)} s), so the limit is at least that."
         )
 
@@ -217,12 +222,13 @@ def _print_side_by_side(rows) -> None:
                 verdict = f"stable on {stable}, explodes on {len(rs) - stable}"
             parts.append(f"{m} {verdict} ({len(rs)} backend/modes)")
         print(f"  {kind} k={k:g}: " + "; ".join(parts))
-    v_bad = [r for r in rows if r.solver != "pbd" and r.at_60hz and not r.stable_at_60hz]
-    p_ok = [r for r in rows if r.solver == "pbd" and r.at_60hz and r.stable_at_60hz]
-    v_all = [r for r in rows if r.solver != "pbd" and r.at_60hz]
-    p_all = [r for r in rows if r.solver == "pbd" and r.at_60hz]
-    if v_all and p_all:
-        print(
-            f"=> at dt = 1/60 s Verlet explodes in {len(v_bad)} of {len(v_all)} runs and PBD stays "
-            f"stable in {len(p_ok)} of {len(p_all)}, at the same stiffness."
-        )
+    v_bad = [r for r in rows if r.solver == "verlet" and r.at_60hz and not r.stable_at_60hz]
+    v_all = [r for r in rows if r.solver == "verlet" and r.at_60hz]
+    for solver in ITERATIVE:
+        p_ok = [r for r in rows if r.solver == solver and r.at_60hz and r.stable_at_60hz]
+        p_all = [r for r in rows if r.solver == solver and r.at_60hz]
+        if v_all and p_all:
+            print(
+                f"=> at dt = 1/60 s Verlet explodes in {len(v_bad)} of {len(v_all)} runs and {solver.upper()} stays "
+                f"stable in {len(p_ok)} of {len(p_all)}, at the same stiffness."
+            )

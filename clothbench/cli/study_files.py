@@ -14,6 +14,7 @@ import sys
 from types import SimpleNamespace
 
 from clothbench.harness.study_csv import StudyFile, cell, cells, from_cells
+from clothbench.solver import ITERATIVE
 
 ACCURACY_KEY = ("backend", "label", "solver", "pbd_method", "iterations", "substeps", "dt")
 ACCURACY_DERIVED = ("order", "order_points", "in_fit")
@@ -37,10 +38,10 @@ def say_interrupted(f: StudyFile) -> None:
 
 
 def _pbd_cells(solver, substeps: bool = True) -> dict[str, str]:
-    pbd = solver.name == "pbd"
-    d = {"pbd_method": solver.method if pbd else "", "iterations": cell(solver.iterations) if pbd else ""}
+    pbd, iterative = solver.name == "pbd", solver.name in ITERATIVE
+    d = {"pbd_method": solver.method if pbd else "", "iterations": cell(solver.iterations) if iterative else ""}
     if substeps:
-        d["substeps"] = cell(solver.substeps) if pbd else ""
+        d["substeps"] = cell(solver.substeps) if iterative else ""
     return d
 
 
@@ -56,7 +57,7 @@ def accuracy_file(path, planned, scene, time_s, verlet_start: str, pbd_start: st
     settings = {
         "scene": scene.name, "grid": cell(scene.grid), "damping": cell(scene.damping), "time_s": cell(time_s),
         "stiffness": cell(scene.stiffness),
-        "start": lambda row: pbd_start if row.get("solver") == "pbd" else verlet_start,
+        "start": lambda row: pbd_start if row.get("solver") in ITERATIVE else verlet_start,
     }  # fmt: skip
     return StudyFile(
         path, tuple(f.name for f in _fields(AccuracyRow)), ACCURACY_KEY, settings, "accuracy",
@@ -110,7 +111,7 @@ def stability_file(path, cases, grid: int, steps: int, damping: float, cap: floa
 
     settings = {
         "grid": cell(grid), "steps": cell(steps), "damping": cell(damping),
-        "cap": lambda row: cell(cap) if row.get("solver") == "pbd" else "",
+        "cap": lambda row: cell(cap) if row.get("solver") in ITERATIVE else "",
     }  # fmt: skip
     columns = tuple(f.name for f in _fields(StabilityRow)) + STABILITY_COLUMNS_EXTRA
     return StudyFile(

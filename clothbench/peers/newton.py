@@ -180,6 +180,8 @@ class NewtonVbdBackend(NewtonPbdBackend):
     scene's k (VBD takes stiffness, not compliance)."""
 
     kind = "vbd"
+    device_timer = ""  # no device clock read: a peer is timed as a user would time it
+    capabilities = NewtonPbdBackend.capabilities  # the same one mode and --device
 
     def _newton_solver(self, newton, solver: Vbd):
         return newton.solvers.SolverVBD(self.model, iterations=solver.iterations)

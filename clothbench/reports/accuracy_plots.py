@@ -37,12 +37,22 @@ from clothbench.scene import Scene
 from clothbench.variant_names import model_display, model_short
 
 DPI = 110
-SOLVER_MARKERS = {"verlet": "o", "jacobi": "s", "coloured": "D"}
+SOLVER_MARKERS = {"verlet": "o", "jacobi": "s", "coloured": "D", "vbd": "v"}  # by _solver_key
 FOOTER_WIDTH = 130  # characters of a machine line (6.5 pt) to a line: what fits the narrowest figure, 7 in wide
 
 
 def _model(r) -> str:
     return model_display(r.solver, r.pbd_method)
+
+
+def _solver_key(r) -> str:
+    """'verlet', a PBD method ('jacobi', 'coloured') or 'vbd': what a row's marker says."""
+    return r.pbd_method or r.solver
+
+
+def _key_display(key: str) -> str:
+    """'Verlet', 'PBD jacobi', 'VBD' of a _solver_key."""
+    return model_display(key if key in ("verlet", "vbd") else "pbd", key)
 
 
 def _label(r) -> str:
@@ -63,9 +73,9 @@ def _lines(rows) -> list[tuple[str, list]]:
 
 def _line_style(rows, i: int) -> dict:
     r = rows[0]
-    style = series_style(i, peer=is_peer(r.backend), pbd=r.solver == "pbd")
-    if r.solver == "pbd":
-        style["marker"] = SOLVER_MARKERS.get(r.pbd_method, "^")
+    style = series_style(i, peer=is_peer(r.backend), pbd=r.solver != "verlet")
+    if r.solver != "verlet":
+        style["marker"] = SOLVER_MARKERS.get(_solver_key(r), "^")
     return style
 
 
@@ -146,7 +156,7 @@ def _every_run(ax, rows) -> list[str]:
     drawn = []
     for platform in _platforms(rows):
         for solver, marker in SOLVER_MARKERS.items():
-            pts = [r for r in rows if platform_of(r.backend) == platform and (r.pbd_method or "verlet") == solver]
+            pts = [r for r in rows if platform_of(r.backend) == platform and _solver_key(r) == solver]
             if not pts:
                 continue
             color = platform_color(platform)
@@ -163,7 +173,7 @@ def _platforms(rows) -> list[str]:
 
 def _every_run_key(rows) -> list[Line2D]:
     platforms = _platforms(rows)
-    solvers = [s for s in SOLVER_MARKERS if any((r.pbd_method or "verlet") == s for r in rows)]
+    solvers = [s for s in SOLVER_MARKERS if any(_solver_key(r) == s for r in rows)]
     handles = [
         Line2D([], [], color=platform_color(p), marker="o", linestyle="none",
                markerfacecolor="white" if p == PEERS else platform_color(p),
@@ -172,7 +182,7 @@ def _every_run_key(rows) -> list[Line2D]:
     ]  # fmt: skip
     if len(solvers) > 1:
         handles += [Line2D([], [], color="0.45", marker=SOLVER_MARKERS[s], linestyle="none",
-                           label=model_display("pbd" if s != "verlet" else s, s)) for s in solvers]  # fmt: skip
+                           label=_key_display(s)) for s in solvers]  # fmt: skip
     handles.append(Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8,
                           label=FRONT_LEGEND))  # fmt: skip
     return handles
@@ -261,7 +271,7 @@ def stability_map_chart(rows) -> Chart:
     kk = [ks[0] / 1.6, ks[-1] * 1.6]
     m = Scene().mass  # every stability scene uses the default particle mass
     beta = damping_rate(Scene(damping=r0.damping))
-    caps = sorted({r.cap for r in rows if r.solver == "pbd" and r.cap})
+    caps = sorted({r.cap for r in rows if r.solver != "verlet" and r.cap})
     for ax, kind in zip(axes, kinds):
         mine = [r for r in rows if r.kind == kind]
         if kind == "stretched":
@@ -292,7 +302,7 @@ def stability_map_chart(rows) -> Chart:
 def _stability_points(ax, rows) -> list[str]:
     """Verlet: every backend mode a hollow marker in its platform's colour, a platform's
     modes side by side around k; PBD: per method the smallest limit over the backends."""
-    verlet = [r for r in rows if r.solver != "pbd"]
+    verlet = [r for r in rows if r.solver == "verlet"]
     platforms = _platforms(verlet)
     drawn = []
     for j, platform in enumerate(platforms):
@@ -313,16 +323,16 @@ def _stability_points(ax, rows) -> list[str]:
             linestyle="none",
         )
         drawn.append(label)
-    pbd = [r for r in rows if r.solver == "pbd"]
-    for method, marker, color in (("jacobi", "P", "tab:purple"), ("coloured", "X", "tab:brown")):
-        mine = [r for r in pbd if r.pbd_method == method]
+    iterative = [r for r in rows if r.solver != "verlet"]
+    for key, marker, color, shift in (("jacobi", "P", "tab:purple", 1 / 1.12), ("coloured", "X", "tab:brown", 1.12),
+                                      ("vbd", "v", "tab:olive", 1.0)):  # fmt: skip
+        mine = [r for r in iterative if _solver_key(r) == key]
         if not mine:
             continue
         worst = [min((r for r in mine if r.stiffness == k), key=lambda r: r.dt_stable)
                  for k in sorted({r.stiffness for r in mine})]  # fmt: skip
-        shift = 1.12 if method == "coloured" else 1 / 1.12
         its = "/".join(map(str, sorted({r.iterations for r in mine})))
-        label = f"PBD {method} ({its} it): smallest of {len({r.label for r in mine})} backend modes"
+        label = f"{_key_display(key)} ({its} it): smallest of {len({r.label for r in mine})} backend modes"
         ax.loglog([r.stiffness * shift for r in worst], [r.dt_stable for r in worst], marker, color=color,
                   markersize=8, alpha=0.85, label=label, linestyle="none")  # fmt: skip
         for r in worst:

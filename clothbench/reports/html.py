@@ -27,6 +27,7 @@ from clothbench.reports.figures_common import FRONT_TOLERANCE, is_peer, pareto_f
 from clothbench.reports.results_files import (
     ACCURACY, ARTEFACTS, STABILITY, SWEEP, WHAT, ResultsFile, accuracy_result, analysis_rows,
 )  # fmt: skip
+from clothbench.solver import ITERATIVE
 from clothbench.variant_names import iterations_display, model_display
 
 STYLE = """
@@ -458,7 +459,8 @@ def ms_per_step_section(ok: list[dict], parent: str) -> Section:
         lines.setdefault(key, {})[int(r["grid"])] = r
     body, classes = [], []
     for (backend, solver, iterations, mode, scene, device), at in lines.items():
-        label = f"{backend} {mode}" + (f", {iterations_display(iterations)}" if solver == "pbd" and iterations else "")
+        its = f", {iterations_display(iterations)}" if solver in ITERATIVE and iterations else ""
+        label = f"{backend} {mode}{its}"
         label += f" [{scene}]" if len(scenes) > 1 else ""
         body.append([label, device] + [float(at[g]["ms_median"]) if g in at else None for g in grids])
         classes.append("peer" if is_peer(backend) or at[min(at)]["peer"] == "true" else "")
@@ -502,7 +504,8 @@ def _sweep_cost(r: dict) -> float:
 
 
 def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
-    """Verlet against PBD on each backend and grid: the cheapest f32 mode of each solver model."""
+    """Verlet against PBD and VBD on each backend and grid: the cheapest f32 mode of each solver model."""
+    present = [s for s in ITERATIVE if any((r.get("solver") or "verlet") == s for r in ok)]
 
     def model(r) -> str:
         return model_display(r.get("solver") or "verlet", r["pbd_method"], r["iterations"])
@@ -521,7 +524,7 @@ def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
         cells = [Html(f"{num(at[m])}" + (f" (×{num(at[m] / at['Verlet'], 2)})" if m != "Verlet" else ""))
                  if m in at else "–" for m in models]  # fmt: skip
         body.append([backend, f"{grid}×{grid}", *cells])
-    return Section("Verlet against PBD", f"{parent}-solvers", [table(
+    return Section(f"Verlet against {' and '.join(s.upper() for s in present)}", f"{parent}-solvers", [table(
         ["backend", "grid", *models], body, right=set(range(2, 2 + len(models))),
         caption="Compute ms per simulated second, the cheapest float32 mode of each solver (× Verlet's cost). "
                 "The same dt: PBD pays off only at steps Verlet cannot take (see Stability).",
@@ -565,7 +568,7 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
         row_classes=["peer" if is_peer(r.backend) else "" for r, _, _ in orders.values()],
         caption="The order of error against dt, fitted where discretisation dominates rounding ('–': it never does).",
     )]))  # fmt: skip
-    if {"verlet", "pbd"} <= set(solvers):
+    if "verlet" in solvers and set(ITERATIVE) & set(solvers):
         sec.children.append(accuracy_solvers_section(rows, ok, sec.id))
     bad = [r for r in rows if r.status != "ok"]
     if bad:
@@ -578,10 +581,14 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
 
 
 def accuracy_solvers_section(rows: list, ok: list, parent: str) -> Section:
-    """Per decade of error, the cheapest Verlet and PBD runs reaching it (PBD against its own
-    converged model and against the mass-spring answer Verlet converges to)."""
-    columns = (("Verlet", "verlet", "disc_rms"), ("PBD, own model", "pbd", "disc_rms"),
-               ("PBD against Verlet's answer", "pbd", "vs_verlet_rms"))  # fmt: skip
+    """Per decade of error, the cheapest Verlet, PBD and VBD runs reaching it (PBD and VBD
+    against their own converged model and against the mass-spring answer Verlet converges to)."""
+    present = [s for s in ITERATIVE if any(r.solver == s for r in ok)]
+    titles = {"disc_rms": "{}, own model", "vs_verlet_rms": "{} against Verlet's answer"}
+    columns = (
+        ("Verlet", "verlet", "disc_rms"),
+        *((t.format(s.upper()), s, e) for s in present for e, t in titles.items()),
+    )
     errors = [r.disc_rms for r in ok]
     body = []
     for e in range(math.ceil(math.log10(max(errors))), math.floor(math.log10(min(errors))) - 1, -1):
@@ -591,7 +598,7 @@ def accuracy_solvers_section(rows: list, ok: list, parent: str) -> Section:
             cells.append(Html(f"{num(best.ms_per_sim_s)} <small>({esc(best.label)}, dt {num(Exact(best.dt))} s)</small>")
                          if best else "–")  # fmt: skip
         body.append([Html(f"≤ {num(Exact(10.0**e))}"), *cells])
-    return Section("Verlet against PBD", f"{parent}-solvers", [table(
+    return Section(f"Verlet against {' and '.join(s.upper() for s in present)}", f"{parent}-solvers", [table(
         ["RMS error (m)", *(c[0] for c in columns)], body,
         caption="The cheapest run reaching each error, in ms of compute per simulated second.",
     )])  # fmt: skip

@@ -134,7 +134,7 @@ def _variant(r: Row, precisions: set[str], stricts: set[bool]) -> str:
     """'strict', 'fast per-step', 'f64', ... from the option columns; only what tells a
     backend's lines apart in this file (and a precision other than f32) is named."""
     parts = []
-    if r.solver == "pbd":
+    if r.solver != "verlet":
         parts.append(model_display(r.solver, r.pbd_method))
     if precisions != {"f32"}:
         parts.append(r.precision)
@@ -178,7 +178,7 @@ def group(rows: list[Row], by) -> list[Series]:
                 label=label,
                 variant=variant,
                 peer=first.peer,
-                pbd=first.solver == "pbd",
+                pbd=first.solver != "verlet",
             )
         )
     return series

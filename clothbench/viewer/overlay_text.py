@@ -34,6 +34,8 @@ def run_lines(viewer, profile) -> list:
     lines.append(f"dt        {solver.dt * 1e3:g} ms  iterations {s.steps_per_frame} steps/frame")
     if solver.name == "pbd":
         lines.append(f"pbd       {solver.method}: {solver.iterations} iterations x {solver.substeps} substeps")
+    if solver.name == "vbd":
+        lines.append(f"vbd       {solver.iterations} sweeps x {solver.substeps} substeps")
     lines.append(f"step      {s.step:,} = {s.step * solver.dt:.3f} s simulated" + ("  PAUSED" * s.paused))
     if viewer.source == "device":
         where = "textures" if s.backend_name == "glsl" else "storage buffers"
