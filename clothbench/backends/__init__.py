@@ -58,7 +58,7 @@ BACKENDS: dict[str, BackendEntry] = {
         BackendEntry("numpy", f"{_OWN}.numpy.verlet:NumpyBackend", f"{_OWN}.numpy.pbd:NumpyPbdBackend",
                      vbd=f"{_OWN}.numpy.vbd:NumpyVbdBackend", summary="vectorised NumPy reference (CPU)",
                      display="CPU (numpy)", platform="CPU", gpu_style=False, view_key="F1", fork_safe=True),
-        BackendEntry("c", f"{_OWN}.c.verlet:CBackend", summary="native C with OpenMP (CPU line)",
+        BackendEntry("c", f"{_OWN}.c.verlet:CBackend", vbd=f"{_OWN}.c.vbd:CVbdBackend", summary="native C with OpenMP (CPU line)",
                      display="C (OpenMP)", platform="CPU", gpu_style=False, view_key="F6", fork_safe=False),
         BackendEntry("opencl", f"{_OWN}.opencl.verlet:OpenCLBackend", f"{_OWN}.opencl.pbd:OpenCLPbdBackend",
                      vbd=f"{_OWN}.opencl.vbd:OpenCLVbdBackend", summary="OpenCL kernel via pyopencl",

@@ -273,8 +273,6 @@ class CBackend(Backend):
             return
         if self._state[0].size == 0:
             raise ClothbenchError("c: advance after close")
-        if _OpenMP.broken:  # built before a fork, stepped after it: the same bits on one thread
-            self.threads = 1
         a, b = self._state[:2]
         contact = ()
         if self._contact:
@@ -282,12 +280,18 @@ class CBackend(Backend):
             contact = (self._state[2].ctypes.data, numbers.ctypes.data, exclude2, cells.ctypes.data)
         rotated = self._lib.cloth_advance(
             a.ctypes.data, b.ctypes.data, self._w.ctypes.data, self._numbers.ctypes.data,
-            self._colliders.ctypes.data, int(steps), self.threads, *contact,
+            self._colliders.ctypes.data, int(steps), self._threads_now(), *contact,
         )  # fmt: skip
-        _OpenMP.ran = _OpenMP.ran or self.threads > 1
         if rotated:  # the library wrote x(t) into buffer -rotated (two buffers: the second)
             self._state = self._state[-rotated:] + self._state[:-rotated]
         self._w_prev = self._w  # prev now carries pos's inverse mass
+
+    def _threads_now(self) -> int:
+        """The threads to step on, recorded as run (the VBD class steps this way too)."""
+        if _OpenMP.broken:  # built before a fork, stepped after it: the same bits on one thread
+            self.threads = 1
+        _OpenMP.ran = _OpenMP.ran or self.threads > 1
+        return self.threads
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         return self._rows(self._state[0], self._w), self._rows(self._state[1], self._w_prev)
