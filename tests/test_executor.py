@@ -152,7 +152,10 @@ def test_accuracy_over_two_jobs_gives_the_numbers_of_one_process():
     with LocalExecutor(jobs=2) as ex:
         spread = run_accuracy(scene, variants, dts, 0.02, executor=ex)
     timing = NOT_THE_RESULT
-    strip = lambda rows: [{k: v for k, v in r.as_dict().items() if k not in timing} for r in rows]  # noqa: E731
+    # NaN (a column a row does not have, such as a Verlet row's vs_exact_*) is unequal to
+    # itself once a row has crossed a process: compared as its text
+    same = lambda v: "nan" if isinstance(v, float) and v != v else v  # noqa: E731
+    strip = lambda rows: [{k: same(v) for k, v in r.as_dict().items() if k not in timing} for r in rows]  # noqa: E731
     assert strip(plain.rows) == strip(spread.rows)
     assert all(r.status == "ok" for r in spread.rows)
 

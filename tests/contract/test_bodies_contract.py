@@ -22,7 +22,7 @@ from clothbench.model.colliders.motion import Frame, Motion
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
 from clothbench.model.scene import Scene, load_scene
-from clothbench.model.solver import PBD_METHODS, Pbd
+from clothbench.model.solver import PBD_METHODS, Pbd, solver_for_spec
 
 from conftest import VERLET, assert_bit_exact
 from registry_variants import backend_params, options, solver_params, usable
@@ -129,7 +129,7 @@ def test_a_backend_without_the_bodies_refuses_them_in_one_line_before_any_work(p
         want = f"{who} does not take {what} yet (it takes: {instead}; {', '.join(takers)} {verb})"
         assert cls.capabilities.scene_refusal(name, scene, solver) == want
         with pytest.raises(ClothbenchError) as e:
-            cls(scene, VERLET if solver == "verlet" else Pbd(), options(name, solver))  # before its kernel is built
+            cls(scene, solver_for_spec(solver, VERLET), options(name, solver))  # before its kernel is built
         assert str(e.value) == want
 
 
