@@ -31,7 +31,9 @@ def _data_rows(path) -> int:
         return 0
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize(
+    "sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.full)], ids=["SIGINT", "SIGTERM"]
+)  # one handler takes both (harness/faults.py): SIGTERM's copy in the full tier
 def test_a_signal_mid_row_keeps_finished_rows_and_resume_completes(tmp_path, sig):
     out, started = tmp_path / "s.csv", tmp_path / "started"
     # the first row runs; the second hangs in its worker and says so: the signal comes mid-row

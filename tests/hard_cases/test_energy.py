@@ -54,6 +54,9 @@ def test_undamped_energy_stays_in_its_band_for_100000_steps(variant):
 
 
 def test_damped_energy_never_increases_by_more_than_rounding(variant):
+    if variant.options.strict and variant.backend != "numpy":
+        # as above: a strict variant's 20,000 steps are numpy f32's, which this test runs
+        pytest.skip("strict: bit-exact to numpy f32 (the contract), whose 20,000 steps this test runs")
     scene = DRAPE.scene  # b = 0.002
     e = _energies(variant, scene, 20_000, 100)
     u = np.finfo(variant.options.dtype).eps / 2
