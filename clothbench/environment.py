@@ -50,9 +50,23 @@ PACKAGES = (
 # PyTorch's own switches.
 ENV_VARS = ("GALLIUM_DRIVER", "CUDA_VISIBLE_DEVICES")
 ENV_PREFIXES = (
-    "OMP_", "KMP_", "GOMP_", "NUMBA_", "MKL_", "OPENBLAS_", "LP_", "MESA_", "POCL_", "OCL_ICD_",
-    "PYOPENCL_", "CUPY_", "TI_", "WARP_", "XLA_", "TORCH",
-)  # fmt: skip
+    "OMP_",
+    "KMP_",
+    "GOMP_",
+    "NUMBA_",
+    "MKL_",
+    "OPENBLAS_",
+    "LP_",
+    "MESA_",
+    "POCL_",
+    "OCL_ICD_",
+    "PYOPENCL_",
+    "CUPY_",
+    "TI_",
+    "WARP_",
+    "XLA_",
+    "TORCH",
+)
 # Set by clothbench itself (peers/taichi.py, to keep Taichi from phoning home), and no
 # change to any result: not recorded, so a row does not depend on which probe ran first.
 ENV_IGNORED = frozenset({"TI_SKIP_VERSION_CHECK"})
@@ -125,12 +139,14 @@ def caches() -> list[dict]:
     for index in sorted(Path("/sys/devices/system/cpu/cpu0/cache").glob("index*")):
         try:
             size = (index / "size").read_text().strip()
-            found.append({
-                "type": (index / "type").read_text().strip(),
-                "level": int((index / "level").read_text()),
-                "size": int(size[:-1]) * units[size[-1]] if size[-1:] in units else int(size),
-                "num_sharing": _count_cpus((index / "shared_cpu_list").read_text()),
-            })  # fmt: skip
+            found.append(
+                {
+                    "type": (index / "type").read_text().strip(),
+                    "level": int((index / "level").read_text()),
+                    "size": int(size[:-1]) * units[size[-1]] if size[-1:] in units else int(size),
+                    "num_sharing": _count_cpus((index / "shared_cpu_list").read_text()),
+                }
+            )
         except (OSError, ValueError):
             continue
     return found

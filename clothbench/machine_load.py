@@ -203,6 +203,15 @@ def cpu_context(sys_root: str = "/sys") -> str:
 
 
 __all__ = [
-    "BUSY_CORES", "BUSY_STEAL", "MIN_WINDOW_S", "Load", "LoadSampler", "Snapshot", "Window", "allowed_cpus",
-    "cpu_context", "parse_cpu_line", "threads_left_free",
-]  # fmt: skip
+    "BUSY_CORES",
+    "BUSY_STEAL",
+    "MIN_WINDOW_S",
+    "Load",
+    "LoadSampler",
+    "Snapshot",
+    "Window",
+    "allowed_cpus",
+    "cpu_context",
+    "parse_cpu_line",
+    "threads_left_free",
+]

@@ -231,8 +231,11 @@ def option_flags(options) -> list[str]:
         flags += ["--precision", options.precision]
     if options.strict:
         flags.append("--strict")
-    for flag, value in (("--transfer", options.transfer), ("--local-size", options.local_size),
-                        ("--device", options.device)):  # fmt: skip
+    for flag, value in (
+        ("--transfer", options.transfer),
+        ("--local-size", options.local_size),
+        ("--device", options.device),
+    ):
         if value is not None:
             flags += [flag, str(value)]
     if options.gl != default.gl:

@@ -40,10 +40,30 @@ DEFAULT_METRIC = "max"  # "stays under E": every particle, not the average one
 RUNNERS_UP = 4
 # the columns advise reads; the others of AccuracyRow may be missing from an older CSV
 REQUIRED = (
-    "scene", "grid", "start", "damping", "time_s", "backend", "label", "mode", "device", "dt",
-    "steps", "solver", "pbd_method", "iterations", "substeps", "status", "ms_per_step",
-    "ms_per_sim_s", "disc_rms", "disc_max", "ref_model", "ref_converged", "ref_uncertainty",
-)  # fmt: skip
+    "scene",
+    "grid",
+    "start",
+    "damping",
+    "time_s",
+    "backend",
+    "label",
+    "mode",
+    "device",
+    "dt",
+    "steps",
+    "solver",
+    "pbd_method",
+    "iterations",
+    "substeps",
+    "status",
+    "ms_per_step",
+    "ms_per_sim_s",
+    "disc_rms",
+    "disc_max",
+    "ref_model",
+    "ref_converged",
+    "ref_uncertainty",
+)
 
 
 @dataclass
@@ -260,16 +280,30 @@ class Pick:
         r, s = self.row, self.config.solver
         argv = self.config.run_args(scene_arg)
         return {
-            "backend": r.backend, "variant": self.config.label, "measured_as": r.label, "device": r.device,
-            "options": {k: v for k, v in dataclasses.asdict(self.config.options).items()
-                        if v != getattr(BackendOptions(), k)},
-            "solver": dataclasses.asdict(s) | {"name": s.name}, "model": r.ref_model,
-            "grid": r.grid, "dt": r.dt, "steps": r.steps, "time_s": r.time_s,
-            "ms_per_sim_s": r.ms_per_sim_s, "ms_per_step": r.ms_per_step, "error": self.error,
-            "error_bound": self.bound, "disc_rms": r.disc_rms, "disc_max": r.disc_max,
-            "vs_verlet_rms": r.vs_verlet_rms, "vs_verlet_max": r.vs_verlet_max,
-            "argv": argv[1:], "command": " ".join(argv),
-        }  # fmt: skip
+            "backend": r.backend,
+            "variant": self.config.label,
+            "measured_as": r.label,
+            "device": r.device,
+            "options": {
+                k: v for k, v in dataclasses.asdict(self.config.options).items() if v != getattr(BackendOptions(), k)
+            },
+            "solver": dataclasses.asdict(s) | {"name": s.name},
+            "model": r.ref_model,
+            "grid": r.grid,
+            "dt": r.dt,
+            "steps": r.steps,
+            "time_s": r.time_s,
+            "ms_per_sim_s": r.ms_per_sim_s,
+            "ms_per_step": r.ms_per_step,
+            "error": self.error,
+            "error_bound": self.bound,
+            "disc_rms": r.disc_rms,
+            "disc_max": r.disc_max,
+            "vs_verlet_rms": r.vs_verlet_rms,
+            "vs_verlet_max": r.vs_verlet_max,
+            "argv": argv[1:],
+            "command": " ".join(argv),
+        }
 
 
 @dataclass
@@ -282,8 +316,13 @@ class Prediction:
     cost: float  # ms per simulated second, at the measured cost per step
 
     def as_dict(self, scene_arg: str) -> dict:
-        return {"from": self.pick.as_dict(scene_arg), "order": self.pick.row.order, "dt": self.dt,
-                "steps": self.steps, "ms_per_sim_s": self.cost}  # fmt: skip
+        return {
+            "from": self.pick.as_dict(scene_arg),
+            "order": self.pick.row.order,
+            "dt": self.dt,
+            "steps": self.steps,
+            "ms_per_sim_s": self.cost,
+        }
 
 
 @dataclass
@@ -318,15 +357,26 @@ class Advice:
 
         here = cpu_model()
         return {
-            "scene": self.run.scene, "grid": self.run.grid, "time_s": self.run.time_s,
-            "metric": self.metric, "column": METRICS[self.metric], "max_error": self.max_error,
-            "source": self.run.source, "measured_on": self.run.cpu, "measured_on_from": self.run.cpu_from,
-            "this_machine": here, "costs_from_this_machine": self.run.cpu == here,
-            "choice": pick(self.choice), "runners_up": [pick(p) for p in self.runners_up],
-            "by_model": groups(self.by_model), "by_backend": groups(self.by_backend),
-            "closest": pick(self.closest), "cheapest": pick(self.cheapest), "predictions": [p.as_dict(scene_arg) for p in self.predictions],
+            "scene": self.run.scene,
+            "grid": self.run.grid,
+            "time_s": self.run.time_s,
+            "metric": self.metric,
+            "column": METRICS[self.metric],
+            "max_error": self.max_error,
+            "source": self.run.source,
+            "measured_on": self.run.cpu,
+            "measured_on_from": self.run.cpu_from,
+            "this_machine": here,
+            "costs_from_this_machine": self.run.cpu == here,
+            "choice": pick(self.choice),
+            "runners_up": [pick(p) for p in self.runners_up],
+            "by_model": groups(self.by_model),
+            "by_backend": groups(self.by_backend),
+            "closest": pick(self.closest),
+            "cheapest": pick(self.cheapest),
+            "predictions": [p.as_dict(scene_arg) for p in self.predictions],
             "left_out": [{"label": label, "why": why} for label, why in self.left_out],
-        }  # fmt: skip
+        }
 
 
 def _uncertainty(row: AccuracyRow) -> float:
@@ -411,14 +461,18 @@ def advise(
     ok = sorted((p for p in picks if qualifies(p)), key=lambda p: (p.cost, p.error))
     choice = ok[0] if ok else None
     return Advice(
-        run, metric, max_error, choice, ok[1 : 1 + RUNNERS_UP],
+        run,
+        metric,
+        max_error,
+        choice,
+        ok[1 : 1 + RUNNERS_UP],
         _groups(picks, lambda p: p.model, choice and choice.model, qualifies),
         _groups(picks, lambda p: p.row.backend, choice and choice.row.backend, qualifies),
         _closest(picks),
         min(picks, key=lambda p: p.cost) if picks else None,
         [] if choice else predict(picks, max_error, run.time_s),
         list(left_out.items()),
-    )  # fmt: skip
+    )
 
 
 __all__ = [

@@ -82,19 +82,36 @@ def _time(backend: str, scene: Scene, solver: Pbd, steps: int) -> tuple[float, s
 
 
 def measure_pair(
-    scene: Scene, method: str, substeps: int, iterations: int, time_s: float, ref: Reference,
-    cost_backends=COST_BACKENDS, frame_dt: float = FRAME_DT,
-) -> PbdStudyRow:  # fmt: skip
+    scene: Scene,
+    method: str,
+    substeps: int,
+    iterations: int,
+    time_s: float,
+    ref: Reference,
+    cost_backends=COST_BACKENDS,
+    frame_dt: float = FRAME_DT,
+) -> PbdStudyRow:
     """One pair: its float64 error against `ref` and its float32 cost per frame. Method
     "newton" is the Newton XPBD peer (peers/newton.py): its one float32 run gives both."""
     peer = method in PEER_METHODS
     solver = Pbd(dt=frame_dt, method="coloured" if peer else method, substeps=substeps, iterations=iterations)
     steps = steps_for(time_s, frame_dt)
     row = PbdStudyRow(
-        scene.name, scene.grid, scene.damping, time_s, frame_dt, method, substeps, iterations,
-        substeps * iterations, ref_dt=ref.dt, ref_converged=ref.converged, ref_uncertainty=ref.uncertainty,
-        ref_strain=structural_strain(ref.pos, scene), cpu=cpu_model(),
-    )  # fmt: skip
+        scene.name,
+        scene.grid,
+        scene.damping,
+        time_s,
+        frame_dt,
+        method,
+        substeps,
+        iterations,
+        substeps * iterations,
+        ref_dt=ref.dt,
+        ref_converged=ref.converged,
+        ref_uncertainty=ref.uncertainty,
+        ref_strain=structural_strain(ref.pos, scene),
+        cpu=cpu_model(),
+    )
     if peer:
         return _measure_peer(row, method, scene, solver, steps, ref)
     pos, _ = simulate("numpy", scene, solver, steps, F64)
@@ -140,6 +157,13 @@ def best_per_cost(rows: list[PbdStudyRow]) -> dict[tuple[str, str, int], PbdStud
 
 
 __all__ = [
-    "FRAME_DT", "REFERENCE_DT", "COST_BACKENDS", "PEER_METHODS", "pairs_at", "PbdStudyRow", "study_reference",
-    "measure_pair", "best_per_cost",
-]  # fmt: skip
+    "FRAME_DT",
+    "REFERENCE_DT",
+    "COST_BACKENDS",
+    "PEER_METHODS",
+    "pairs_at",
+    "PbdStudyRow",
+    "study_reference",
+    "measure_pair",
+    "best_per_cost",
+]

@@ -12,8 +12,13 @@ from pathlib import Path
 
 from clothbench.cli.args import add_row_args, check_row_args, int_list, sigterm_interrupts, solver_specs
 from clothbench.cli.study_files import (
-    accuracy_file, accuracy_key, add_resume_args, early_cells, finish_accuracy, say_interrupted,
-)  # fmt: skip
+    accuracy_file,
+    accuracy_key,
+    add_resume_args,
+    early_cells,
+    finish_accuracy,
+    say_interrupted,
+)
 from clothbench.errors import ClothbenchError
 from clothbench.model.solver import ITERATIVE, SOLVER_SPECS
 
@@ -216,9 +221,16 @@ def cmd_accuracy(args) -> int:
 
                 with executor_for(args.scheduler, args.jobs, args.row_timeout) as executor:
                     result = run_accuracy(
-                        scene, variants, dts, time_s, on_progress=note, pbd_dts=pbd_dts, executor=executor,
-                        skip=lambda v, s: accuracy_key(v, s) in have, on_row=lambda row: f.append(early_cells(row)),
-                    )  # fmt: skip
+                        scene,
+                        variants,
+                        dts,
+                        time_s,
+                        on_progress=note,
+                        pbd_dts=pbd_dts,
+                        executor=executor,
+                        skip=lambda v, s: accuracy_key(v, s) in have,
+                        on_row=lambda row: f.append(early_cells(row)),
+                    )
         except KeyboardInterrupt:
             say_interrupted(f)
             raise

@@ -71,8 +71,15 @@ DEVICE_COLUMNS = ("device", "name", "runtime", "platform version", "driver", "LL
 def device_cells(d: dict) -> tuple[str, ...]:
     """One OpenCL device's cells, plain text (a driver's text is not rich markup)."""
     compiles = "yes" if d["compiles"] else f"no: {d['error']}"
-    return (d["device"] + ("*" if d["default"] else ""), d["name"], f"{d['runtime']} ({d['platform']})",
-            d["platform_version"], d["driver_version"], d["llvm"] or "-", compiles)  # fmt: skip
+    return (
+        d["device"] + ("*" if d["default"] else ""),
+        d["name"],
+        f"{d['runtime']} ({d['platform']})",
+        d["platform_version"],
+        d["driver_version"],
+        d["llvm"] or "-",
+        compiles,
+    )
 
 
 def print_opencl_devices(devices: list[dict], default: str, width: int | None = None) -> None:

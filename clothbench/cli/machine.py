@@ -11,8 +11,13 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "machine", help="is this machine fit to benchmark now: cores, load, steal, heavy processes, governor, turbo"
     )
-    p.add_argument("--window", type=float, default=None, metavar="S",
-                   help="seconds to watch the load over (default: 1.0; at least 0.25)")  # fmt: skip
+    p.add_argument(
+        "--window",
+        type=float,
+        default=None,
+        metavar="S",
+        help="seconds to watch the load over (default: 1.0; at least 0.25)",
+    )
     p.add_argument("--json", action="store_true", help="the whole state as one JSON object")
     p.set_defaults(func=cmd_machine)
 

@@ -24,23 +24,29 @@ def register(subparsers) -> None:
     )
     p.add_argument("--scenes", default="drape,curtain", help="comma-separated scenes (default drape,curtain)")
     p.add_argument(
-        "--costs", type=int_list("--costs", 1), default=[5, 10, 20, 40],
+        "--costs",
+        type=int_list("--costs", 1),
+        default=[5, 10, 20, 40],
         help="comma-separated substeps x iterations products; every divisor pair of each is run (default 5,10,20,40)",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--methods", default="jacobi,coloured",
+        "--methods",
+        default="jacobi,coloured",
         help="PBD methods (default jacobi,coloured); newton: the Newton XPBD peer, timed on its own run",
-    )  # fmt: skip
+    )
     p.add_argument("--grid", type=int, default=STUDY_GRID, help=f"particles per side (default {STUDY_GRID})")
     p.add_argument("--time", type=float, default=STUDY_TIME_S, help=f"simulated time, s (default {STUDY_TIME_S})")
     p.add_argument(
-        "--damping", type=float, default=0.0,
+        "--damping",
+        type=float,
+        default=0.0,
         help="b (N s/m), default 0: PBD's drag and the springs' differ at the edges (docs/pbd-study.md)",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--cost-backends", default="numpy,opencl",
+        "--cost-backends",
+        default="numpy,opencl",
         help="backends whose float32 ms/step is measured (default numpy,opencl; 'none' for error only)",
-    )  # fmt: skip
+    )
     p.add_argument("--out", default=DEFAULT_OUT, help="CSV path (rows written as measured); PNG beside")
     add_resume_args(p, "the same as --resume: an unstable pair is a row, so nothing is retried")
     p.set_defaults(func=cmd_pbd_study)
@@ -57,8 +63,13 @@ def _names(text: str, what: str, known) -> list[str]:
 def cmd_pbd_study(args) -> int:
     from clothbench.analysis.convergence import steps_for
     from clothbench.analysis.pbd_study import (
-        FRAME_DT, PEER_METHODS, PbdStudyRow, measure_pair, pairs_at, study_reference,
-    )  # fmt: skip
+        FRAME_DT,
+        PEER_METHODS,
+        PbdStudyRow,
+        measure_pair,
+        pairs_at,
+        study_reference,
+    )
     from clothbench.backends import BACKENDS
     from clothbench.harness.preflight import check_writable
     from clothbench.harness.study_csv import StudyFile, cell, cells, from_cells
@@ -75,8 +86,11 @@ def cmd_pbd_study(args) -> int:
     steps_for(args.time, FRAME_DT)  # a time that is not whole frames, refused before any work
     if not (math.isfinite(args.damping) and args.damping >= 0):
         raise ClothbenchError(f"--damping must be >= 0, got {args.damping}")
-    cost_backends = [] if args.cost_backends.strip() == "none" else _names(
-        args.cost_backends, "--cost-backends", [n for n, e in BACKENDS.items() if e.pbd is not None])  # fmt: skip
+    cost_backends = (
+        []
+        if args.cost_backends.strip() == "none"
+        else _names(args.cost_backends, "--cost-backends", [n for n, e in BACKENDS.items() if e.pbd is not None])
+    )
     names = [s.strip() for s in args.scenes.split(",") if s.strip()]
     if not names:
         raise ClothbenchError(f"--scenes names no scene (give e.g. {','.join(builtin_scenes())})")
@@ -88,8 +102,12 @@ def cmd_pbd_study(args) -> int:
     plan = [(s, m, sub, it) for s in scenes for m in methods for c in args.costs for sub, it in pairs_at(c)]
     plan = list({(s.name, m, sub, it): (s, m, sub, it) for s, m, sub, it in plan}.values())  # 20 = 2 x 10 = ...
     key = lambda name, m, sub, it: (name, m, cell(sub), cell(it))  # noqa: E731
-    settings = {"grid": cell(args.grid), "damping": cell(args.damping), "time_s": cell(args.time),
-                "frame_dt": cell(FRAME_DT)}  # fmt: skip
+    settings = {
+        "grid": cell(args.grid),
+        "damping": cell(args.damping),
+        "time_s": cell(args.time),
+        "frame_dt": cell(FRAME_DT),
+    }
     columns = [f.name for f in PbdStudyRow.__dataclass_fields__.values()]
     resume = args.resume or args.retry_failed
     planned = {key(s.name, m, sub, it) for s, m, sub, it in plan}
@@ -130,12 +148,16 @@ def _print_study(rows) -> None:
         f"clothbench pbd-study: {r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, b = {r0.damping:g}; "
         f"error: RMS distance to the converged float64 mass-spring answer"
     )
-    print(f"{'scene':<9}{'method':<10}{'cost':>5}{'substeps':>9}{'iters':>6}{'rms (mm)':>10}{'max (mm)':>10}"
-          f"{'numpy ms':>10}{'opencl ms':>10}{'newton ms':>10}")  # fmt: skip
+    print(
+        f"{'scene':<9}{'method':<10}{'cost':>5}{'substeps':>9}{'iters':>6}{'rms (mm)':>10}{'max (mm)':>10}"
+        f"{'numpy ms':>10}{'opencl ms':>10}{'newton ms':>10}"
+    )
     for r in rows:
         err = f"{r.rms * 1e3:>10.2f}{r.max * 1e3:>10.2f}" if r.status == "ok" else f"{r.status:>20}"
-        print(f"{r.scene:<9}{r.method:<10}{r.cost:>5}{r.substeps:>9}{r.iterations:>6}{err}"
-              f"{r.ms_numpy:>10.3f}{r.ms_opencl:>10.3f}{r.ms_newton:>10.3f}")  # fmt: skip
+        print(
+            f"{r.scene:<9}{r.method:<10}{r.cost:>5}{r.substeps:>9}{r.iterations:>6}{err}"
+            f"{r.ms_numpy:>10.3f}{r.ms_opencl:>10.3f}{r.ms_newton:>10.3f}"
+        )
     print("best pair per cost (smallest RMS):")
     for (scene, method, cost), r in best_per_cost(rows).items():
         print(f"  {scene} {method} cost {cost}: {r.substeps} x {r.iterations} ({r.rms * 1e3:.2f} mm)")
@@ -162,14 +184,21 @@ def plot_study(rows, path: Path) -> None:
     for col, (scene, method) in enumerate(cases):
         mine = [r for r in rows if (r.scene, r.method) == (scene, method) and r.status == "ok"]
         timed_on = "newton" if method == "newton" else own
-        for top, x, xlabel in ((0, lambda r: r.cost, "substeps x iterations per frame"),
-                               (1, ms, f"f32 ms per frame ({timed_on}, measured)")):  # fmt: skip
+        for top, x, xlabel in (
+            (0, lambda r: r.cost, "substeps x iterations per frame"),
+            (1, ms, f"f32 ms per frame ({timed_on}, measured)"),
+        ):
             ax = axes[top][col]
             for i, s in enumerate(subs):
                 line = sorted((r for r in mine if r.substeps == s and math.isfinite(x(r))), key=lambda r: r.cost)
                 if line:
-                    ax.plot([x(r) for r in line], [r.rms * 1e3 for r in line], marker=MARKERS[i % len(MARKERS)],
-                            color=PALETTE[i % len(PALETTE)], label=f"{s} substep{'s' * (s > 1)}")  # fmt: skip
+                    ax.plot(
+                        [x(r) for r in line],
+                        [r.rms * 1e3 for r in line],
+                        marker=MARKERS[i % len(MARKERS)],
+                        color=PALETTE[i % len(PALETTE)],
+                        label=f"{s} substep{'s' * (s > 1)}",
+                    )
             ax.set_xscale("log")
             ax.set_yscale("log")
             plain_log_labels(ax, ax.yaxis)
@@ -189,8 +218,9 @@ def plot_study(rows, path: Path) -> None:
     fig.suptitle(
         f"PBD substeps against iterations at equal cost ({r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, "
         f"b = {r0.damping:g}): error against the converged float64 mass-spring answer; "
-        "ms measured on a loaded machine", fontsize=9,
-    )  # fmt: skip
+        "ms measured on a loaded machine",
+        fontsize=9,
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     with rc_context(REPRODUCIBLE):
         fig.savefig(path, dpi=130)

@@ -11,9 +11,22 @@ from clothbench.errors import ClothbenchError
 
 # What compare needs of both files.
 COMPARE_REQUIRED = (
-    "backend", "solver", "scene", "grid", "precision", "strict", "transfer", "generic", "local_size",
-    "mode", "status", "ms_median", "steps", "repeats", "dt",
-)  # fmt: skip
+    "backend",
+    "solver",
+    "scene",
+    "grid",
+    "precision",
+    "strict",
+    "transfer",
+    "generic",
+    "local_size",
+    "mode",
+    "status",
+    "ms_median",
+    "steps",
+    "repeats",
+    "dt",
+)
 # Significance: a bootstrap of the ratio of medians over each row's timed chunks (chunk_ms),
 # seeded by the row's key so that the same two files always give the same intervals.
 CONFIDENCE = 0.95
@@ -122,8 +135,16 @@ def compare_rows(a_runs: list[list[dict]], b_runs: list[list[dict]]) -> tuple[li
         rbs = b.get(key)
         if rbs is None:
             continue
-        m = {"a": ras[0], "b": rbs[0], "a_ms": None, "b_ms": None, "ratio": None, "interval": None,
-             "change": "n/a", "doubts": []}  # fmt: skip
+        m = {
+            "a": ras[0],
+            "b": rbs[0],
+            "a_ms": None,
+            "b_ms": None,
+            "ratio": None,
+            "interval": None,
+            "change": "n/a",
+            "doubts": [],
+        }
         if all(r["status"] == "ok" for r in ras + rbs):
             m["a_ms"], m["b_ms"] = _median_ms(ras), _median_ms(rbs)
             m["ratio"] = m["b_ms"] / m["a_ms"]
@@ -137,8 +158,12 @@ def compare_rows(a_runs: list[list[dict]], b_runs: list[list[dict]]) -> tuple[li
                     m["interval"] = runs_ratio_interval(chunks_a, chunks_b, seed=seed)
                 lo, hi = m["interval"]
                 m["change"] = "slower" if lo > 1 else "faster" if hi < 1 else "same"
-                side_doubts = [(side, d) for side, rows, chunks in (("A", ras, chunks_a), ("B", rbs, chunks_b))
-                               for r, c in zip(rows, chunks) for d in row_doubts(r, c)]  # fmt: skip
+                side_doubts = [
+                    (side, d)
+                    for side, rows, chunks in (("A", ras, chunks_a), ("B", rbs, chunks_b))
+                    for r, c in zip(rows, chunks)
+                    for d in row_doubts(r, c)
+                ]
                 m["doubts"] = list(dict.fromkeys(f"{side} {d}" for side, d in side_doubts))
                 if m["doubts"]:
                     m["change"] = "inconclusive"
@@ -225,8 +250,14 @@ def geometric_mean(values: list[float]) -> float:
     return math.exp(sum(math.log(v) for v in values) / len(values))
 
 
-CHANGE_STYLE = {"slower": "red", "faster": "green", "same": "default", "untested": "yellow", "n/a": "yellow",
-                "inconclusive": "yellow"}  # fmt: skip
+CHANGE_STYLE = {
+    "slower": "red",
+    "faster": "green",
+    "same": "default",
+    "untested": "yellow",
+    "n/a": "yellow",
+    "inconclusive": "yellow",
+}
 
 
 def cmd_compare(args) -> int:

@@ -126,10 +126,16 @@ def render_from(args) -> int:
 
     d = RenderSettings()
     simulating = {
-        "--scene": args.scene != args.default_scene, "--grid": args.grid is not None, "--dt": args.dt is not None,
-        "--backend": args.backend is not None, "--strict": args.strict, "--generic": args.generic,
-        "--solver": args.solver is not None, "--frames": args.frames != d.frames, "--every": args.every != d.every,
-    }  # fmt: skip
+        "--scene": args.scene != args.default_scene,
+        "--grid": args.grid is not None,
+        "--dt": args.dt is not None,
+        "--backend": args.backend is not None,
+        "--strict": args.strict,
+        "--generic": args.generic,
+        "--solver": args.solver is not None,
+        "--frames": args.frames != d.frames,
+        "--every": args.every != d.every,
+    }
     if given := [option for option, used in simulating.items() if used]:
         raise ClothbenchError(f"{given[0]} sets up a simulation, and --from draws the file's frames: leave it out")
     kind = output_kind(args.out)

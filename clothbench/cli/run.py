@@ -189,9 +189,15 @@ def _export(args, target, setup, backend, result) -> str:
     every = args.export_every or default_export_every()
     steps = result.steps if result.blowup is None else result.blowup.step - 1  # the frames before it
     info = RunInfo(
-        scene_spec(args.scene), setup.scene.grid, setup.solver.dt, setup.solver.spec, every, steps,
-        backend.name, backend.mode,
-    )  # fmt: skip
+        scene_spec(args.scene),
+        setup.scene.grid,
+        setup.solver.dt,
+        setup.solver.spec,
+        every,
+        steps,
+        backend.name,
+        backend.mode,
+    )
     with waiting(f"exporting {target.path}: the {steps} steps again, read back every {every}"):
         writer = open_writer(target, setup.scene, info)
         frames, last = export_replay(backend, steps, writer)

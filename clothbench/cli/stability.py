@@ -11,8 +11,12 @@ from clothbench.cli.args import add_row_args, check_row_args, sigterm_interrupts
 from clothbench.cli.accuracy import add_pbd_args, floats, solvers_from_args, variants_for
 from clothbench.harness.study_csv import cells
 from clothbench.cli.study_files import (
-    add_resume_args, finish_stability, say_interrupted, stability_file, stability_key,
-)  # fmt: skip
+    add_resume_args,
+    finish_stability,
+    say_interrupted,
+    stability_file,
+    stability_key,
+)
 from clothbench.errors import ClothbenchError
 from clothbench.variant_names import solver_model
 from clothbench.model.solver import ITERATIVE, SOLVER_SPECS
@@ -105,12 +109,19 @@ def cmd_stability(args) -> int:
             ):
                 futures = [
                     executor.submit(
-                        measure_stability_limit, v, kind, k, args.steps, args.grid, args.damping,
-                        cap=cap if v.solver.name in ITERATIVE else None, check_60hz=check_60hz,
+                        measure_stability_limit,
+                        v,
+                        kind,
+                        k,
+                        args.steps,
+                        args.grid,
+                        args.damping,
+                        cap=cap if v.solver.name in ITERATIVE else None,
+                        check_60hz=check_60hz,
                         fork_safe=fork_safe(v.backend, v.solver.name),
                     )
                     for v, kind, k in todo
-                ]  # fmt: skip
+                ]
                 for done, ((v, kind, k), future) in enumerate(zip(todo, futures)):
                     progress.update(done, f"{v.backend} {v.solver.name} {kind} k={k:g}")
                     try:

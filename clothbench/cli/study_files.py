@@ -24,17 +24,19 @@ STABILITY_KEY = ("backend", "label", "solver", "pbd_method", "iterations", "kind
 
 def add_resume_args(p, retry_help: str) -> None:
     p.add_argument(
-        "--resume", action="store_true",
+        "--resume",
+        action="store_true",
         help="measure only the rows --out lacks (after an interruption); a file measured with other "
         "settings is refused",
-    )  # fmt: skip
+    )
     p.add_argument("--retry-failed", action="store_true", help=retry_help)
 
 
 def say_interrupted(f: StudyFile) -> None:
     """What an interrupted study leaves, on stderr, before it exits 130."""
-    print(f"{len(f.rows)} rows are in {f.path}; run the same command with --resume to measure the rest",
-          file=sys.stderr)  # fmt: skip
+    print(
+        f"{len(f.rows)} rows are in {f.path}; run the same command with --resume to measure the rest", file=sys.stderr
+    )
 
 
 def _pbd_cells(solver, substeps: bool = True) -> dict[str, str]:
@@ -55,15 +57,23 @@ def accuracy_file(path, planned, scene, time_s, verlet_start: str, pbd_start: st
     from clothbench.analysis.convergence import AccuracyRow
 
     settings = {
-        "scene": scene.name, "grid": cell(scene.grid), "damping": cell(scene.damping), "time_s": cell(time_s),
+        "scene": scene.name,
+        "grid": cell(scene.grid),
+        "damping": cell(scene.damping),
+        "time_s": cell(time_s),
         "stiffness": cell(scene.stiffness),
         "start": lambda row: pbd_start if row.get("solver") in ITERATIVE else verlet_start,
-    }  # fmt: skip
+    }
     return StudyFile(
-        path, tuple(f.name for f in _fields(AccuracyRow)), ACCURACY_KEY, settings, "accuracy",
-        resume=resume or retry, retry=ACCURACY_RETRY if retry else (),
+        path,
+        tuple(f.name for f in _fields(AccuracyRow)),
+        ACCURACY_KEY,
+        settings,
+        "accuracy",
+        resume=resume or retry,
+        retry=ACCURACY_RETRY if retry else (),
         planned={accuracy_key(v, s) for v, s in planned},
-    )  # fmt: skip
+    )
 
 
 def early_cells(row) -> dict[str, str]:
@@ -96,8 +106,14 @@ def finish_accuracy(f: StudyFile, planned, measured: list) -> list:
 
 
 def stability_key(v, kind: str, stiffness: float) -> tuple[str, ...]:
-    d = {"backend": v.backend, "label": v.name, "solver": v.solver.name, "kind": kind, "stiffness": cell(stiffness),
-         **_pbd_cells(v.solver, substeps=False)}  # fmt: skip
+    d = {
+        "backend": v.backend,
+        "label": v.name,
+        "solver": v.solver.name,
+        "kind": kind,
+        "stiffness": cell(stiffness),
+        **_pbd_cells(v.solver, substeps=False),
+    }
     return tuple(d[c] for c in STABILITY_KEY)
 
 
@@ -110,14 +126,21 @@ def stability_file(path, cases, grid: int, steps: int, damping: float, cap: floa
     from clothbench.analysis.stability import StabilityRow
 
     settings = {
-        "grid": cell(grid), "steps": cell(steps), "damping": cell(damping),
+        "grid": cell(grid),
+        "steps": cell(steps),
+        "damping": cell(damping),
         "cap": lambda row: cell(cap) if row.get("solver") in ITERATIVE else "",
-    }  # fmt: skip
+    }
     columns = tuple(f.name for f in _fields(StabilityRow)) + STABILITY_COLUMNS_EXTRA
     return StudyFile(
-        path, columns, STABILITY_KEY, settings, "stability", resume=resume,
+        path,
+        columns,
+        STABILITY_KEY,
+        settings,
+        "stability",
+        resume=resume,
         planned={stability_key(*c) for c in cases},
-    )  # fmt: skip
+    )
 
 
 def finish_stability(f: StudyFile, cases, measured: dict) -> list:
@@ -144,6 +167,13 @@ def _fields(cls):
 
 
 __all__ = [
-    "add_resume_args", "say_interrupted", "accuracy_key", "accuracy_file", "early_cells", "finish_accuracy",
-    "stability_key", "stability_file", "finish_stability",
-]  # fmt: skip
+    "add_resume_args",
+    "say_interrupted",
+    "accuracy_key",
+    "accuracy_file",
+    "early_cells",
+    "finish_accuracy",
+    "stability_key",
+    "stability_file",
+    "finish_stability",
+]

@@ -157,10 +157,14 @@ def view_from(args) -> int:
 
     d = args.defaults
     simulating = {
-        "--scene": args.scene != d["scene"], "--grid": args.grid is not None, "--dt": args.dt is not None,
-        "--backend": args.backend != d["backend"], "--strict": args.strict, "--generic": args.generic,
+        "--scene": args.scene != d["scene"],
+        "--grid": args.grid is not None,
+        "--dt": args.dt is not None,
+        "--backend": args.backend != d["backend"],
+        "--strict": args.strict,
+        "--generic": args.generic,
         "--solver": args.solver is not None,
-    }  # fmt: skip
+    }
     if given := [option for option, used in simulating.items() if used]:
         raise ClothbenchError(f"{given[0]} sets up a simulation, and --from plays the file's frames: leave it out")
     settings = settings_from_args(args)

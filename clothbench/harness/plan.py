@@ -181,8 +181,10 @@ def without_motion(scene: Scene) -> Scene:
 
     return scene.replace(
         **{kind.plural: still(getattr(scene, kind.plural)) for kind in KINDS},
-        meshes=still(scene.meshes), frames=still(scene.frames), pin_attach=None,
-    )  # fmt: skip
+        meshes=still(scene.meshes),
+        frames=still(scene.frames),
+        pin_attach=None,
+    )
 
 
 def without_self_collision(scene: Scene) -> Scene:

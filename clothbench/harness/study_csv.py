@@ -59,9 +59,16 @@ class StudyFile(SweepFile):
     keys this run measures, when a row outside them is refused too."""
 
     def __init__(
-        self, path: str | os.PathLike, columns: Iterable[str], key: Iterable[str], settings: dict[str, str],
-        what: str, resume: bool = False, retry: Iterable[str] = (), planned: Iterable[tuple] | None = None,
-    ):  # fmt: skip
+        self,
+        path: str | os.PathLike,
+        columns: Iterable[str],
+        key: Iterable[str],
+        settings: dict[str, str],
+        what: str,
+        resume: bool = False,
+        retry: Iterable[str] = (),
+        planned: Iterable[tuple] | None = None,
+    ):
         self.key_columns, self.settings = tuple(key), dict(settings)
         self.planned = None if planned is None else set(planned)
         super().__init__(path, resume=resume, retry=retry, columns=tuple(columns), what=what)

@@ -293,9 +293,11 @@ def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: boo
         # once per grid and solver, where the reference row did not leave it (skipped, or
         # shortened by its budget): each row's worker would otherwise run it again
         known = run_isolated(
-            _reference_in_child, (setup.scene, row.solver, settings.steps * settings.repeats),
-            timeout=settings.row_timeout, method=start_method(False),
-        )  # fmt: skip
+            _reference_in_child,
+            (setup.scene, row.solver, settings.steps * settings.repeats),
+            timeout=settings.row_timeout,
+            method=start_method(False),
+        )
         if known.ok:
             references[key] = known.value
     outcome = run_isolated(
@@ -427,9 +429,10 @@ def _compared_columns(result: dict[str, str], rows: list[dict[str, str]], settin
         out.update(machine_columns(machine))
     same = ("grid", "solver", "pbd_method", "precision", "strict", "scene", "mesh_triangles", "motion")
     native = [
-        r for r in [*rows, result]
+        r
+        for r in [*rows, result]
         if r["backend"] == NATIVE and r["status"] == "ok" and r["ms_median"] and all(r[c] == result[c] for c in same)
-    ]  # fmt: skip
+    ]
     if native:
         out["vs_c"] = fmt(ms / float(native[-1]["ms_median"]))
     return out
@@ -457,9 +460,15 @@ def run_sweep(
     worker machine at a time) and written here, by this process alone, as it comes back.
     """
     plan = plan_sweep(
-        names, settings.grids, settings.solver_settings, settings.base, settings.local_sizes, settings.generic,
-        [(sv, s) for sv, s, _ in settings.scene_variants], settings.mesh_collisions,
-    )  # fmt: skip
+        names,
+        settings.grids,
+        settings.solver_settings,
+        settings.base,
+        settings.local_sizes,
+        settings.generic,
+        [(sv, s) for sv, s, _ in settings.scene_variants],
+        settings.mesh_collisions,
+    )
     if not plan.rows:
         raise ClothbenchError(
             "nothing to measure: no backend named can run here ("

@@ -70,8 +70,18 @@ _VBD_KEYS = {"iterations", "substeps", "chebyshev_rho"}
 _PIN_KEYS = {"indices", "corners", "edge", "attach"}
 _MESH_KEYS = {"file", "shape", "subdivisions", "position", "rotation", "scale", "margin", *COLLIDER_OPTIONAL_KEYS}
 _TABLES = {
-    "name", "description", "cloth", "sim", "pbd", "vbd", "pins", *(k.name for k in KINDS), "mesh", "frame", "self_collision",
-}  # fmt: skip
+    "name",
+    "description",
+    "cloth",
+    "sim",
+    "pbd",
+    "vbd",
+    "pins",
+    *(k.name for k in KINDS),
+    "mesh",
+    "frame",
+    "self_collision",
+}
 
 
 @dataclass(frozen=True)
@@ -556,7 +566,20 @@ def load_setup(name_or_path: str) -> Setup:
 
 
 __all__ = [
-    "Scene", "Setup", "Sphere", "Cylinder", "Box", "Plane", "Mesh", "Frame", "Motion", "PinGroup", "SelfCollision",
+    "Scene",
+    "Setup",
+    "Sphere",
+    "Cylinder",
+    "Box",
+    "Plane",
+    "Mesh",
+    "Frame",
+    "Motion",
+    "PinGroup",
+    "SelfCollision",
     "OFFSETS",
-    "count_springs", "load_scene", "load_setup", "builtin_scenes",
-]  # fmt: skip
+    "count_springs",
+    "load_scene",
+    "load_setup",
+    "builtin_scenes",
+]

@@ -138,11 +138,14 @@ class JaxBackend(Backend):
         springs = tuple(neighbour_regions(n, dr, dc) for dr, dc in OFFSETS)
         colliders = collider_tensors(scene, tensor)
         self._c = {
-            "dt": tensor(c.dt), "dt2": tensor(c.dt2), "k": tensor(c.k), "b": tensor(c.b),
+            "dt": tensor(c.dt),
+            "dt2": tensor(c.dt2),
+            "k": tensor(c.k),
+            "b": tensor(c.b),
             "g": tensor(np.array(c.g, dtype=np.float32).reshape(3, 1, 1)),
             "rest": [tensor(c.rest[kind]) for kind in OFFSET_KIND],
             "colliders": [k for _, k in colliders],
-        }  # fmt: skip
+        }
         if options.strict:
             # XLA rewrites a division by a broadcast scalar as a multiplication by its
             # reciprocal (not the IEEE quotient); a full array of dt is divided by element

@@ -79,8 +79,9 @@ class NewtonPbdBackend(Backend):
         super().__init__(scene, solver, options)
         unmapped = [kind for kind in ("cylinders", "meshes", "frames") if getattr(scene, kind, ())]
         if unmapped:  # moving colliders and meshes are not mapped either: static spheres and planes only
-            raise ClothbenchError(f"newton peer: {', '.join(unmapped)} are not mapped (static spheres and planes "
-                                  "are); use another scene")  # fmt: skip
+            raise ClothbenchError(
+                f"newton peer: {', '.join(unmapped)} are not mapped (static spheres and planes are); use another scene"
+            )
         wp, newton = self._wp, self._newton = _import_newton()
         name = options.device or ("cuda" if wp.is_cuda_available() else "cpu")
         try:
@@ -118,8 +119,9 @@ class NewtonPbdBackend(Backend):
             builder.spring_rest_length[-1] = float(rest[kind])  # the scene's rest lengths, not re-measured
         frictionless = newton.ModelBuilder.ShapeConfig(mu=0.0)  # clothbench's colliders project, no friction
         for s in scene.spheres:
-            builder.add_shape_sphere(-1, xform=wp.transform(wp.vec3(*s.center), wp.quat_identity()),
-                                     radius=s.radius, cfg=frictionless)  # fmt: skip
+            builder.add_shape_sphere(
+                -1, xform=wp.transform(wp.vec3(*s.center), wp.quat_identity()), radius=s.radius, cfg=frictionless
+            )
         for pl in scene.planes:
             nx, ny, nz = pl.unit_normal
             d = -(nx * pl.point[0] + ny * pl.point[1] + nz * pl.point[2])

@@ -29,10 +29,26 @@ from matplotlib.lines import Line2D
 from clothbench.analysis.lattice import damping_rate, dt_limit, gershgorin_omega, omega_max
 from clothbench.analysis.stability import DT_60HZ, STRETCH
 from clothbench.reports.figures_common import (
-    FRONT_COLOR, FRONT_LEGEND, FRONT_TOLERANCE, PEERS, Chart, draw_front, fit_labels, is_peer, machine_line,
-    panel_axes, panel_legend, pareto_front, platform_color, platform_of, platform_rank, save_figure, series_style,
-    small_multiples, titled_figure,
-)  # fmt: skip
+    FRONT_COLOR,
+    FRONT_LEGEND,
+    FRONT_TOLERANCE,
+    PEERS,
+    Chart,
+    draw_front,
+    fit_labels,
+    is_peer,
+    machine_line,
+    panel_axes,
+    panel_legend,
+    pareto_front,
+    platform_color,
+    platform_of,
+    platform_rank,
+    save_figure,
+    series_style,
+    small_multiples,
+    titled_figure,
+)
 from clothbench.model.scene import Scene
 from clothbench.variant_names import model_display, model_short
 
@@ -95,8 +111,9 @@ def _accuracy_figure(title: str, panels: int, overview: bool, footer: str = ""):
     cols = 1 if panels == 1 else 3 if overview or panels > 4 else 2
     cells = panels + (1 if overview else 0)  # axes; the overview spans two columns
     rows = math.ceil((cells + (1 if overview else 0)) / cols)
-    fig, body = titled_figure(title, 10.5 if cols == 1 else 4.9 * cols, (6.0 if cols == 1 else 4.6 * rows) + 0.4,
-                              footer)  # fmt: skip
+    fig, body = titled_figure(
+        title, 10.5 if cols == 1 else 4.9 * cols, (6.0 if cols == 1 else 4.6 * rows) + 0.4, footer
+    )
     axes, _ = panel_axes(body, cells, cols, wide_first=overview)
     for ax in axes:
         ax.set_xscale("log")
@@ -119,8 +136,10 @@ def speed_vs_error_chart(result) -> Chart:
         overview,
         _footer([], rows),
     )
-    body.supxlabel(f"RMS position error at t = {r0.time_s:g} s against the converged float64 answer of its own "
-                   "model (m)", fontsize=9)  # fmt: skip
+    body.supxlabel(
+        f"RMS position error at t = {r0.time_s:g} s against the converged float64 answer of its own model (m)",
+        fontsize=9,
+    )
     body.supylabel("cost (ms of compute per simulated second)", fontsize=9)
     chart = Chart(fig)
     front = pareto_front(rows, cost=lambda r: r.ms_per_sim_s, error=lambda r: r.disc_rms, tolerance=FRONT_TOLERANCE)
@@ -139,8 +158,16 @@ def speed_vs_error_chart(result) -> Chart:
             ax.plot([r.disc_rms for r in rs], [r.ms_per_sim_s for r in rs], label=label, **_line_style(rs, i))
         chart.panels[title or "every run"] = [label for label, _ in lines]
         if overview:
-            ax.step([p[0] for p in points], [p[1] for p in points], where="post", color=FRONT_COLOR, linewidth=0.8,
-                    alpha=0.5, zorder=1, label="Pareto front of every run")  # fmt: skip
+            ax.step(
+                [p[0] for p in points],
+                [p[1] for p in points],
+                where="post",
+                color=FRONT_COLOR,
+                linewidth=0.8,
+                alpha=0.5,
+                zorder=1,
+                label="Pareto front of every run",
+            )
         else:
             chart.fronts["every run"] = [p[2] for p in points]
             labels = draw_front(ax, points)
@@ -161,8 +188,16 @@ def _every_run(ax, rows) -> list[str]:
                 continue
             color = platform_color(platform)
             face = "white" if platform == PEERS else color
-            ax.plot([r.disc_rms for r in pts], [r.ms_per_sim_s for r in pts], linestyle="none", marker=marker,
-                    markersize=5, color=color, alpha=0.8, markerfacecolor=face)  # fmt: skip
+            ax.plot(
+                [r.disc_rms for r in pts],
+                [r.ms_per_sim_s for r in pts],
+                linestyle="none",
+                marker=marker,
+                markersize=5,
+                color=color,
+                alpha=0.8,
+                markerfacecolor=face,
+            )
             drawn.append(f"{platform}, {_model(pts[0])}")
     return drawn
 
@@ -175,16 +210,25 @@ def _every_run_key(rows) -> list[Line2D]:
     platforms = _platforms(rows)
     solvers = [s for s in SOLVER_MARKERS if any(_solver_key(r) == s for r in rows)]
     handles = [
-        Line2D([], [], color=platform_color(p), marker="o", linestyle="none",
-               markerfacecolor="white" if p == PEERS else platform_color(p),
-               label="peers (not clothbench)" if p == PEERS else p)
+        Line2D(
+            [],
+            [],
+            color=platform_color(p),
+            marker="o",
+            linestyle="none",
+            markerfacecolor="white" if p == PEERS else platform_color(p),
+            label="peers (not clothbench)" if p == PEERS else p,
+        )
         for p in platforms
-    ]  # fmt: skip
+    ]
     if len(solvers) > 1:
-        handles += [Line2D([], [], color="0.45", marker=SOLVER_MARKERS[s], linestyle="none",
-                           label=_key_display(s)) for s in solvers]  # fmt: skip
-    handles.append(Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8,
-                          label=FRONT_LEGEND))  # fmt: skip
+        handles += [
+            Line2D([], [], color="0.45", marker=SOLVER_MARKERS[s], linestyle="none", label=_key_display(s))
+            for s in solvers
+        ]
+    handles.append(
+        Line2D([], [], color=FRONT_COLOR, marker="o", markerfacecolor="none", markersize=8, label=FRONT_LEGEND)
+    )
     return handles
 
 
@@ -196,9 +240,18 @@ def _model_differences(ax, differences, annotate: bool) -> list:
         line = ax.axvline(d.rms, color="grey", lw=1, alpha=0.6, linestyle=(0, (1, 2 + i)))
         if annotate:
             line.set_label(f"{model_short(d.b)}: its converged answer is {d.rms * 1e3:.2g} mm (RMS) from Verlet's")
-            ax.annotate(model_short(d.b), (d.rms, 0.98), xycoords=("data", "axes fraction"), xytext=(2, 0),
-                        textcoords="offset points", fontsize=6.5, alpha=0.75, ha="left", va="top",
-                        rotation=90)  # fmt: skip
+            ax.annotate(
+                model_short(d.b),
+                (d.rms, 0.98),
+                xycoords=("data", "axes fraction"),
+                xytext=(2, 0),
+                textcoords="offset points",
+                fontsize=6.5,
+                alpha=0.75,
+                ha="left",
+                va="top",
+                rotation=90,
+            )
             labelled.append(line)
     return labelled
 
@@ -261,8 +314,12 @@ def stability_map_chart(rows) -> Chart:
     higher), lines at the cap and at 1/60 s."""
     r0 = rows[0]
     kinds = list(dict.fromkeys(r.kind for r in rows))
-    fig, body = titled_figure(f"Stability map: {r0.grid}×{r0.grid}, {r0.steps} steps, b = {r0.damping:g}",
-                              max(7.0, 5.0 * len(kinds)), 6.2, _footer([], rows))  # fmt: skip
+    fig, body = titled_figure(
+        f"Stability map: {r0.grid}×{r0.grid}, {r0.steps} steps, b = {r0.damping:g}",
+        max(7.0, 5.0 * len(kinds)),
+        6.2,
+        _footer([], rows),
+    )
     body.supxlabel("spring stiffness k (N/m), m = 0.01 kg", fontsize=9)
     body.supylabel("largest stable dt (s)", fontsize=9)
     axes, _ = panel_axes(body, len(kinds), cols=3)
@@ -275,8 +332,13 @@ def stability_map_chart(rows) -> Chart:
     for ax, kind in zip(axes, kinds):
         mine = [r for r in rows if r.kind == kind]
         if kind == "stretched":
-            ax.loglog(kk, [dt_limit(omega_max(k, m, STRETCH), beta) for k in kk], "k-.", lw=1,
-                      label=f"bound: lattice at {STRETCH}x stretch")  # fmt: skip
+            ax.loglog(
+                kk,
+                [dt_limit(omega_max(k, m, STRETCH), beta) for k in kk],
+                "k-.",
+                lw=1,
+                label=f"bound: lattice at {STRETCH}x stretch",
+            )
         else:
             what = "bound: flat lattice 2/ω"
             what += ", for scale (a crumpled sheet has none)" if kind == "crumpled" else ""
@@ -285,11 +347,25 @@ def stability_map_chart(rows) -> Chart:
         chart.panels[kind] = _stability_points(ax, mine)
         for c in caps:
             ax.axhline(c, color="tab:green", lw=1, ls="--", alpha=0.6)
-            ax.annotate(f"PBD cap {c:g} s (arrow: stable there)", (kk[0], c), xytext=(4, -3),
-                        textcoords="offset points", fontsize=6.5, va="top", color="tab:green")  # fmt: skip
+            ax.annotate(
+                f"PBD cap {c:g} s (arrow: stable there)",
+                (kk[0], c),
+                xytext=(4, -3),
+                textcoords="offset points",
+                fontsize=6.5,
+                va="top",
+                color="tab:green",
+            )
         ax.axhline(DT_60HZ, color="grey", lw=1, ls=(0, (4, 4)), alpha=0.7)
-        ax.annotate("dt = 1/60 s", (kk[0], DT_60HZ), xytext=(4, 2), textcoords="offset points", fontsize=6.5,
-                    va="bottom", color="grey")  # fmt: skip
+        ax.annotate(
+            "dt = 1/60 s",
+            (kk[0], DT_60HZ),
+            xytext=(4, 2),
+            textcoords="offset points",
+            fontsize=6.5,
+            va="bottom",
+            color="grey",
+        )
         ax.set_xlim(*kk)
         ax.set_title(kind, fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
@@ -324,21 +400,38 @@ def _stability_points(ax, rows) -> list[str]:
         )
         drawn.append(label)
     iterative = [r for r in rows if r.solver != "verlet"]
-    for key, marker, color, shift in (("jacobi", "P", "tab:purple", 1 / 1.12), ("coloured", "X", "tab:brown", 1.12),
-                                      ("vbd", "v", "tab:olive", 1.0)):  # fmt: skip
+    for key, marker, color, shift in (
+        ("jacobi", "P", "tab:purple", 1 / 1.12),
+        ("coloured", "X", "tab:brown", 1.12),
+        ("vbd", "v", "tab:olive", 1.0),
+    ):
         mine = [r for r in iterative if _solver_key(r) == key]
         if not mine:
             continue
-        worst = [min((r for r in mine if r.stiffness == k), key=lambda r: r.dt_stable)
-                 for k in sorted({r.stiffness for r in mine})]  # fmt: skip
+        worst = [
+            min((r for r in mine if r.stiffness == k), key=lambda r: r.dt_stable)
+            for k in sorted({r.stiffness for r in mine})
+        ]
         its = "/".join(map(str, sorted({r.iterations for r in mine})))
         label = f"{_key_display(key)} ({its} it): smallest of {len({r.label for r in mine})} backend modes"
-        ax.loglog([r.stiffness * shift for r in worst], [r.dt_stable for r in worst], marker, color=color,
-                  markersize=8, alpha=0.85, label=label, linestyle="none")  # fmt: skip
+        ax.loglog(
+            [r.stiffness * shift for r in worst],
+            [r.dt_stable for r in worst],
+            marker,
+            color=color,
+            markersize=8,
+            alpha=0.85,
+            label=label,
+            linestyle="none",
+        )
         for r in worst:
             if r.capped:
-                ax.annotate("", (r.stiffness * shift, r.dt_stable * 1.8), (r.stiffness * shift, r.dt_stable * 1.1),
-                            arrowprops=dict(arrowstyle="->", color=color, alpha=0.7))  # fmt: skip
+                ax.annotate(
+                    "",
+                    (r.stiffness * shift, r.dt_stable * 1.8),
+                    (r.stiffness * shift, r.dt_stable * 1.1),
+                    arrowprops=dict(arrowstyle="->", color=color, alpha=0.7),
+                )
         drawn.append(label)
     return drawn
 
@@ -348,6 +441,10 @@ def plot_stability_map(rows, path: Path) -> None:
 
 
 __all__ = [
-    "plot_speed_vs_error", "plot_convergence", "plot_stability_map",
-    "speed_vs_error_chart", "convergence_chart", "stability_map_chart",
-]  # fmt: skip
+    "plot_speed_vs_error",
+    "plot_convergence",
+    "plot_stability_map",
+    "speed_vs_error_chart",
+    "convergence_chart",
+    "stability_map_chart",
+]

@@ -390,6 +390,17 @@ def usd_file(text: str) -> str:
 
 
 __all__ = [
-    "ExportTarget", "RunInfo", "UsdWriter", "FramesWriter", "Exported", "export_target", "open_writer",
-    "export_replay", "frame_steps", "read_usd", "scene_spec", "usd_file", "OBJ_TOLERANCE",
-]  # fmt: skip
+    "ExportTarget",
+    "RunInfo",
+    "UsdWriter",
+    "FramesWriter",
+    "Exported",
+    "export_target",
+    "open_writer",
+    "export_replay",
+    "frame_steps",
+    "read_usd",
+    "scene_spec",
+    "usd_file",
+    "OBJ_TOLERANCE",
+]

@@ -19,10 +19,14 @@ from clothbench.variant_names import TRANSFERS, base_mode
 
 def _ok(rows: list[dict], grid: int) -> list[dict]:
     return [
-        r for r in rows
-        if r["status"] == "ok" and int(r["grid"]) == grid and r["solver"] == "verlet" and not r["local_size"]
+        r
+        for r in rows
+        if r["status"] == "ok"
+        and int(r["grid"]) == grid
+        and r["solver"] == "verlet"
+        and not r["local_size"]
         and r["precision"] == "f32"
-    ]  # fmt: skip
+    ]
 
 
 def _fastest(rows: list[dict]) -> dict | None:
@@ -110,8 +114,16 @@ def runtime_cells(rows: list[dict]) -> dict[int, tuple[float, float]]:
     for grid in sorted({int(r["grid"]) for r in rows}):
         here = _ok(rows, grid)
         native = _fastest([r for r in here if r["backend"] == "c" and r["strict"] == "false"])
-        ocl = _fastest([r for r in here if r["backend"] == "opencl" and r["strict"] == "false" and r["generic"] != "true"
-                        and (r["transfer"] or TRANSFERS["opencl"][0]) == TRANSFERS["opencl"][0]])  # fmt: skip
+        ocl = _fastest(
+            [
+                r
+                for r in here
+                if r["backend"] == "opencl"
+                and r["strict"] == "false"
+                and r["generic"] != "true"
+                and (r["transfer"] or TRANSFERS["opencl"][0]) == TRANSFERS["opencl"][0]
+            ]
+        )
         if native and ocl:
             out[grid] = (float(ocl["ms_median"]), float(ocl["ms_median"]) / float(native["ms_median"]))
     return out

@@ -211,8 +211,14 @@ class Renderer:
                 square_vao = vao(vertices, np.array([0, 1, 2, 0, 2, 3], np.uint32))
                 shapes.append(_Shape(square_vao, np.eye(4), FLOOR_COLOUR, tiles=True, body=p))
         for m in self.scene.meshes:  # its triangles in the body frame, placed by its pose
-            shapes.append(_Shape(vao(*triangle_mesh(m.geometry.corners, COLLIDER_SHRINK)), placement_matrix(m),
-                                 COLLIDER_COLOUR, body=m))  # fmt: skip
+            shapes.append(
+                _Shape(
+                    vao(*triangle_mesh(m.geometry.corners, COLLIDER_SHRINK)),
+                    placement_matrix(m),
+                    COLLIDER_COLOUR,
+                    body=m,
+                )
+            )
         return shapes
 
     # --- the cloth's sources ---

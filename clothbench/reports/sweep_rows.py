@@ -19,9 +19,27 @@ from clothbench.variant_names import model_display
 
 # Columns the figures need; a CSV without them is refused with their names.
 REQUIRED = (
-    "backend", "peer", "mode", "precision", "strict", "transfer", "local_size", "generic", "device", "scene",
-    "grid", "particles", "dt", "steps", "repeats", "status", "ms_median", "ms_min", "ms_max", "err_rms_m",
-)  # fmt: skip
+    "backend",
+    "peer",
+    "mode",
+    "precision",
+    "strict",
+    "transfer",
+    "local_size",
+    "generic",
+    "device",
+    "scene",
+    "grid",
+    "particles",
+    "dt",
+    "steps",
+    "repeats",
+    "status",
+    "ms_median",
+    "ms_min",
+    "ms_max",
+    "err_rms_m",
+)
 
 
 @dataclass

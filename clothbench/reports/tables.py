@@ -71,8 +71,15 @@ def peer_ratios(rows: list[dict]) -> list[dict]:
     against the fastest peer, from sweep rows with status ok. The README's performance table."""
     out = []
     for grid in sorted({int(r["grid"]) for r in rows}):
-        mine = [r for r in rows if int(r["grid"]) == grid and gpu_style(r["backend"]) and not r["local_size"]
-                and r["status"] == "ok" and r["precision"] == "f32"]  # fmt: skip
+        mine = [
+            r
+            for r in rows
+            if int(r["grid"]) == grid
+            and gpu_style(r["backend"])
+            and not r["local_size"]
+            and r["status"] == "ok"
+            and r["precision"] == "f32"
+        ]
         peers = [r for r in rows if int(r["grid"]) == grid and r["peer"] == "true" and r["status"] == "ok"]
         if not mine or not peers:
             continue

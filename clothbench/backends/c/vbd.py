@@ -93,11 +93,19 @@ class CVbdBackend(CBackend):
         if self._x.size == 0:
             raise ClothbenchError("c: advance after close")
         self._lib.cloth_vbd_advance(
-            self._x.ctypes.data, self._v.ctypes.data, self._w.ctypes.data, self._y.ctypes.data,
-            self._iterate.ctypes.data, self._before.ctypes.data, self._numbers.ctypes.data,
-            self._colliders.ctypes.data, self.solver.iterations, int(self._chebyshev),
-            int(steps) * self.solver.substeps, self._threads_now(),
-        )  # fmt: skip
+            self._x.ctypes.data,
+            self._v.ctypes.data,
+            self._w.ctypes.data,
+            self._y.ctypes.data,
+            self._iterate.ctypes.data,
+            self._before.ctypes.data,
+            self._numbers.ctypes.data,
+            self._colliders.ctypes.data,
+            self.solver.iterations,
+            int(self._chebyshev),
+            int(steps) * self.solver.substeps,
+            self._threads_now(),
+        )
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         x = self._x.reshape(3, self.n2)

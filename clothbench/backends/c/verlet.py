@@ -279,9 +279,15 @@ class CBackend(Backend):
             numbers, exclude2, cells = self._contact
             contact = (self._state[2].ctypes.data, numbers.ctypes.data, exclude2, cells.ctypes.data)
         rotated = self._lib.cloth_advance(
-            a.ctypes.data, b.ctypes.data, self._w.ctypes.data, self._numbers.ctypes.data,
-            self._colliders.ctypes.data, int(steps), self._threads_now(), *contact,
-        )  # fmt: skip
+            a.ctypes.data,
+            b.ctypes.data,
+            self._w.ctypes.data,
+            self._numbers.ctypes.data,
+            self._colliders.ctypes.data,
+            int(steps),
+            self._threads_now(),
+            *contact,
+        )
         if rotated:  # the library wrote x(t) into buffer -rotated (two buffers: the second)
             self._state = self._state[-rotated:] + self._state[:-rotated]
         self._w_prev = self._w  # prev now carries pos's inverse mass

@@ -30,8 +30,12 @@ from clothbench.model.scene import Scene
 from clothbench.model.solver import Solver
 from clothbench.variant_names import TRANSFERS as ALL_TRANSFERS
 from clothbench.model.kernel_inputs import (
-    MeshConstants, VerletConstants, collider_rows, pin_targets, pose_rows,
-)  # fmt: skip
+    MeshConstants,
+    VerletConstants,
+    collider_rows,
+    pin_targets,
+    pose_rows,
+)
 
 TRANSFERS = ALL_TRANSFERS["cuda"]  # the first is the default
 STEP_KERNEL = "verlet_step"
@@ -96,10 +100,17 @@ def kernel_constants(scene: Scene, solver: Solver) -> dict[str, object]:
     (gx, gy, gz), (structural, shear, bend) = c.g, c.rest
     return {
         "n": np.int32(scene.grid),
-        "dt": c.dt, "dt2": c.dt2, "k": c.k, "b": c.b,
-        "gx": gx, "gy": gy, "gz": gz,
-        "rest_structural": structural, "rest_shear": shear, "rest_bend": bend,
-    }  # fmt: skip
+        "dt": c.dt,
+        "dt2": c.dt2,
+        "k": c.k,
+        "b": c.b,
+        "gx": gx,
+        "gy": gy,
+        "gz": gz,
+        "rest_structural": structural,
+        "rest_shear": shear,
+        "rest_bend": bend,
+    }
 
 
 def mesh_buffers(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -111,8 +122,11 @@ def mesh_buffers(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     for mesh, constants in zip(scene.meshes, meshes):
         bvh = constants.geometry.bvh
         rot, trans = pose_rows(mesh, 0.0)  # the fixed pose; a moving mesh's is per step
-        headers += [(*constants.lo, constants.margin), (*constants.hi, constants.margin2),
-                    *np.concatenate([rot, trans[:, None]], axis=1)]  # fmt: skip
+        headers += [
+            (*constants.lo, constants.margin),
+            (*constants.hi, constants.margin2),
+            *np.concatenate([rot, trans[:, None]], axis=1),
+        ]
         tris = len(constants.corners)
         node_row = row + MESH_TRIANGLE_ROWS * tris
         link, leaves = count, count + 3 * bvh.nodes

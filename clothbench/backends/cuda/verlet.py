@@ -48,12 +48,28 @@ from clothbench.model.solver import Solver
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.backends.cuda import launch
 from clothbench.backends.cuda.runtime import (  # noqa: F401 (re-exported: tests and peers use them from here)
-    CUPY_PACKAGES, EXTRAS, INSTALL_HINT, compiler, compiler_name, cuda_major, driver_note, error_name,
-    install_hint, installed_version, nvcc_available, nvrtc_available, version_string,
-)  # fmt: skip
+    CUPY_PACKAGES,
+    EXTRAS,
+    INSTALL_HINT,
+    compiler,
+    compiler_name,
+    cuda_major,
+    driver_note,
+    error_name,
+    install_hint,
+    installed_version,
+    nvcc_available,
+    nvrtc_available,
+    version_string,
+)
 from clothbench.backends.cuda.launch import (
-    AUTO_BLOCK, TRANSFERS, PingPong, attached_pins, kernel_constants, motion_rows,
-)  # fmt: skip
+    AUTO_BLOCK,
+    TRANSFERS,
+    PingPong,
+    attached_pins,
+    kernel_constants,
+    motion_rows,
+)
 from clothbench.model.kernel_inputs import collider_rows
 
 __all__ = ["AUTO_BLOCK", "TRANSFERS", "PingPong", "CudaBackend", "kernel_constants", "kernel_defines"]
@@ -100,9 +116,11 @@ def kernel_defines(
     moving = scene.has_motion
     if generic:
         return (
-            *defines, "-DCLOTH_GENERIC", *(["-DCLOTH_MESHES", *mesh] if scene.meshes else []),
+            *defines,
+            "-DCLOTH_GENERIC",
+            *(["-DCLOTH_MESHES", *mesh] if scene.meshes else []),
             *(["-DCLOTH_MOTION"] if moving else []),
-        )  # fmt: skip
+        )
     for name, value in kernel_constants(scene, solver).items():
         literal = str(value) if name == "n" else c_float(value)
         defines.append(f"-DCLOTH_{name.upper()}={literal}")
@@ -332,16 +350,27 @@ class CudaBackend(Backend):
         colliders, the arithmetic, and what else each launch does."""
         o, s = self.options, self.scene
         return {
-            "device": self._name, "driver": self._driver, "grid": str(s.grid),
+            "device": self._name,
+            "driver": self._driver,
+            "grid": str(s.grid),
             "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
-            "arithmetic": "strict" if o.strict else "fast", "generic": str(o.generic),
-            "normals": str(o.normals), "transfer": self.transfer, "local_size": str(o.local_size or "auto"),
+            "arithmetic": "strict" if o.strict else "fast",
+            "generic": str(o.generic),
+            "normals": str(o.normals),
+            "transfer": self.transfer,
+            "local_size": str(o.local_size or "auto"),
             # only where the scene has them, so that a scene without them keeps its key
-            **({"meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
-                          f"{self.mesh_collision}"} if s.meshes else {}),
+            **(
+                {
+                    "meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
+                    f"{self.mesh_collision}"
+                }
+                if s.meshes
+                else {}
+            ),
             **({"motion": "per-step poses"} if s.has_motion else {}),
             **({"boxes": str(len(s.boxes))} if s.boxes else {}),
-        }  # fmt: skip
+        }
 
     def _pingpong(self, shape: str) -> PingPong:
         """Device buffers and the kernel for one shape (launch.py)."""
@@ -351,9 +380,15 @@ class CudaBackend(Backend):
             raise ClothbenchError(f"cuda {shape}: {block} threads a block, at most {kernel.max_threads_per_block} here")
         self.effective_local_size = block
         state = PingPong(
-            _CupyRuntime(kernel, self.stream), self.scene, self.solver, self.transfer, block,
-            self.options.generic, self.options.normals, steps_per_launch,
-        )  # fmt: skip
+            _CupyRuntime(kernel, self.stream),
+            self.scene,
+            self.solver,
+            self.transfer,
+            block,
+            self.options.generic,
+            self.options.normals,
+            steps_per_launch,
+        )
         if state.shared_bytes:  # above 48 KiB a kernel must opt in, up to the device's limit
             kernel.max_dynamic_shared_size_bytes = state.shared_bytes
         return state

@@ -32,11 +32,14 @@ _COMMON_CUTS = [
 ]
 COMPUTE_CUTS = _COMMON_CUTS + [
     ("copy: no step at all", re.escape("pos_out[i] = vec4(verlet(rc, x, xp, self.w), self.w);"), "pos_out[i] = self;"),
-    ("stores only (constants)", r"void main\(\)\n\{",
-     r"\g<0> { ivec2 r0 = particle(); if (r0.x < 0) return; int i0 = r0.x * n + r0.y;"
-     r" pos_out[i0] = vec4(1.0); prev_out[i0] = vec4(2.0); return; }"),
+    (
+        "stores only (constants)",
+        r"void main\(\)\n\{",
+        r"\g<0> { ivec2 r0 = particle(); if (r0.x < 0) return; int i0 = r0.x * n + r0.y;"
+        r" pos_out[i0] = vec4(1.0); prev_out[i0] = vec4(2.0); return; }",
+    ),
     ("empty dispatch", r"void main\(\)\n\{", r"\g<0> return;"),
-]  # fmt: skip
+]
 FRAGMENT_CUTS = _COMMON_CUTS + [
     ("copy: no step at all", re.escape("pos_out = vec4(verlet(rc, x, xp, self.w), self.w);"), "pos_out = self;"),
     ("stores only (constants)", r"void main\(\)\n\{", r"\g<0> pos_out = vec4(1.0); prev_out = vec4(2.0); return;"),

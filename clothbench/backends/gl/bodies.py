@@ -146,9 +146,12 @@ class MeshBuffers:
                 info.append((tri0, count, 0, int(c.closed)))
             tri0 += count
         return cls(
-            np.concatenate(corners), np.concatenate(normals),
-            np.concatenate(nodes) if accelerated else None, info, depth + 1,
-        )  # fmt: skip
+            np.concatenate(corners),
+            np.concatenate(normals),
+            np.concatenate(nodes) if accelerated else None,
+            info,
+            depth + 1,
+        )
 
 
 def body_defines(scene: Scene, mesh_collision: str | None) -> dict[str, object]:

@@ -46,11 +46,17 @@ def probe() -> Availability:
 class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
     name = "glsl-compute"
     capabilities = Capabilities(
-        local_size=True, generic=True, normals=True, gl=True, shapes=True,
+        local_size=True,
+        generic=True,
+        normals=True,
+        gl=True,
+        shapes=True,
         sweep_variants=({"strict": True}, {"strict": False}),
-        meshes=("verlet",), moving_colliders=("verlet",), boxes=("verlet",),  # compute_pbd.py declares its own
+        meshes=("verlet",),
+        moving_colliders=("verlet",),
+        boxes=("verlet",),  # compute_pbd.py declares its own
         mesh_collisions=("accelerated", "naive"),  # the same bits (kernels/collide_mesh.glsl)
-    )  # fmt: skip
+    )
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)

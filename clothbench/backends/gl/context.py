@@ -32,10 +32,23 @@ from clothbench.backends.base import Availability, BackendOptions
 from clothbench.model.kernel_inputs import VerletConstants, collider_rows
 from clothbench.backends.gl.driver import GLDriverInfo, gl_driver
 from clothbench.backends.gl.bodies import (  # noqa: F401  (re-exported, as gl_context.X)
-    MESH_CORNERS, MESH_NODES, MESH_NORMALS, MOTION_BLOCK, MOTION_ROWS, PIN_SLOTS,
-    GLBodies, MeshBuffers, body_defines, collider_kinds, collider_source, mesh_layout, motion_offsets,
-    motion_rows, pin_slots, pose_block,
-)  # fmt: skip
+    MESH_CORNERS,
+    MESH_NODES,
+    MESH_NORMALS,
+    MOTION_BLOCK,
+    MOTION_ROWS,
+    PIN_SLOTS,
+    GLBodies,
+    MeshBuffers,
+    body_defines,
+    collider_kinds,
+    collider_source,
+    mesh_layout,
+    motion_offsets,
+    motion_rows,
+    pin_slots,
+    pose_block,
+)
 
 INSTALL_HINT = "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri, or libosmesa6 for --gl osmesa"  # README
 MAX_GENERIC_COLLIDERS = 8  # per kind, the uniform arrays of generic (unspecialised) programs

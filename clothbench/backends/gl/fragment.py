@@ -34,11 +34,15 @@ def probe() -> Availability:
 class GLSLBackend(gl_context.GLDeviceMixin, Backend):
     name = "glsl"
     capabilities = Capabilities(
-        generic=True, normals=True, gl=True, sweep_variants=({"strict": True}, {"strict": False}),
-        meshes=("verlet",), moving_colliders=("verlet",),  # on GL 4.3: storage buffers in the shader
+        generic=True,
+        normals=True,
+        gl=True,
+        sweep_variants=({"strict": True}, {"strict": False}),
+        meshes=("verlet",),
+        moving_colliders=("verlet",),  # on GL 4.3: storage buffers in the shader
         boxes=("verlet",),  # kernels/collide_box.glsl
         mesh_collisions=("accelerated", "naive"),  # kernels/collide_mesh.glsl, as glsl-compute's
-    )  # fmt: skip
+    )
     shader_stage = "fragment"
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
@@ -77,9 +81,13 @@ class GLSLBackend(gl_context.GLDeviceMixin, Backend):
         defines.update(gl_context.body_defines(self.scene, self.mesh_collision))
         vertex = gl_context.shader_source("verlet_cloth.vert", version, {})
         fragment = gl_context.shader_source(
-            "verlet_cloth.frag", version, defines, gl_context.collider_kinds(self.scene, self.options.generic),
-            meshes=bool(self.scene.meshes), moving=self.scene.has_motion,
-        )  # fmt: skip
+            "verlet_cloth.frag",
+            version,
+            defines,
+            gl_context.collider_kinds(self.scene, self.options.generic),
+            meshes=bool(self.scene.meshes),
+            moving=self.scene.has_motion,
+        )
 
         def build():
             program = self.gl.ctx.program(vertex_shader=vertex, fragment_shader=fragment)

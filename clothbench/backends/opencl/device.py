@@ -304,18 +304,20 @@ def device_listing(retune: bool = False) -> tuple[list[dict], str]:
         for d, dev in enumerate(platform.get_devices()):
             llvm = re.search(r"LLVM[ -]?(\d+(?:\.\d+)*)", f"{platform.version} {dev.version}")
             error = compile_error(dev)
-            rows.append({
-                "device": f"{p}:{d}",
-                "name": dev.name,
-                "runtime": runtimes.runtime_of(platform),
-                "platform": platform.name,
-                "platform_version": " ".join(platform.version.split()),
-                "driver_version": dev.driver_version,
-                "llvm": llvm.group(1) if llvm else "",
-                "compiles": error is None,
-                "error": error or "",
-                "default": False,
-            })  # fmt: skip
+            rows.append(
+                {
+                    "device": f"{p}:{d}",
+                    "name": dev.name,
+                    "runtime": runtimes.runtime_of(platform),
+                    "platform": platform.name,
+                    "platform_version": " ".join(platform.version.split()),
+                    "driver_version": dev.driver_version,
+                    "llvm": llvm.group(1) if llvm else "",
+                    "compiles": error is None,
+                    "error": error or "",
+                    "default": False,
+                }
+            )
     given = os.environ.get("PYOPENCL_CTX")
     try:
         if given:

@@ -36,9 +36,13 @@ def in_child_per_device(target: str, specs: list[str], *args) -> dict:
     result: dict = {}
     for spec in specs:
         alone, said = _child(target, [spec], args)
-        result.update(alone if alone is not None else {spec: ClothbenchError(
-            f"OpenCL device {spec}: building clothbench's kernel killed the process ({said})"
-        )})  # fmt: skip
+        result.update(
+            alone
+            if alone is not None
+            else {
+                spec: ClothbenchError(f"OpenCL device {spec}: building clothbench's kernel killed the process ({said})")
+            }
+        )
     return result
 
 
@@ -47,8 +51,9 @@ def _child(target: str, specs: list[str], args: tuple) -> tuple[dict | None, str
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))  # the caller's modules
     call = json.dumps({"target": target, "specs": specs, "args": list(args)})
     try:
-        done = subprocess.run([sys.executable, "-m", __name__], input=call, capture_output=True, text=True,
-                              env=env, timeout=TIMEOUT_S)  # fmt: skip
+        done = subprocess.run(
+            [sys.executable, "-m", __name__], input=call, capture_output=True, text=True, env=env, timeout=TIMEOUT_S
+        )
     except subprocess.TimeoutExpired:
         return None, f"ran past {TIMEOUT_S:g} s and was killed"
     lines = done.stdout.strip().splitlines()

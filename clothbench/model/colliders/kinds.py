@@ -64,17 +64,9 @@ class ColliderKind:
 KINDS = (
     ColliderKind("sphere", "spheres", Sphere, keys=("center", "radius"), numbers=("radius",), rows=1),
     ColliderKind("cylinder", "cylinders", Cylinder, keys=("start", "end", "radius"), numbers=("radius",), rows=3),
-    ColliderKind(
-        "box",
-        "boxes",
-        Box,
-        keys=("center", "half_extents"),
-        optional=("rotation",),
-        rows=4,
-        capability="boxes",
-    ),  # fmt: skip
+    ColliderKind("box", "boxes", Box, keys=("center", "half_extents"), optional=("rotation",), rows=4, capability="boxes"),
     ColliderKind("plane", "planes", Plane, keys=("point", "normal"), rows=2),
-)
+)  # fmt: skip
 KIND = {k.name: k for k in KINDS}
 
 

@@ -306,10 +306,14 @@ class Bvh:
             raise SceneError(f"mesh BVH is {depth} levels deep, more than the kernels' stack of {MAX_STACK}")
         lo, hi, child, first, count = zip(*nodes)
         return cls(
-            np.array(lo, dtype=np.float32), np.array(hi, dtype=np.float32),
-            np.array(child, dtype=np.int32), np.array(first, dtype=np.int32), np.array(count, dtype=np.int32),
-            np.array(order, dtype=np.int32), depth,
-        )  # fmt: skip
+            np.array(lo, dtype=np.float32),
+            np.array(hi, dtype=np.float32),
+            np.array(child, dtype=np.int32),
+            np.array(first, dtype=np.int32),
+            np.array(count, dtype=np.int32),
+            np.array(order, dtype=np.int32),
+            depth,
+        )
 
     @property
     def nodes(self) -> int:
