@@ -82,9 +82,12 @@ def every_kind(n: int = 32) -> Scene:
     within 300 steps all three kinds hold particles (tests/contract/test_collider_scenes_contract.py
     checks that they do)."""
     return load_scene("cylinder").replace(
-        name="every-kind", grid=n, height=0.7,
-        spheres=(Sphere((0.8, 0.45, 0.2), 0.2),), planes=(Plane((0.0, 0.6, 0.0), (0.15, 1.0, 0.0)),),
-    )  # fmt: skip
+        name="every-kind",
+        grid=n,
+        height=0.7,
+        spheres=(Sphere((0.8, 0.45, 0.2), 0.2),),
+        planes=(Plane((0.0, 0.6, 0.0), (0.15, 1.0, 0.0)),),
+    )
 
 
 def tilted_cylinder_scene(n: int = 24) -> Scene:

@@ -448,12 +448,27 @@ def accuracy_rows() -> list:
         ):
             label = f"{backend} {mode}" + (f"/pbd-{method}/10it" if method else "")
             for dt in (2e-3, 1e-3, 5e-4, 2.5e-4):
-                rows.append(AccuracyRow(
-                    scene="drape", grid=8, start="rest", damping=0.002, time_s=0.1, backend=backend, label=label,
-                    mode=mode, device="cpu", dt=dt, steps=round(0.1 / dt), solver=solver, pbd_method=method,
-                    ms_per_sim_s=(1 + i) * 1e-3 / dt * (10 if method else 1), disc_rms=dt * (1 + 0.1 * i),
-                    impl_rms=1e-7, order=1.0,
-                ))  # fmt: skip
+                rows.append(
+                    AccuracyRow(
+                        scene="drape",
+                        grid=8,
+                        start="rest",
+                        damping=0.002,
+                        time_s=0.1,
+                        backend=backend,
+                        label=label,
+                        mode=mode,
+                        device="cpu",
+                        dt=dt,
+                        steps=round(0.1 / dt),
+                        solver=solver,
+                        pbd_method=method,
+                        ms_per_sim_s=(1 + i) * 1e-3 / dt * (10 if method else 1),
+                        disc_rms=dt * (1 + 0.1 * i),
+                        impl_rms=1e-7,
+                        order=1.0,
+                    )
+                )
     return rows
 
 
@@ -471,8 +486,9 @@ def test_accuracy_figures_split_by_platform_mark_peers_and_label_the_front(tmp_p
     assert all(len(labels) <= MAX_SERIES for labels in speed.panels.values())
     assert sum(len(v) for k, v in speed.panels.items() if k != "every run") == 14  # every line, once
     assert set(speed.panels["peers"]) == {"taichi fast (peer)", "warp default (peer)", "numba fast (peer)"}
-    front = pareto_front(result.rows, cost=lambda r: r.ms_per_sim_s, error=lambda r: r.disc_rms,
-                         tolerance=FRONT_TOLERANCE)  # fmt: skip
+    front = pareto_front(
+        result.rows, cost=lambda r: r.ms_per_sim_s, error=lambda r: r.disc_rms, tolerance=FRONT_TOLERANCE
+    )
     assert speed.fronts["every run"] == [f"{r.label}, dt {r.dt * 1e3:.3g} ms" for r in front]
     assert speed.fronts["every run"][0] == "numpy f32, dt 0.25 ms"  # the most accurate, at the smallest dt
     drawn = {t.get_text() for t in speed.figure.axes[0].texts}
@@ -501,17 +517,55 @@ def test_stability_map_has_a_panel_per_scene_with_pbd_as_its_worst_backend(tmp_p
     for kind in ("flat", "crumpled"):
         for k in (1000.0, 10000.0):
             for backend, label in (("numpy", "numpy f32"), ("opencl", "opencl fast"), ("glsl", "glsl fast")):
-                rows.append(StabilityRow(kind, k, 0.002, 10, 300, backend, label, 0.06 / math.sqrt(k), 0.061 / math.sqrt(k),
-                                         None, 0.06 / math.sqrt(k), 0.04 / math.sqrt(k), 10))  # fmt: skip
+                rows.append(
+                    StabilityRow(
+                        kind,
+                        k,
+                        0.002,
+                        10,
+                        300,
+                        backend,
+                        label,
+                        0.06 / math.sqrt(k),
+                        0.061 / math.sqrt(k),
+                        None,
+                        0.06 / math.sqrt(k),
+                        0.04 / math.sqrt(k),
+                        10,
+                    )
+                )
                 dt = 0.1 if backend != "glsl" else 0.05  # one backend's PBD is worse: the panel shows that one
-                rows.append(StabilityRow(kind, k, 0.002, 10, 300, backend, f"{label}/pbd-jacobi/10it", dt, math.nan, None,
-                                         0.06 / math.sqrt(k), 0.04 / math.sqrt(k), 10, solver="pbd", pbd_method="jacobi",
-                                         iterations=10, capped=dt == 0.1, cap=0.1))  # fmt: skip
+                rows.append(
+                    StabilityRow(
+                        kind,
+                        k,
+                        0.002,
+                        10,
+                        300,
+                        backend,
+                        f"{label}/pbd-jacobi/10it",
+                        dt,
+                        math.nan,
+                        None,
+                        0.06 / math.sqrt(k),
+                        0.04 / math.sqrt(k),
+                        10,
+                        solver="pbd",
+                        pbd_method="jacobi",
+                        iterations=10,
+                        capped=dt == 0.1,
+                        cap=0.1,
+                    )
+                )
     chart = stability_map_chart(rows)
     assert list(chart.panels) == ["flat", "crumpled"]
     assert all(len(labels) <= MAX_SERIES for labels in chart.panels.values())
-    assert chart.panels["flat"] == ["Verlet, CPU (numpy, c) (1 mode)", "Verlet, OpenCL (1 mode)", "Verlet, GL (1 mode)",
-                                    "PBD jacobi (10 it): smallest of 3 backend modes"]  # fmt: skip
+    assert chart.panels["flat"] == [
+        "Verlet, CPU (numpy, c) (1 mode)",
+        "Verlet, OpenCL (1 mode)",
+        "Verlet, GL (1 mode)",
+        "PBD jacobi (10 it): smallest of 3 backend modes",
+    ]
     pbd = next(line for line in chart.figure.axes[0].get_lines() if line.get_label().startswith("PBD jacobi"))
     assert list(pbd.get_ydata()) == [0.05, 0.05]  # the worst backend, not the best
     plot_stability_map(rows, tmp_path / "stab.png")
@@ -521,10 +575,22 @@ def test_stability_map_has_a_panel_per_scene_with_pbd_as_its_worst_backend(tmp_p
 # --- the machine under the accuracy and stability figures ------------------------------------
 
 # environment.collect()'s columns of a row measured on a test machine
-MACHINE_A = dict(cpu="Test CPU A", cores="4", python="CPython 3.11", packages="numpy=2.0", env="",
-                 git_commit="abc123def456", timestamp="2026-03-04T10:00:00+00:00")  # fmt: skip
-MACHINE_B = {**MACHINE_A, "cpu": "Test CPU B", "cores": "8", "git_commit": "fedcba654321",
-             "timestamp": "2026-03-06T09:00:00+00:00"}  # fmt: skip
+MACHINE_A = dict(
+    cpu="Test CPU A",
+    cores="4",
+    python="CPython 3.11",
+    packages="numpy=2.0",
+    env="",
+    git_commit="abc123def456",
+    timestamp="2026-03-04T10:00:00+00:00",
+)
+MACHINE_B = {
+    **MACHINE_A,
+    "cpu": "Test CPU B",
+    "cores": "8",
+    "git_commit": "fedcba654321",
+    "timestamp": "2026-03-06T09:00:00+00:00",
+}
 LINE_A = "Test CPU A · 4 cores · commit abc123def456 · 2026-03-04"
 
 
@@ -537,11 +603,26 @@ def _small_accuracy(*machines: dict) -> list:
     for label in ("numpy f64", "numpy f32"):
         for dt in (2e-3, 1e-3, 5e-4):
             machine = machines[len(rows) % len(machines)] if machines else {}
-            rows.append(AccuracyRow(
-                scene="drape", grid=8, start="rest", damping=0.002, time_s=0.1, backend="numpy", label=label,
-                mode=label.split()[1], device="cpu", dt=dt, steps=round(0.1 / dt), ms_per_sim_s=1e-3 / dt,
-                disc_rms=dt, impl_rms=1e-7, order=1.0, **machine,
-            ))  # fmt: skip
+            rows.append(
+                AccuracyRow(
+                    scene="drape",
+                    grid=8,
+                    start="rest",
+                    damping=0.002,
+                    time_s=0.1,
+                    backend="numpy",
+                    label=label,
+                    mode=label.split()[1],
+                    device="cpu",
+                    dt=dt,
+                    steps=round(0.1 / dt),
+                    ms_per_sim_s=1e-3 / dt,
+                    disc_rms=dt,
+                    impl_rms=1e-7,
+                    order=1.0,
+                    **machine,
+                )
+            )
     return rows
 
 
@@ -551,9 +632,24 @@ def _small_stability(*machines: dict) -> list:
     rows = []
     for k in (1000.0, 10000.0, 100000.0):
         machine = machines[len(rows) % len(machines)] if machines else {}
-        rows.append(StabilityRow("flat", k, 0.002, 10, 300, "numpy", "numpy f32", 0.06 / math.sqrt(k),
-                                 0.061 / math.sqrt(k), 0.06 / math.sqrt(k), 0.06 / math.sqrt(k), 0.04 / math.sqrt(k),
-                                 10, **machine))  # fmt: skip
+        rows.append(
+            StabilityRow(
+                "flat",
+                k,
+                0.002,
+                10,
+                300,
+                "numpy",
+                "numpy f32",
+                0.06 / math.sqrt(k),
+                0.061 / math.sqrt(k),
+                0.06 / math.sqrt(k),
+                0.06 / math.sqrt(k),
+                0.04 / math.sqrt(k),
+                10,
+                **machine,
+            )
+        )
     return rows
 
 

@@ -99,9 +99,10 @@ def test_runners_up_are_the_next_cheapest_and_all_meet_the_error(capsys):
     assert all(p["error_bound"] <= E and p["disc_max"] <= E for p in shown)
     # independently, from the CSV: the cheapest rows that qualify, among backends usable here
     ok = sorted(
-        float(r["ms_per_sim_s"]) for r in records()
+        float(r["ms_per_sim_s"])
+        for r in records()
         if r["status"] == "ok" and usable_here(r) and float(r["disc_max"]) + float(r["ref_uncertainty"]) <= E
-    )  # fmt: skip
+    )
     assert costs == ok[: len(costs)]
     # the cheapest of each other solver and backend meet E too, and cost at least the choice's
     for group in out["by_model"] + out["by_backend"]:

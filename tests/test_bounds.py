@@ -27,9 +27,17 @@ RATES = bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, rsqrt=2e10)
 def fixed(bandwidth_gb_s: float = 20.0, rates: bounds.Rates = RATES) -> bounds.MachineBounds:
     """Limits given, not measured: what the counting tests need to be exact."""
     return bounds.MachineBounds(
-        threads=2, triad_gb_s=bandwidth_gb_s, copy_gb_s=bandwidth_gb_s / 2, triad_pass_gb_s=bandwidth_gb_s / 2,
-        copy_pass_gb_s=bandwidth_gb_s / 3, f32=rates, f64=rates, array_mib=1, compiler="test", seconds=0.0,
-    )  # fmt: skip
+        threads=2,
+        triad_gb_s=bandwidth_gb_s,
+        copy_gb_s=bandwidth_gb_s / 2,
+        triad_pass_gb_s=bandwidth_gb_s / 2,
+        copy_pass_gb_s=bandwidth_gb_s / 3,
+        f32=rates,
+        f64=rates,
+        array_mib=1,
+        compiler="test",
+        seconds=0.0,
+    )
 
 
 def plain(n: int):

@@ -307,8 +307,12 @@ def test_gcc_vectorises_the_interior_loop(scene_name, strict, precision):
     loop = next(i for i, line in enumerate(lines, 1) if "interior_particle(&local" in line) - 1
     assert lines[loop - 1].lstrip().startswith("for ("), "the interior loop is the line above its call"
     flags = build_flags(scene_named(scene_name), precision, strict)
-    out = subprocess.run([cc.path, *flags, "-fopt-info-vec-optimized", "-S", "-o", "/dev/null", str(source)],
-                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    out = subprocess.run(
+        [cc.path, *flags, "-fopt-info-vec-optimized", "-S", "-o", "/dev/null", str(source)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr
     found = re.findall(rf"{re.escape(source.name)}:(\d+):\d+: optimized: loop vectorized", out.stderr)
     assert any(first <= int(n) <= last or int(n) == loop for n in found), (
@@ -342,8 +346,9 @@ class _SeenLoad:
         (1.0, BackendOptions(), "off", 2),  # tuning off (the suite's default shapes): no watch at all
     ],
 )
-def test_a_run_that_starts_on_a_busy_machine_takes_the_threads_left_free(monkeypatch, other_cores, options, tuning,
-                                                                         threads):  # fmt: skip
+def test_a_run_that_starts_on_a_busy_machine_takes_the_threads_left_free(
+    monkeypatch, other_cores, options, tuning, threads
+):
     require("c")
     from clothbench import environment, machine_load
     from clothbench.backends import tuning as tuning_module

@@ -94,8 +94,9 @@ def test_backends_lists_the_driver_run_prints(backend, capsys):
     assert ran["driver"] and ran["driver"] == probe.driver, (ran["driver"], probe.driver)
     row = {"backend": backend, "kind": "clothbench", "usable": True, "device": probe.device, "driver": probe.driver}
     print_backends([row])
-    listed = "".join(line.split("│")[4].strip() + " " for line in capsys.readouterr().out.splitlines()
-                     if line.count("│") == 5)  # fmt: skip
+    listed = "".join(
+        line.split("│")[4].strip() + " " for line in capsys.readouterr().out.splitlines() if line.count("│") == 5
+    )
     assert " ".join(f"driver: {probe.driver}".split()) in " ".join(listed.split()), listed
 
 
@@ -227,8 +228,10 @@ def test_warp_says_nothing_about_a_missing_cuda_driver():
         pytest.skip("warp is not installed (pip install 'clothbench[peers]')")
     out = subprocess.run(
         [sys.executable, "-m", "clothbench", "run", "--backend", "warp", "--grid", "8", "--steps", "2"],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr
     assert "Could not find or load the NVIDIA CUDA driver" not in out.stderr + out.stdout
 
@@ -237,8 +240,9 @@ def test_backends_table_prints_an_install_hint_with_its_brackets(capsys):
     # rich would read "[peers]" as markup and drop it, leaving a command that installs nothing
     from clothbench.reports.tables import print_backends
 
-    print_backends([{"backend": "x", "kind": "peer", "usable": False, "device": "",
-                     "reason": "pip install 'clothbench[peers]'"}])  # fmt: skip
+    print_backends(
+        [{"backend": "x", "kind": "peer", "usable": False, "device": "", "reason": "pip install 'clothbench[peers]'"}]
+    )
     assert "clothbench[peers]" in capsys.readouterr().out
 
 
@@ -278,10 +282,17 @@ def test_accuracy_help_agrees_with_docs_pbd_on_when_the_methods_meet(capsys):
     assert "1.7e-5 m RMS" in docs and "2.0e-4 m away" in docs
 
 
-DEVICE = {"device": "0:0", "default": True, "name": "Intel(R) Xeon(R) Processor @ 2.10GHz",
-          "runtime": "Intel CPU runtime", "platform": "Intel(R) OpenCL",
-          "platform_version": "OpenCL 3.0 PoCL 3.1+debian Linux, None+Asserts, RELOC, SPIR, LLVM 15.0.6, SLEEF",
-          "driver_version": "2026.22.10.0.01_160000", "llvm": None, "compiles": True}  # fmt: skip
+DEVICE = {
+    "device": "0:0",
+    "default": True,
+    "name": "Intel(R) Xeon(R) Processor @ 2.10GHz",
+    "runtime": "Intel CPU runtime",
+    "platform": "Intel(R) OpenCL",
+    "platform_version": "OpenCL 3.0 PoCL 3.1+debian Linux, None+Asserts, RELOC, SPIR, LLVM 15.0.6, SLEEF",
+    "driver_version": "2026.22.10.0.01_160000",
+    "llvm": None,
+    "compiles": True,
+}
 
 
 @pytest.mark.parametrize("width", [80, 40])

@@ -33,10 +33,18 @@ def cluster(monkeypatch):
     # this xdist worker would run c on one thread and record them in its rows' env column
     environ = dict(os.environ)
     with dask.config.set({"distributed.worker.daemon": False}):
-        with distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
-            resources={"timing": 1}, silence_logs=40,
-        ) as c, distributed.Client(c) as client:  # fmt: skip
+        with (
+            distributed.LocalCluster(
+                n_workers=2,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+                resources={"timing": 1},
+                silence_logs=40,
+            ) as c,
+            distributed.Client(c) as client,
+        ):
             yield c, client
     os.environ.clear()
     os.environ.update(environ)

@@ -229,10 +229,18 @@ def test_generic_defines_are_one_key_and_specialised_ones_name_the_scene():
     assert counts == ("1", "1", "1")
     assert floats(defines["CLOTH_SPHERES"]) == list(np.float32([0.8, 0.45, 0.2, 0.2]))
     cylinder = b.cylinders[0]  # (start, length), (axis, radius), (radial * radius, 0)
-    assert floats(defines["CLOTH_CYLINDERS"]) == list(np.float32([
-        *cylinder.start, cylinder.length, *cylinder.axis, cylinder.radius,
-        *(np.float64(cylinder.radial) * cylinder.radius), 0.0,
-    ]))  # fmt: skip
+    assert floats(defines["CLOTH_CYLINDERS"]) == list(
+        np.float32(
+            [
+                *cylinder.start,
+                cylinder.length,
+                *cylinder.axis,
+                cylinder.radius,
+                *(np.float64(cylinder.radial) * cylinder.radius),
+                0.0,
+            ]
+        )
+    )
     assert floats(defines["CLOTH_PLANES"])[4:7] == list(np.float32(b.planes[0].unit_normal))
     only_spheres = values(sphere(8))
     assert only_spheres["CLOTH_PLANE_COUNT"] == "0" and "CLOTH_PLANES" not in only_spheres
@@ -436,11 +444,14 @@ def every_branch() -> tuple[Scene, np.ndarray, np.ndarray]:
     """Nine particles placed by hand, one in each branch of docs/semantics.md's colliders.
     No springs, gravity or damping: each particle stays where it is until collided."""
     scene = Scene(
-        grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0),
+        grid=3,
+        stiffness=0.0,
+        damping=0.0,
+        gravity=(0, 0, 0),
         spheres=(Sphere((3.0, 0.0, 0.0), 0.5),),
         cylinders=(Cylinder((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 0.2),),  # along x; radial_r = (0, 0, 0.2)
         planes=(Plane((0.0, 0.0, 2.0), (0.3, 0.0, -1.0)),),  # solid beyond z = 2 (+ 0.3 x)
-    )  # fmt: skip
+    )
     pos = np.array([
         (0.5, 0.0, 0.0),    # 0: exactly on the cylinder's axis -> out along radial_r
         (0.5, 0.1, 0.0),    # 1: inside, nearest the curved side -> (0.5, 0.2, 0)
@@ -842,9 +853,11 @@ def fake_cupy(runtime: int, driver: int, devices: int | Exception, nvcc: str | N
     cp = types.ModuleType("cupy")
     cp.__version__ = "14.2.0"
     rt = types.SimpleNamespace(
-        runtimeGetVersion=lambda: runtime, driverGetVersion=lambda: driver, getDeviceCount=count,
+        runtimeGetVersion=lambda: runtime,
+        driverGetVersion=lambda: driver,
+        getDeviceCount=count,
         getDeviceProperties=lambda index: {"name": b"NVIDIA H200"},
-    )  # fmt: skip
+    )
     cp.cuda = types.SimpleNamespace(runtime=rt, get_nvcc_path=lambda: nvcc)
     return cp
 
@@ -911,9 +924,12 @@ def test_nvrtc_refuses_a_device_older_than_its_cuda_in_one_line(monkeypatch):
     nvrtc = types.SimpleNamespace(getSupportedArchs=lambda: (75, 80, 90), getVersion=lambda: (13, 0))
     libs = types.ModuleType("cupy_backends.cuda.libs")
     libs.nvrtc = nvrtc
-    for name, module in [("cupy_backends", types.ModuleType("cupy_backends")),
-                         ("cupy_backends.cuda", types.ModuleType("cupy_backends.cuda")),
-                         ("cupy_backends.cuda.libs", libs), ("cupy_backends.cuda.libs.nvrtc", nvrtc)]:  # fmt: skip
+    for name, module in [
+        ("cupy_backends", types.ModuleType("cupy_backends")),
+        ("cupy_backends.cuda", types.ModuleType("cupy_backends.cuda")),
+        ("cupy_backends.cuda.libs", libs),
+        ("cupy_backends.cuda.libs.nvrtc", nvrtc),
+    ]:
         monkeypatch.setitem(sys.modules, name, module)
     with pytest.raises(ClothbenchError) as e:
         cuda.compile_kernel(True, "70", "nvrtc", "cubin", ("-DCLOTH_GENERIC",))

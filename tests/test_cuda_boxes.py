@@ -51,8 +51,14 @@ def pingpong(scene, solver, strict=True, generic=False, steps_per_launch=None) -
     lib = cpu.build(strict, cuda.kernel_defines(scene, solver, False, generic))
     if steps_per_launch is None:
         return PingPong(cpu.ShimRuntime(lib), scene, solver, generic=generic)
-    return PingPong(cpu.ShimRuntime(lib, launch.STEPS_KERNEL), scene, solver, generic=generic,
-                    block=launch.multistep_threads(scene.particles), steps_per_launch=steps_per_launch)  # fmt: skip
+    return PingPong(
+        cpu.ShimRuntime(lib, launch.STEPS_KERNEL),
+        scene,
+        solver,
+        generic=generic,
+        block=launch.multistep_threads(scene.particles),
+        steps_per_launch=steps_per_launch,
+    )
 
 
 def assert_equals_reference(pos, prev, scene, solver, steps, what):
@@ -63,8 +69,9 @@ def assert_equals_reference(pos, prev, scene, solver, steps, what):
 
 # --- nvcc --------------------------------------------------------------------------------
 
-NVCC_VARIANTS = [(moving, strict, generic) for moving in (False, True) for strict in (True, False)
-                 for generic in (False, True)]  # fmt: skip
+NVCC_VARIANTS = [
+    (moving, strict, generic) for moving in (False, True) for strict in (True, False) for generic in (False, True)
+]
 
 
 def nvcc_id(variant) -> str:

@@ -62,9 +62,15 @@ def pingpong(scene, strict=True, generic=False, algorithm="accelerated", steps_p
     lib = cpu.build(strict, cuda.kernel_defines(scene, VERLET, False, generic, algorithm))
     if steps_per_launch is None:
         return PingPong(cpu.ShimRuntime(lib), scene, VERLET, generic=generic, **options)
-    return PingPong(cpu.ShimRuntime(lib, launch.STEPS_KERNEL), scene, VERLET, generic=generic,
-                    block=launch.multistep_threads(scene.particles), steps_per_launch=steps_per_launch,
-                    **options)  # fmt: skip
+    return PingPong(
+        cpu.ShimRuntime(lib, launch.STEPS_KERNEL),
+        scene,
+        VERLET,
+        generic=generic,
+        block=launch.multistep_threads(scene.particles),
+        steps_per_launch=steps_per_launch,
+        **options,
+    )
 
 
 def run(pp: PingPong, scene: Scene, checkpoints=(STEPS,)):
@@ -89,11 +95,20 @@ def assert_matches_reference(pp, scene, checkpoints, what):
 # (scene, strict, generic, algorithm): the mesh scene both ways, the moving scenes with the
 # default algorithm (sweep's paddle is a mesh; carried has no mesh)
 NVCC_VARIANTS = [
-    *((name, strict, generic, algorithm) for name in ("torus",) for algorithm in ALGORITHMS
-      for strict in (True, False) for generic in (False, True)),
-    *((name, strict, generic, "accelerated") for name in ("sweep", "carried")
-      for strict in (True, False) for generic in (False, True)),
-]  # fmt: skip
+    *(
+        (name, strict, generic, algorithm)
+        for name in ("torus",)
+        for algorithm in ALGORITHMS
+        for strict in (True, False)
+        for generic in (False, True)
+    ),
+    *(
+        (name, strict, generic, "accelerated")
+        for name in ("sweep", "carried")
+        for strict in (True, False)
+        for generic in (False, True)
+    ),
+]
 
 
 def nvcc_id(v) -> str:
@@ -214,8 +229,9 @@ def test_generic_builds_are_one_key_per_kind_of_scene():
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
 def test_strict_torus_equals_numpy_after_500_steps(algorithm, build):
     scene = scene_named("torus")
-    assert_matches_reference(pingpong(scene, generic=BUILDS[build], algorithm=algorithm), scene, (1, STEPS),
-                             f"torus, {algorithm}, {build}")  # fmt: skip
+    assert_matches_reference(
+        pingpong(scene, generic=BUILDS[build], algorithm=algorithm), scene, (1, STEPS), f"torus, {algorithm}, {build}"
+    )
     # the torus holds the sheet by then: tests/contract/test_bodies_contract.py checks the reference
 
 
@@ -242,7 +258,7 @@ def test_strict_moving_scenes_equal_numpy_after_500_and_1000_steps(name, build, 
 
 def test_attached_pins_are_their_targets_at_the_end_of_each_step_exactly():
     scene = scene_named("carried")
-    (_, pos, prev), = run(pingpong(scene), scene, (STEPS,))  # fmt: skip
+    ((_, pos, prev),) = run(pingpong(scene), scene, (STEPS,))
     pinned = scene.pinned()
     assert_bit_exact(pos[pinned, :3], pin_targets(scene, STEPS * VERLET.dt), "pins at t = 500 dt")
     assert_bit_exact(prev[pinned, :3], pin_targets(scene, (STEPS - 1) * VERLET.dt), "pins at t = 499 dt")
@@ -259,7 +275,7 @@ def test_advance_in_pieces_across_motion_windows_equals_one_call(transfer, monke
     scene = scene_named("sweep")
     pieces = (1, 255, 3, 300, 441)
     whole = pingpong(scene, steps_per_launch=16, transfer=transfer)
-    (_, pos, prev), = run(whole, scene, (sum(pieces),))  # fmt: skip
+    ((_, pos, prev),) = run(whole, scene, (sum(pieces),))
     split = pingpong(scene, steps_per_launch=16, transfer=transfer)
     split.upload(*VERLET.initial_state(scene, np.float32))
     assert split.motion_steps == 256
@@ -337,8 +353,13 @@ def test_every_feature_and_tie_of_a_box_matches_numpy(algorithm, build):
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
 def test_a_rotated_moving_box_matches_numpy(algorithm):
     # R and T per step: the particle goes into the body frame and, when pushed, back
-    box = Mesh(shape="box", margin=0.05, position=(0.2, 0.1, -0.1), rotation=(10.0, 20.0, 30.0),
-               motion=Motion(velocity=(3.0, 0.0, 0.0), angular_velocity=(0.0, 400.0, 0.0)))  # fmt: skip
+    box = Mesh(
+        shape="box",
+        margin=0.05,
+        position=(0.2, 0.1, -0.1),
+        rotation=(10.0, 20.0, 30.0),
+        motion=Motion(velocity=(3.0, 0.0, 0.0), angular_velocity=(0.0, 400.0, 0.0)),
+    )
     scene = still(box)
     rot, trans = box.pose_at(VERLET.dt)  # the pose the step uses: at its end
     pos, prev = placed(scene, np.array(BOX_POINTS) @ rot.T + trans)
@@ -366,7 +387,7 @@ def test_fast_torus_is_as_accurate_as_float32():
     # fast mode (1/sqrt for rsqrt on the CPU, contraction where g++ is allowed) against the
     # float64 reference: held to float32's own error (tests/test_cuda.py, FAST_ERROR_FACTOR)
     scene = scene_named("torus")
-    (_, pos, _), = run(pingpong(scene, strict=False), scene, (STEPS,))  # fmt: skip
+    ((_, pos, _),) = run(pingpong(scene, strict=False), scene, (STEPS,))
     assert_as_accurate_as_float32(pos, scene, STEPS)
 
 

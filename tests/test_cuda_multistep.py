@@ -52,8 +52,16 @@ def multistep(scene, steps_per_launch, strict=True, generic=False, normals=False
     needs_gxx()
     runtime = cpu.ShimRuntime(cpu.build(strict, cuda.kernel_defines(scene, VERLET, normals, generic)), "verlet_steps")
     threads = block or launch.multistep_threads(scene.particles)
-    return PingPong(runtime, scene, VERLET, block=threads, generic=generic, normals=normals,
-                    steps_per_launch=steps_per_launch, **options)  # fmt: skip
+    return PingPong(
+        runtime,
+        scene,
+        VERLET,
+        block=threads,
+        generic=generic,
+        normals=normals,
+        steps_per_launch=steps_per_launch,
+        **options,
+    )
 
 
 def start(pp: PingPong, scene) -> PingPong:
@@ -85,11 +93,19 @@ def nvcc_builds(tmp_path_factory):
         defines = [cuda._nvcc_escaped(d) for d in cuda.kernel_defines(every_collider_scene(64), VERLET, v[2], v[1])]
         base = ["nvcc", "-arch=sm_80", *cuda.compile_options(v[0]), *defines, "-Werror", "all-warnings"]
         ptx, cubin = folder / f"{variant_id(v)}.ptx", folder / f"{variant_id(v)}.cubin"
-        done = subprocess.run([*base, "-ptx", "-o", str(ptx), str(kernel_path(cuda.KERNEL_FILE))],
-                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        done = subprocess.run(
+            [*base, "-ptx", "-o", str(ptx), str(kernel_path(cuda.KERNEL_FILE))],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert done.returncode == 0 and not (done.stdout + done.stderr).strip(), done.stderr
-        done = subprocess.run([*base, "-cubin", "--resource-usage", "-o", str(cubin), str(kernel_path(cuda.KERNEL_FILE))],
-                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        done = subprocess.run(
+            [*base, "-cubin", "--resource-usage", "-o", str(cubin), str(kernel_path(cuda.KERNEL_FILE))],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert done.returncode == 0, done.stderr
         builds[v] = (done.stdout + done.stderr, ptx.read_text())
     return builds
@@ -337,8 +353,13 @@ def test_shim_reports_barriers_it_cannot_honour(toy_shim):
 def test_shapes_offer_the_multistep_kernel_where_the_grid_fits():
     floor = launch.SMALLEST_SHARED_OPTIN
     assert launch.kernel_shapes(64 * 64, None, floor) == (
-        "block=256", "block=64", "block=128", "block=512", "steps/launch=16", "steps/launch=64",
-    )  # fmt: skip
+        "block=256",
+        "block=64",
+        "block=128",
+        "block=512",
+        "steps/launch=16",
+        "steps/launch=64",
+    )
     assert launch.kernel_shapes(65 * 65, None, floor) == ("block=256", "block=64", "block=128", "block=512")
     assert "steps/launch=16" in launch.kernel_shapes(98 * 98, None, 227 * 1024)  # sm_90's limit
     assert "steps/launch=16" not in launch.kernel_shapes(99 * 99, None, 227 * 1024)

@@ -76,7 +76,7 @@ def response_scene():
             Box(center=(1.5, -0.1, 0.4), half_extents=(0.3, 0.15, 0.2), rotation=(25.0, -40.0, 70.0)),
         ),
         pin_corners=(),
-    )  # fmt: skip
+    )
 
 
 # (point, where the box (0.5, 0.5, 0.5) +- (0.125, 0.25, 0.375) takes it, within float32's

@@ -34,8 +34,11 @@ def _run(code: str, env: dict | None = None) -> subprocess.CompletedProcess:
     must be switched on before numba.cuda is imported."""
     return subprocess.run(
         [sys.executable, "-c", textwrap.dedent(code)],
-        capture_output=True, text=True, env={**os.environ, **(env or {})}, cwd=os.path.dirname(__file__),
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        env={**os.environ, **(env or {})},
+        cwd=os.path.dirname(__file__),
+    )
 
 
 @pytest.mark.parametrize("name", ["torch", "jax"])
@@ -299,12 +302,13 @@ def _contact_scene():
     cylinder along row 2 (particles on its axis: the radial_r path), and a tilted plane under
     rows 7 and 8, all touched from the first step."""
     return load_scene("sphere").replace(
-        grid=9, height=1.0,
+        grid=9,
+        height=1.0,
         spheres=(Sphere((0.5, 1.0, 0.5), 0.2),),
         cylinders=(Cylinder((0.1, 1.0, 0.25), (0.9, 1.0, 0.25), 0.08),),
         planes=(Plane((0.0, 1.0, 0.8), (0.0, 1.0, -1.0)),),
         pin_corners=("top-left",),
-    )  # fmt: skip
+    )
 
 
 def test_the_simulator_scene_touches_every_collider_kind():

@@ -18,8 +18,12 @@ from clothbench.backends.numpy.verlet import NumpyBackend
 from clothbench.cli import main
 from clothbench.model.colliders.mesh import mesh_geometry
 from clothbench.harness.plan import (
-    scene_variants, shape_triangles, subdivisions_for, with_mesh_triangles, without_motion,
-)  # fmt: skip
+    scene_variants,
+    shape_triangles,
+    subdivisions_for,
+    with_mesh_triangles,
+    without_motion,
+)
 from clothbench.harness.sweep import SweepSettings, plan_sweep, run_sweep
 from clothbench.model.scene import load_setup
 
@@ -147,8 +151,9 @@ def fakes(monkeypatch):
 
 
 def settings_for(name: str, **dimensions) -> SweepSettings:
-    return SweepSettings(setup=load_setup(name), grids=[6], steps=2, repeats=2, isolate=False, bounds=False,
-                         **dimensions)  # fmt: skip
+    return SweepSettings(
+        setup=load_setup(name), grids=[6], steps=2, repeats=2, isolate=False, bounds=False, **dimensions
+    )
 
 
 def test_a_backend_that_refuses_the_scene_is_skipped_with_its_refusal_not_failed(tmp_path, fakes):

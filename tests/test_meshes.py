@@ -12,8 +12,10 @@ trimesh = pytest.importorskip("trimesh", reason="mesh colliders load with trimes
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.model.kernel_inputs import MeshConstants, pose_rows
 from clothbench.backends.numpy.collide_mesh import (
-    closest_triangle_bvh, closest_triangle_naive, collide_mesh,
-)  # fmt: skip
+    closest_triangle_bvh,
+    closest_triangle_naive,
+    collide_mesh,
+)
 from clothbench.cli import main
 from clothbench.model.colliders.mesh import Mesh
 from clothbench.errors import SceneError
@@ -197,8 +199,14 @@ def test_a_mesh_far_from_the_origin_still_pushes_out_to_float32_resolution():
     # at 1e4 m a float32 coordinate steps by 2^-10 m (about 1 mm): the push-out lands within
     # that of the surface, and nothing is NaN
     far = 1.0e4
-    scene = Scene(grid=3, stiffness=0.0, damping=0.0, gravity=(0, 0, 0), height=far,
-                  meshes=(Mesh(shape="icosphere", subdivisions=3, position=(far, far, far), scale=0.5),))  # fmt: skip
+    scene = Scene(
+        grid=3,
+        stiffness=0.0,
+        damping=0.0,
+        gravity=(0, 0, 0),
+        height=far,
+        meshes=(Mesh(shape="icosphere", subdivisions=3, position=(far, far, far), scale=0.5),),
+    )
     out = one_step(scene, [(far + 0.3, far, far), (far, far - 0.2, far + 0.1)])
     ulp = float(np.spacing(np.float32(far)))
     assert ulp == 2.0**-10

@@ -71,8 +71,10 @@ def machine(monkeypatch, tmp_path):
 
 def test_runtime_kinds_tell_the_wheels_pocl_from_the_systems(machine):
     assert [runtimes.runtime_of(p) for p in (WHEEL, INTEL, DEBIAN)] == [
-        runtimes.WHEEL_POCL, runtimes.INTEL_CPU, runtimes.SYSTEM_POCL
-    ]  # fmt: skip
+        runtimes.WHEEL_POCL,
+        runtimes.INTEL_CPU,
+        runtimes.SYSTEM_POCL,
+    ]
 
 
 def test_default_with_tuning_off_is_the_first_that_compiles_in_the_stated_order(machine):
@@ -353,8 +355,11 @@ def test_run_prints_the_opencl_platform_and_driver_version_of_its_context(runtim
     monkeypatch.setenv("PYOPENCL_CTX", spec)
     monkeypatch.setenv("COLUMNS", "400")  # rich wraps a captured table at 80 otherwise
     assert main(["run", "--backend", "opencl", "--grid", "8", "--steps", "2"]) == 0
-    printed = {cells[1].strip(): cells[2].strip() for line in capsys.readouterr().out.splitlines()
-               if len(cells := line.split("│")) == 4}  # fmt: skip
+    printed = {
+        cells[1].strip(): cells[2].strip()
+        for line in capsys.readouterr().out.splitlines()
+        if len(cells := line.split("│")) == 4
+    }
     name, version, driver = _pyopencl_driver(spec)
     assert printed["driver"] == f"{name}: {version}; driver {driver}", printed
 

@@ -144,8 +144,11 @@ def residual_study(runs=((3, 500), (3, 4000), (20, 10), (20, 100), (20, 1000))) 
                         break
             ends[method] = backend.read()[0]
         gap = rms_distance(ends["jacobi"], ends["coloured"])
-        print(f"{steps} steps x {iterations} iterations: Jacobi {gap:.3g} m RMS from coloured; "
-              f"first non-finite step {blew_up or 'none'}", flush=True)  # fmt: skip
+        print(
+            f"{steps} steps x {iterations} iterations: Jacobi {gap:.3g} m RMS from coloured; "
+            f"first non-finite step {blew_up or 'none'}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":  # python tests/test_pbd_convergence.py [converged|residual]: docs/pbd.md's numbers

@@ -85,10 +85,20 @@ def test_readme_says_which_opencl_runtime_the_quick_start_gets(committed):
 
 def row(backend: str, grid: int, ms: float, peer: bool = False, **extra) -> dict[str, str]:
     out = {
-        "backend": backend, "peer": "true" if peer else "false", "mode": "fast", "status": "ok", "grid": str(grid),
-        "solver": "verlet", "local_size": "", "precision": "f32", "ms_median": str(ms), "bound_ms": "",
-        "bound_kind": "", "bound_fraction": "", "vs_c": "",
-    }  # fmt: skip
+        "backend": backend,
+        "peer": "true" if peer else "false",
+        "mode": "fast",
+        "status": "ok",
+        "grid": str(grid),
+        "solver": "verlet",
+        "local_size": "",
+        "precision": "f32",
+        "ms_median": str(ms),
+        "bound_ms": "",
+        "bound_kind": "",
+        "bound_fraction": "",
+        "vs_c": "",
+    }
     out.update(extra)
     return out
 

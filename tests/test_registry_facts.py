@@ -15,8 +15,16 @@ from pathlib import Path
 import pytest
 
 from clothbench.backends import (
-    BACKENDS, PEERS, PLATFORMS, Availability, Backend, BackendEntry, BackendOptions, availability, backend_class,
-)  # fmt: skip
+    BACKENDS,
+    PEERS,
+    PLATFORMS,
+    Availability,
+    Backend,
+    BackendEntry,
+    BackendOptions,
+    availability,
+    backend_class,
+)
 from clothbench.cli import main
 from clothbench.harness.sweep import run_sweep
 from clothbench.harness.sweep_settings import SweepSettings
@@ -170,10 +178,12 @@ def test_the_twin_is_in_the_sweep_and_every_figure_and_backend_table_of_the_repo
         writer.writeheader()
         writer.writerows(_cheaper(r, SWEEP_COSTS) if r["backend"] == TWIN else r for r in rows)
     results = ROOT / "results"
-    accuracy = _with_twin(results / "accuracy-drape.csv", tmp_path / "accuracy.csv",
-                          ("numpy f32", "numpy f32/pbd-jacobi/10it"))  # fmt: skip
-    stability = _with_twin(results / "stability.csv", tmp_path / "stability.csv",
-                           ("numpy f32", "numpy f32/pbd-coloured/10it"))  # fmt: skip
+    accuracy = _with_twin(
+        results / "accuracy-drape.csv", tmp_path / "accuracy.csv", ("numpy f32", "numpy f32/pbd-jacobi/10it")
+    )
+    stability = _with_twin(
+        results / "stability.csv", tmp_path / "stability.csv", ("numpy f32", "numpy f32/pbd-coloured/10it")
+    )
     out = tmp_path / "report.html"
     assert main(["report", str(sweep), str(accuracy), str(stability), "--out", str(out)]) == 0
     page = out.read_text(encoding="utf-8")

@@ -111,8 +111,18 @@ def test_pbd_without_stiffness_needs_a_compliance():
 def test_the_scene_is_the_model_only():
     # how it is stepped (solver.py) and for how long (a steps argument) are not the scene's
     scene = Scene()
-    for moved in ("dt", "steps", "start", "solver", "pbd_method", "iterations", "substeps", "relaxation",
-                  "compliance", "pbd_compliance"):  # fmt: skip
+    for moved in (
+        "dt",
+        "steps",
+        "start",
+        "solver",
+        "pbd_method",
+        "iterations",
+        "substeps",
+        "relaxation",
+        "compliance",
+        "pbd_compliance",
+    ):
         assert not hasattr(scene, moved), moved
 
 
@@ -165,9 +175,14 @@ def test_a_scene_file_names_its_solver(tmp_path):
     )
     run = load_setup(str(path))
     want = Pbd(
-        dt=0.01, start="second-order", method="coloured", iterations=4, substeps=2, relaxation=1.2,
+        dt=0.01,
+        start="second-order",
+        method="coloured",
+        iterations=4,
+        substeps=2,
+        relaxation=1.2,
         compliance=(1e-3, 2e-3, 3e-3),
-    )  # fmt: skip
+    )
     assert run.solver == want and run.pbd == want
     assert run.steps == 40 and run.scene.grid == 8
     assert run.solver.spec == "pbd-coloured"

@@ -32,11 +32,43 @@ pytestmark = pytest.mark.serial  # times sweep rows: one xdist worker
 
 # Columns every row must have (the file has more).
 ISSUE_COLUMNS = (
-    "backend", "peer", "mode", "strict", "transfer", "local_size", "precision", "device", "scene", "grid",
-    "particles", "springs", "steps", "repeats", "dt", "ms_median", "ms_min", "ms_max", "ms_iqr",
-    "particles_per_s", "warmup_s", "finite", "status", "note", "err_rms_m", "err_max_m", "simulated_s",
-    "cpu", "cores", "python", "packages", "git_commit", "timestamp", "timed_region", "solver", "generic",
-)  # fmt: skip
+    "backend",
+    "peer",
+    "mode",
+    "strict",
+    "transfer",
+    "local_size",
+    "precision",
+    "device",
+    "scene",
+    "grid",
+    "particles",
+    "springs",
+    "steps",
+    "repeats",
+    "dt",
+    "ms_median",
+    "ms_min",
+    "ms_max",
+    "ms_iqr",
+    "particles_per_s",
+    "warmup_s",
+    "finite",
+    "status",
+    "note",
+    "err_rms_m",
+    "err_max_m",
+    "simulated_s",
+    "cpu",
+    "cores",
+    "python",
+    "packages",
+    "git_commit",
+    "timestamp",
+    "timed_region",
+    "solver",
+    "generic",
+)
 TINY = ["--steps", "3", "--repeat", "2"]
 
 
@@ -112,8 +144,16 @@ def fake_entry(name: str, target: str, peer: bool = False) -> BackendEntry:
     key no registered backend has (every command's --help lists them, one backend a key)."""
     numpy = BACKENDS["numpy"]
     key = next(k for k in BACKEND_KEY_NAMES if k not in {e.view_key for e in BACKENDS.values()})
-    return dataclasses.replace(numpy, name=name, verlet=target, pbd=None, peer=peer, display=name,
-                               platform=PEERS if peer else numpy.platform, view_key=key)  # fmt: skip
+    return dataclasses.replace(
+        numpy,
+        name=name,
+        verlet=target,
+        pbd=None,
+        peer=peer,
+        display=name,
+        platform=PEERS if peer else numpy.platform,
+        view_key=key,
+    )
 
 
 def register_fake_backends(monkeypatch, *classes: type, peers: tuple[str, ...] = ()) -> None:
@@ -135,9 +175,15 @@ def fake_backends(monkeypatch):
     monkeypatch.setitem(sys.modules, absent.__name__, absent)
     monkeypatch.setitem(BACKENDS, "fake-absent", fake_entry("fake-absent", f"{absent.__name__}:Nothing"))
     register_fake_backends(
-        monkeypatch, LocalSizeBackend, ExplodingBackend, NaNBackend, PeerBackend, GenericBackend, InterruptedBackend,
+        monkeypatch,
+        LocalSizeBackend,
+        ExplodingBackend,
+        NaNBackend,
+        PeerBackend,
+        GenericBackend,
+        InterruptedBackend,
         peers=("fake-peer",),
-    )  # fmt: skip
+    )
     yield
     availability.cache_clear()
 

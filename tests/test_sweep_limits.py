@@ -114,9 +114,8 @@ def test_rows_are_compared_with_the_c_row_of_the_same_grid_and_arithmetic(tmp_pa
     assert c_fast["driver"]  # the compiler that built it
     numpy_f32 = next(r for r in rows if r["backend"] == "numpy" and r["precision"] == "f32")
     c_same = next(
-        r for r in rows
-        if r["backend"] == "c" and r["precision"] == "f32" and r["strict"] == numpy_f32["strict"]
-    )  # fmt: skip
+        r for r in rows if r["backend"] == "c" and r["precision"] == "f32" and r["strict"] == numpy_f32["strict"]
+    )
     assert float(numpy_f32["vs_c"]) == pytest.approx(
         float(numpy_f32["ms_median"]) / float(c_same["ms_median"]), rel=1e-4
     )

@@ -323,8 +323,12 @@ def test_a_quiet_row_far_off_its_tuning_sends_the_choice_back_once(tuning_on):
 
 def test_the_tuning_listing_shows_status_when_load_and_closeness(tuning_on, machine, capsys):
     machine.other_cores = 1.5
-    tuning.choose_shape("c", {**KEY, "cpu": "a long cpu name"}, ["threads=2", "threads=1"],
-                        timer({"threads=2": [2e-3, 2.1e-3, 2e-3], "threads=1": [1e-3, 1.05e-3, 1.1e-3]})[0])  # fmt: skip
+    tuning.choose_shape(
+        "c",
+        {**KEY, "cpu": "a long cpu name"},
+        ["threads=2", "threads=1"],
+        timer({"threads=2": [2e-3, 2.1e-3, 2e-3], "threads=1": [1e-3, 1.05e-3, 1.1e-3]})[0],
+    )
     assert main(["tuning", "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
     assert (row["backend"], row["choice"], row["status"], row["next_best"]) == (

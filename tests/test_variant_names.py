@@ -45,9 +45,13 @@ def every_variant(monkeypatch) -> list[tuple[str, Variant]]:
     out = []
     for scene_name, collisions in (("drape", ()), ("torus", MESH_COLLISIONS)):
         setup = load_setup(scene_name)
-        solvers = [setup.solver_for("verlet"), setup.solver_for("pbd-jacobi"),
-                   setup.solver_for("pbd-coloured").replace(substeps=2), setup.solver_for("vbd"),
-                   setup.solver_for("vbd").replace(iterations=40, substeps=3)]  # fmt: skip
+        solvers = [
+            setup.solver_for("verlet"),
+            setup.solver_for("pbd-jacobi"),
+            setup.solver_for("pbd-coloured").replace(substeps=2),
+            setup.solver_for("vbd"),
+            setup.solver_for("vbd").replace(iterations=40, substeps=3),
+        ]
         for base in (BackendOptions(), BackendOptions(normals=True, gl="osmesa")):
             variants, _ = plan_variants(BACKENDS, solvers, base, (32,), "both", setup.scene, collisions)
             out += [(scene_name, v) for v in variants]
@@ -61,8 +65,9 @@ def test_every_planned_variant_reads_back_to_its_words_and_spells_back_to_its_na
         assert Mode.parse(v.mode) == v.mode_words, v.mode
         assert Mode.parse(v.mode).spell() == v.mode
         iterative = v.solver.name in ITERATIVE
-        words = VariantName(v.backend, v.mode_words, v.solver.iterations if iterative else None,
-                            v.solver.substeps if iterative else 1)  # fmt: skip
+        words = VariantName(
+            v.backend, v.mode_words, v.solver.iterations if iterative else None, v.solver.substeps if iterative else 1
+        )
         assert VariantName.parse(v.name) == words, v.name
         assert VariantName.parse(v.name).spell() == v.name
 

@@ -62,8 +62,15 @@ def body_cases(scenes=tuple(CHECKPOINTS), builds: bool = True) -> list:
             offered = searches(param)
             for search in offered if has_mesh else (None,):
                 heavy = generic or search not in (None, offered[0])
-                cases.append(pytest.param(param.values[0], scene_name, search, id=f"{param.id}-{scene_name}-{search}",
-                                          marks=FULL if heavy else ()))  # fmt: skip
+                cases.append(
+                    pytest.param(
+                        param.values[0],
+                        scene_name,
+                        search,
+                        id=f"{param.id}-{scene_name}-{search}",
+                        marks=FULL if heavy else (),
+                    )
+                )
     return cases
 
 
@@ -158,8 +165,13 @@ def test_the_bodies_change_the_reference_after_contact(scene_name):
 def test_strict_matches_numpy_f32_bit_for_bit_after_contact(param, scene_name, search):
     name, generic = usable(param)
     scene = scene_named(scene_name)
-    assert_reference_bits(name, scene, {"strict": True, "generic": generic, "mesh_collision": search},
-                          CHECKPOINTS[scene_name], f"{scene_name} mesh={search} generic={generic}")  # fmt: skip
+    assert_reference_bits(
+        name,
+        scene,
+        {"strict": True, "generic": generic, "mesh_collision": search},
+        CHECKPOINTS[scene_name],
+        f"{scene_name} mesh={search} generic={generic}",
+    )
 
 
 @pytest.mark.parametrize("reach", ["300", pytest.param("after-contact", marks=FULL)])
@@ -205,10 +217,15 @@ def two_meshes(n: int = 16):
         planes=(),
         meshes=(
             Mesh(shape="icosphere", subdivisions=1, position=(0.3, 0.0, 0.3), scale=0.3, name="ball"),
-            Mesh(shape="box", position=(0.75, 0.2, 0.7), scale=(0.3, 0.3, 0.3), name="block",
-                 motion=Motion(angular_velocity=(0.0, 120.0, 0.0))),
+            Mesh(
+                shape="box",
+                position=(0.75, 0.2, 0.7),
+                scale=(0.3, 0.3, 0.3),
+                name="block",
+                motion=Motion(angular_velocity=(0.0, 120.0, 0.0)),
+            ),
         ),
-    )  # fmt: skip
+    )
 
 
 @pytest.mark.parametrize("param", backend_params(needs="strict", takes="meshes"))

@@ -27,12 +27,13 @@ def three_colliders(grid: int):
     """A sheet held by two corners falls across a cylinder and a sphere onto a tilted floor:
     every collider kind, each touched within 200 steps at 60 Hz (tests/test_pbd_gpu.py checks)."""
     return load_scene("cylinder").replace(
-        grid=grid, height=0.8,
+        grid=grid,
+        height=0.8,
         cylinders=(Cylinder((0.1, 0.45, 0.3), (0.9, 0.45, 0.3), 0.15),),
         spheres=(Sphere((0.5, 0.4, 0.75), 0.2),),
         planes=(Plane((0.0, 0.2, 0.0), (0.05, 1.0, 0.0)),),
         pin_corners=("top-left", "top-right"),
-    )  # fmt: skip
+    )
 
 
 SCENES = {"curtain": curtain, "three colliders": three_colliders}

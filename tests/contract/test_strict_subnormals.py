@@ -36,8 +36,11 @@ def test_the_weightless_scene_reaches_subnormals():
     assert subnormal.any(), "the case no longer reaches the subnormal range"
 
 
-@pytest.mark.parametrize("chunk", [pytest.param(None, marks=pytest.mark.full), 3, pytest.param(1, marks=pytest.mark.full)],
-                         ids=["chunk30", "chunk3", "chunk1"])  # the quick tier: one chunking  # fmt: skip
+@pytest.mark.parametrize(
+    "chunk",
+    [pytest.param(None, marks=pytest.mark.full), 3, pytest.param(1, marks=pytest.mark.full)],
+    ids=["chunk30", "chunk3", "chunk1"],
+)  # the quick tier: one chunking
 @pytest.mark.parametrize("param", backend_params())
 def test_strict_on_subnormals_is_exact_or_the_run_says_where_it_parts(param, chunk):
     name, _ = usable(param)

@@ -45,8 +45,15 @@ def strict_cases() -> list:
         for scene_name in SCENES:
             for steps in (1,) if scene_name in MESH_SCENES else (1, 500):
                 heavy = steps == 500 and BACKENDS[name].peer
-                cases.append(pytest.param(param.values[0], scene_name, steps, id=f"{param.id}-{scene_name}-{steps}",
-                                          marks=pytest.mark.full if heavy else ()))  # fmt: skip
+                cases.append(
+                    pytest.param(
+                        param.values[0],
+                        scene_name,
+                        steps,
+                        id=f"{param.id}-{scene_name}-{steps}",
+                        marks=pytest.mark.full if heavy else (),
+                    )
+                )
     return cases
 
 
@@ -89,8 +96,16 @@ def small_grid_cases() -> list:
         heavy = generic or BACKENDS[name].peer
         for scene_name, grids, steps in (("all-kinds", (3, 4, 5, 6, 37), 200), ("sphere", (3, 4, 5, 33, 100), 20)):
             for n in grids:
-                cases.append(pytest.param(param.values[0], scene_name, n, steps, id=f"{param.id}-{scene_name}-{n}",
-                                          marks=pytest.mark.full if heavy else ()))  # fmt: skip
+                cases.append(
+                    pytest.param(
+                        param.values[0],
+                        scene_name,
+                        n,
+                        steps,
+                        id=f"{param.id}-{scene_name}-{n}",
+                        marks=pytest.mark.full if heavy else (),
+                    )
+                )
     return cases
 
 
@@ -107,8 +122,10 @@ def test_strict_holds_on_grids_with_little_or_odd_interior(param, scene_name, n,
 # --- fast: as accurate as float32 ------------------------------------------------------------
 
 
-@pytest.mark.parametrize("scene_name", ["sphere", pytest.param("drape", marks=pytest.mark.full),
-                                        pytest.param("all-kinds", marks=pytest.mark.full)])  # fmt: skip
+@pytest.mark.parametrize(
+    "scene_name",
+    ["sphere", pytest.param("drape", marks=pytest.mark.full), pytest.param("all-kinds", marks=pytest.mark.full)],
+)
 @pytest.mark.parametrize("param", backend_params(builds=True))
 def test_fast_error_is_of_the_order_of_numpy_f32s_own(param, scene_name):
     # Fast mode may contract FMAs and use rsqrt, division and dot built-ins: each an
