@@ -19,6 +19,22 @@ from clothbench.backends.base import Backend, BackendOptions
 from clothbench.model.kernel_inputs import PbdConstants
 
 
+def velocity_state(pos: np.ndarray, prev: np.ndarray, dt) -> tuple[np.ndarray, np.ndarray]:
+    """(x, v) of an uploaded (pos, prev), float32 rows of four: v = (x - xp) / dt, once, in
+    float32 as the references do it (docs/pbd.md, docs/vbd.md: the solvers that keep velocities)."""
+    x = np.array(pos, dtype=np.float32)
+    v = np.zeros_like(x)
+    v[:, :3] = (x[:, :3] - np.asarray(prev, dtype=np.float32)[:, :3]) / dt
+    return x, v
+
+
+def position_state(x: np.ndarray, v: np.ndarray, dt) -> tuple[np.ndarray, np.ndarray]:
+    """(pos, prev) of a device's (x, v), as read() gives it: prev = x - v dt."""
+    prev = x.copy()
+    prev[:, :3] = x[:, :3] - v[:, :3] * dt
+    return x, prev
+
+
 def batch_stage_name(batch) -> str:
     """The profile's name of a coloured batch: its direction and parity."""
     dr, dc = batch.direction
@@ -137,17 +153,10 @@ class PbdDeviceBackend(Backend):
         if pos.shape != expected or prev.shape != expected:
             raise ClothbenchError(f"state must be two {expected} arrays, got {pos.shape} and {prev.shape}")
         self.substeps_done = 0  # the uploaded state is at t = 0: moving bodies start over
-        x = np.array(pos, dtype=np.float32)
-        v = np.zeros_like(x)
-        # docs/pbd.md: v = (x - xp) / dt, once, in float32 as the reference does it
-        v[:, :3] = (x[:, :3] - np.asarray(prev, dtype=np.float32)[:, :3]) / self.constants.dt
-        self._write_state(x, v)
+        self._write_state(*velocity_state(pos, prev, self.constants.dt))
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
-        x, v = self._read_state()
-        prev = x.copy()
-        prev[:, :3] = x[:, :3] - v[:, :3] * self.constants.dt  # docs/pbd.md: prev = x - v dt
-        return x, prev
+        return position_state(*self._read_state(), self.constants.dt)
 
     def advance(self, steps: int) -> None:
         enqueue = self._enqueue

@@ -27,6 +27,7 @@ from clothbench.model.solver import Vbd
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.model.kernel_inputs import VbdConstants
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.pbd_device import position_state, velocity_state
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
     arithmetic_options,
@@ -139,10 +140,7 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         if pos.shape != expected or prev.shape != expected:
             raise ClothbenchError(f"state must be two {expected} arrays, got {pos.shape} and {prev.shape}")
         self.substeps_done = 0  # the uploaded state is at t = 0: moving bodies start over
-        x = np.array(pos, dtype=np.float32)
-        v = np.zeros_like(x)
-        # docs/vbd.md: v = (x - xp) / dt, once, in float32 as the reference does it
-        v[:, :3] = (x[:, :3] - np.asarray(prev, dtype=np.float32)[:, :3]) / self.constants.dt
+        x, v = velocity_state(pos, prev, self.constants.dt)  # docs/vbd.md, as PBD's
         self.queue.finish()
         self._cl.enqueue_copy(self.queue, self.x, x)
         self._cl.enqueue_copy(self.queue, self.v, v)
@@ -153,9 +151,7 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         v = np.empty((self.n2, 4), np.float32)
         self._cl.enqueue_copy(self.queue, x, self.x)
         self._cl.enqueue_copy(self.queue, v, self.v)  # blocking: waits for the steps
-        prev = x.copy()
-        prev[:, :3] = x[:, :3] - v[:, :3] * self.constants.dt  # docs/vbd.md: prev = x - v dt
-        return x, prev
+        return position_state(x, v, self.constants.dt)
 
     def _substeps(self, steps: int):
         """Each substep of `steps` steps, after its collider table and pin targets are uploaded
