@@ -1,14 +1,14 @@
 /*
- * Triangle-mesh colliders for kernels/verlet_cloth.cu: docs/semantics.md, "Triangle mesh",
+ * Triangle-mesh colliders for the CUDA kernels: docs/semantics.md, "Triangle mesh",
  * operation by operation (this file does not restate the rules; the names are the doc's).
- * verlet_cloth.cu includes it only for a scene with meshes (HAS_MESHES): a scene without
- * them compiles none of it. -DCLOTH_MESH_BVH selects the accelerated search (the host's BVH
- * traversed with a fixed stack), otherwise every triangle in index order; both find the same
- * triangle, so the same bits.
+ * collide.cuh includes it, for verlet_cloth.cu and vbd_cloth.cu, only for a scene with meshes
+ * (HAS_MESHES): a scene without them compiles none of it. -DCLOTH_MESH_BVH selects the
+ * accelerated search (the host's BVH traversed with a fixed stack), otherwise every triangle
+ * in index order; both find the same triangle, so the same bits.
  *
  * The particle is taken into the mesh's body frame by its pose (R, T) instead of moving the
  * triangles, so the buffers below are uploaded once and a moving mesh costs only its pose:
- * three rows (R row i, T_i) per step (verlet_cloth.cu: MESH_POSE).
+ * three rows (R row i, T_i) per step (collide.cuh: MESH_POSE).
  *
  * Two buffers hold every mesh of the scene (clothbench/backends/cuda/launch.py: mesh_buffers):
  *   mesh_rows, float4: per mesh MESH_HEADER_ROWS rows (lo, margin), (hi, margin2) and the

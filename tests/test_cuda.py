@@ -676,30 +676,39 @@ def stand_in_cupy(load_kernel) -> types.ModuleType:
 
 
 @pytest.fixture
-def cuda_on_cpu(shim_library, monkeypatch):
+def cuda_on_cpu(shim_library, monkeypatch, request):
     """make(scene, **options) -> (CudaBackend over the stand-in cupy, its CpuShimRuntime).
 
-    The backend's "binary" records what it asked compile_kernel for (strict, defines), and
-    the stand-in RawModule runs the CPU build of exactly that: the backend's own
-    specialisation is what runs."""
+    The backend's "binary" records what it asked compile_kernel for (strict, defines, kernel
+    file), and the stand-in RawModule runs the CPU build of exactly that: the backend's own
+    specialisation is what runs. make.install() only installs the stand-in, for any CUDA class
+    (the VBD one too) and the registry, whose probe it makes ask the stand-in (and this
+    machine again after the test); it returns the list of (strict, defines) compiled."""
     compiled = []
 
-    def compile_kernel(strict, arch, using, code="cubin", defines=()):
+    def compile_kernel(strict, arch, using, code="cubin", defines=(), kernel_file=cuda.KERNEL_FILE):
         compiled.append((strict, defines))
-        return json.dumps({"strict": strict, "defines": defines}).encode()
+        return json.dumps({"strict": strict, "defines": defines, "file": kernel_file}).encode()
 
     def load_kernel(path, name):
         spec = json.loads(Path(path).read_text())
-        return StandInKernel(CpuShimRuntime(shim_library(spec["strict"], tuple(spec["defines"])), name))
+        return StandInKernel(CpuShimRuntime(shim_library(spec["strict"], tuple(spec["defines"]), spec["file"]), name))
 
-    def make(scene, **options):
+    def install():
         monkeypatch.setitem(sys.modules, "cupy", stand_in_cupy(load_kernel))
         monkeypatch.setattr(cuda, "compiler", lambda: "stand-in")
         monkeypatch.setattr(cuda, "compile_kernel", compile_kernel)
+        availability.cache_clear()
+        request.addfinalizer(availability.cache_clear)  # before monkeypatch undoes the stand-in
+        return compiled
+
+    def make(scene, **options):
+        install()
         backend = cuda.CudaBackend(scene, VERLET, BackendOptions(**options))
         assert compiled[-1] == (bool(options.get("strict")), backend.defines)
         return backend, backend.state.runtime.kernel.runtime
 
+    make.install = install
     return make
 
 

@@ -278,10 +278,10 @@ def test_advance_in_pieces_across_motion_windows_equals_one_call(transfer, monke
     ((_, pos, prev),) = run(whole, scene, (sum(pieces),))
     split = pingpong(scene, steps_per_launch=16, transfer=transfer)
     split.upload(*VERLET.initial_state(scene, np.float32))
-    assert split.motion_steps == 256
+    assert split.motion.steps == 256
     for steps in pieces:
         split.advance(steps)
-    assert split.motion_first > 2 * 256  # the window moved at least three times
+    assert split.motion.first > 2 * 256  # the window moved at least three times
     assert_bit_exact(split.read()[0], pos, f"pos, pieces, {transfer}")
     assert_bit_exact(pos, reference(scene, VERLET, sum(pieces), "f32")[0], f"pos, 1000 steps, {transfer}")
 

@@ -68,7 +68,7 @@ BACKENDS: dict[str, BackendEntry] = {
         BackendEntry("glsl-compute", f"{_OWN}.gl.compute:GLSLComputeBackend",
                      f"{_OWN}.gl.compute_pbd:GLSLComputePbdBackend", summary="GLSL compute shader",
                      display="GLSL compute", platform="GL", gpu_style=True, view_key="F5", fork_safe=False),
-        BackendEntry("cuda", f"{_OWN}.cuda.verlet:CudaBackend", summary="CUDA kernel via CuPy RawKernel",
+        BackendEntry("cuda", f"{_OWN}.cuda.verlet:CudaBackend", vbd=f"{_OWN}.cuda.vbd:CudaVbdBackend", summary="CUDA kernel via CuPy RawKernel",
                      display="CUDA", platform="CUDA", gpu_style=True, view_key="F4", fork_safe=False),
         BackendEntry("taichi", "clothbench.peers.taichi:TaichiBackend", peer=True, summary="Taichi (peer)",
                      display="Taichi", platform=PEERS, gpu_style=False, view_key="F7", fork_safe=False),

@@ -1,4 +1,5 @@
-"""kernels/verlet_cloth.cu built for the CPU through shim/ (g++), and PingPong's runtime on it.
+"""The CUDA kernels (kernels/verlet_cloth.cu, kernels/vbd_cloth.cu) built for the CPU through
+shim/ (g++), and PingPong's runtime (and the VBD launches') on it.
 
 What proves the CUDA kernels on a machine without a GPU (tests/test_cuda.py,
 tests/test_cuda_multistep.py): the unmodified .cu with -include shim/shim.h, the -D switches of
@@ -50,24 +51,27 @@ def _gxx_version(path: str) -> str:
 
 
 @lru_cache(maxsize=64)
-def build(strict: bool, defines: tuple[str, ...]) -> ctypes.CDLL:
-    """The CPU build of verlet_cloth.cu with these switches (verlet.kernel_defines), loaded.
-    Any compiler output (a warning) is an error: the tests hold the source to that."""
+def build(strict: bool, defines: tuple[str, ...], kernel_file: str = "verlet_cloth.cu") -> ctypes.CDLL:
+    """The CPU build of kernels/`kernel_file` (verlet_cloth.cu with verlet.kernel_defines'
+    switches, or vbd_cloth.cu with vbd.vbd_defines'), through its entry points
+    shim/<kernel>_cpu.cpp, loaded. Any compiler output (a warning) is an error: the tests hold
+    the source to that."""
     compiler = gxx()
     if compiler is None:
         raise ClothbenchError("g++ not found: cannot build the CPU shim of the CUDA kernel")
-    kernel = kernel_path("verlet_cloth.cu")
+    kernel = kernel_path(kernel_file)
+    entry = SHIM / f"{kernel.stem}_cpu.cpp"
     # every file the build reads: the kernel, the headers it includes, the shim
     included = resolve_includes(kernel.name, kernel.read_text(), lambda *_: "")[1][1:]
-    sources = [kernel, *map(kernel_path, included), SHIM / "shim.h", SHIM / "verlet_cloth_cpu.cpp"]
+    sources = [kernel, *map(kernel_path, included), SHIM / "shim.h", entry]
     flags = (*GXX_FLAGS, *(["-DCLOTH_STRICT"] if strict else []), *defines)
     text = "\0".join([*(p.read_text() for p in sources), *flags, _gxx_version(compiler)])
-    library = cache_dir("cuda_shim") / f"verlet_cloth-{hashlib.sha256(text.encode()).hexdigest()[:20]}.so"
+    library = cache_dir("cuda_shim") / f"{kernel.stem}-{hashlib.sha256(text.encode()).hexdigest()[:20]}.so"
     if not library.exists():
         with tempfile.TemporaryDirectory(prefix="clothbench-shim-") as tmp:
             built = Path(tmp, "out.so")
             cmd = [compiler, *flags, "-fPIC", "-shared", "-include", str(SHIM / "shim.h"), "-I", str(kernel.parent),
-                   str(SHIM / "verlet_cloth_cpu.cpp"), "-o", str(built)]  # fmt: skip
+                   str(entry), "-o", str(built)]  # fmt: skip
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
             if done.returncode != 0 or done.stderr.strip():
                 lines = done.stderr.strip().splitlines()

@@ -220,6 +220,33 @@ class MotionTable:
         return self.host[first:end].reshape(-1, 4)
 
 
+class MotionWindow:
+    """A moving scene's per-step rows on the device, a window of `steps` steps at a time
+    (docs/cuda.md, "Meshes and motion"): load(0) at upload, outside any timed region; rows()
+    loads the next window when a launch would run past this one."""
+
+    def __init__(self, runtime, table: MotionTable, steps_per_launch: int | None):
+        self.runtime, self.table = runtime, table
+        self.steps = motion_window(table.rows, steps_per_launch)
+        self.buffer = runtime.alloc(np.zeros((self.steps * table.rows, 4), np.float32))
+        self.first = 0  # the first step the device window holds
+
+    def load(self, first: int) -> None:
+        self.runtime.upload(self.buffer, self.table.window(first, self.steps))
+        self.first = first
+
+    def rows(self, step: int, steps: int):
+        """The device rows of steps step .. step + steps - 1 on (a view into the window)."""
+        offset = step - self.first
+        if offset < 0 or offset + steps > self.steps:
+            # inside advance(), so inside a timed chunk: one upload of a window of steps (and
+            # their host evaluation, the first time a step index is reached), every `steps`
+            # steps; upload() loaded the first one outside it
+            self.load(step)
+            offset = 0
+        return self.buffer[offset * self.table.rows :]
+
+
 class PingPong:
     """The chapter's two pairs of buffers and the launches on them, for any runtime that has
 
@@ -276,13 +303,10 @@ class PingPong:
             self.mesh_args = (runtime.alloc(rows), runtime.alloc(ints))
             if generic:
                 self.mesh_args += (np.int32(len(scene.meshes)),)
-        # moving scenes: the per-step table, the window of it on the device, the pin slots
-        self.motion = motion_table(scene, solver.dt) if moving else None
+        # moving scenes: the window of the per-step table on the device, the pin slots
+        self.motion = MotionWindow(runtime, motion_table(scene, solver.dt), steps_per_launch) if moving else None
         self.steps_done = 0  # steps since the last upload: the clock of the motion
         if self.motion is not None:
-            self.motion_steps = motion_window(self.motion.rows, steps_per_launch)
-            self.motion_buffer = runtime.alloc(np.zeros((self.motion_steps * self.motion.rows, 4), np.float32))
-            self.motion_first = 0  # the first step the device window holds
             with_pins = generic or attached_pins(scene) > 0  # as the kernel's HAS_PIN_TARGETS
             self.pin_args = (runtime.alloc(pin_slots(scene)),) if with_pins else ()
             self.generic = generic
@@ -298,26 +322,15 @@ class PingPong:
         self.has_normals = False
         self.steps_done = 0  # the uploaded state is at t = 0: the bodies start over
         if self.motion is not None:  # the first window now, outside any timed advance()
-            self._load_window(0)
-
-    def _load_window(self, first: int) -> None:
-        self.runtime.upload(self.motion_buffer, self.motion.window(first, self.motion_steps))
-        self.motion_first = first
+            self.motion.load(0)
 
     def motion_args(self, steps: int) -> tuple:
         """The per-step rows of the next `steps` steps (a view into the device window, reloaded
         when they would run past it) and the pin slots; () without motion."""
         if self.motion is None:
             return ()
-        offset = self.steps_done - self.motion_first
-        if offset < 0 or offset + steps > self.motion_steps:
-            # inside advance(), so inside a timed chunk: one upload of a window of steps (and
-            # their host evaluation, the first time a step index is reached), every
-            # motion_steps steps; upload() loaded the first one outside it
-            self._load_window(self.steps_done)
-            offset = 0
-        view = self.motion_buffer[offset * self.motion.rows :]
-        rows = (np.int32(self.motion.rows),) if self.generic else ()
+        view = self.motion.rows(self.steps_done, steps)
+        rows = (np.int32(self.motion.table.rows),) if self.generic else ()
         return (view, *rows, *self.pin_args)
 
     def args(self, steps: int = 1) -> tuple:

@@ -103,29 +103,35 @@ def kernel_defines(
 
     Generic: only CLOTH_GENERIC (and CLOTH_NORMALS), so every scene shares one kernel; a
     scene with meshes adds CLOTH_MESHES (every mesh scene shares one), a moving one CLOTH_MOTION.
-    Specialised: the constants as exact float literals, the collider counts, and the
-    colliders of each kind the scene has as a brace list of float4 rows (a moving scene: only
-    the counts and the per-step table's size, CLOTH_MOTION_ROWS and CLOTH_PIN_COUNT), and the
-    mesh count. `mesh_collision` (accelerated, the default, or naive) picks CLOTH_MESH_BVH.
+    Specialised: the constants as exact float literals, then scene_defines (the colliders).
     """
     defines = ["-DCLOTH_NORMALS"] if normals else []
+    if generic:
+        return (*defines, "-DCLOTH_GENERIC", *scene_defines(scene, mesh_collision, generic=True))
+    for name, value in kernel_constants(scene, solver).items():
+        literal = str(value) if name == "n" else c_float(value)
+        defines.append(f"-DCLOTH_{name.upper()}={literal}")
+    return (*defines, *scene_defines(scene, mesh_collision))
+
+
+def scene_defines(scene: Scene, mesh_collision: str | None = None, generic: bool = False) -> tuple[str, ...]:
+    """The -D switches of the scene's colliders, meshes and motion (kernels/collide.cuh), for
+    either kernel. Generic: CLOTH_MESHES where the scene has meshes, CLOTH_MOTION where it
+    moves. Specialised: the collider counts, and the colliders of each kind the scene has as a
+    brace list of float4 rows (a moving scene: only the counts and the per-step table's size,
+    CLOTH_MOTION_ROWS and CLOTH_PIN_COUNT), and the mesh count. `mesh_collision` (accelerated,
+    the default, or naive) picks CLOTH_MESH_BVH.
+    """
     algorithm = mesh_collision or "accelerated"
     if algorithm not in CudaBackend.capabilities.mesh_collisions:
         raise ValueError(f"mesh_collision must be accelerated or naive, got {mesh_collision!r}")
     mesh = ["-DCLOTH_MESH_BVH"] if scene.meshes and algorithm == "accelerated" else []
     moving = scene.has_motion
     if generic:
-        return (
-            *defines,
-            "-DCLOTH_GENERIC",
-            *(["-DCLOTH_MESHES", *mesh] if scene.meshes else []),
-            *(["-DCLOTH_MOTION"] if moving else []),
-        )
-    for name, value in kernel_constants(scene, solver).items():
-        literal = str(value) if name == "n" else c_float(value)
-        defines.append(f"-DCLOTH_{name.upper()}={literal}")
+        return (*(["-DCLOTH_MESHES", *mesh] if scene.meshes else []), *(["-DCLOTH_MOTION"] if moving else []))
+    defines = []
     table = collider_rows(scene)
-    for kind in kinds_in("cuda"):  # the kinds verlet_cloth.cu takes
+    for kind in kinds_in("cuda"):  # the kinds collide.cuh takes
         rows = table[kind.plural]
         defines.append(f"-D{kind.count_name('cuda')}={len(rows) // kind.rows}")
         if len(rows) and not moving:  # a moving scene's rows are per step, not compiled in
@@ -199,16 +205,24 @@ def _nvcc_escaped(option: str) -> str:
 
 
 @lru_cache(maxsize=64)
-def compile_kernel(strict: bool, arch: str, using: str, code: str = "cubin", defines: tuple[str, ...] = ()) -> bytes:
-    """verlet_cloth.cu compiled for compute capability `arch` (e.g. "80") with NVRTC or nvcc.
+def compile_kernel(
+    strict: bool,
+    arch: str,
+    using: str,
+    code: str = "cubin",
+    defines: tuple[str, ...] = (),
+    kernel_file: str = KERNEL_FILE,
+) -> bytes:
+    """kernels/`kernel_file` (verlet_cloth.cu, or vbd_cloth.cu) compiled for compute capability
+    `arch` (e.g. "80") with NVRTC or nvcc.
 
-    `code` is "cubin" (for one device) or "ptx"; `defines` are kernel_defines(...), so the
-    cache holds one binary per specialisation. Needs no device: tests/test_cuda.py runs it
-    on machines without a GPU.
+    `code` is "cubin" (for one device) or "ptx"; `defines` are kernel_defines(...) (or the VBD
+    kernel's), so the cache holds one binary per specialisation. Needs no device:
+    tests/test_cuda.py runs it on machines without a GPU.
     """
-    # collide_mesh.cuh and any other include put in on the host: NVRTC and nvcc's temporary
+    # collide.cuh, collide_mesh.cuh and any other include put in on the host: NVRTC and nvcc's temporary
     # folder would not find kernels/
-    source = resolve_includes(KERNEL_FILE, read_kernel(KERNEL_FILE), lambda line, _, name: f'#line {line} "{name}"')[0]
+    source = resolve_includes(kernel_file, read_kernel(kernel_file), lambda line, _, name: f'#line {line} "{name}"')[0]
     options = (*compile_options(strict), *defines)
     if using == "nvrtc":
         from cupy_backends.cuda.libs import nvrtc
@@ -224,13 +238,13 @@ def compile_kernel(strict: bool, arch: str, using: str, code: str = "cubin", def
         if code == "cubin" and supported[-1] != int(arch):
             code = "ptx"  # a device newer than this NVRTC: PTX, which the driver compiles
         target = f"sm_{supported[-1]}" if code == "cubin" else f"compute_{supported[-1]}"
-        prog = nvrtc.createProgram(source, KERNEL_FILE, (), ())
+        prog = nvrtc.createProgram(source, kernel_file, (), ())
         try:
             try:
                 nvrtc.compileProgram(prog, (*options, f"--gpu-architecture={target}"))
             except nvrtc.NVRTCError:
                 raise ClothbenchError(
-                    f"NVRTC could not compile {KERNEL_FILE}: {nvrtc.getProgramLog(prog).strip()}"
+                    f"NVRTC could not compile {kernel_file}: {nvrtc.getProgramLog(prog).strip()}"
                 ) from None
             return nvrtc.getCUBIN(prog) if code == "cubin" else nvrtc.getPTX(prog)
         finally:
@@ -240,16 +254,16 @@ def compile_kernel(strict: bool, arch: str, using: str, code: str = "cubin", def
 
         try:
             options = tuple(_nvcc_escaped(o) for o in options)
-            return compile_using_nvcc(source, options, arch=arch, filename=KERNEL_FILE, code_type=code)
+            return compile_using_nvcc(source, options, arch=arch, filename=kernel_file, code_type=code)
         except CompileException as e:
-            raise ClothbenchError(f"nvcc could not compile {KERNEL_FILE}: {e.get_message()}") from None
+            raise ClothbenchError(f"nvcc could not compile {kernel_file}: {e.get_message()}") from None
     raise ValueError(f"unknown CUDA compiler {using!r} (nvrtc or nvcc)")
 
 
 # --- the backend ------------------------------------------------------------------
 
 
-class _CupyRuntime:
+class CupyRuntime:
     """PingPong's runtime on a CUDA device: CuPy arrays, one stream, one RawKernel."""
 
     def __init__(self, kernel, stream):
@@ -290,9 +304,104 @@ def shared_memory_limit(device: str | None) -> int:
         return launch.SMALLEST_SHARED_OPTIN
 
 
-class CudaBackend(Backend):
-    name = "cuda"
+class CudaDevice(Backend):
+    """What each CUDA solver class shares: the --device it runs on, its module compiled for
+    that device (kernels/`kernel_file`), one stream, and the CUDA events around every
+    advance(). A subclass sets `self.state` (upload, advance, read: PingPong or the VBD launches)."""
+
     device_timer = "cuda-events"  # device_elapsed_ms: events around advance()'s launches (docs/timing.md)
+    kernel_file = KERNEL_FILE
+
+    def _open_device(self, options: BackendOptions, defines: tuple[str, ...]):
+        """Select the device, compile `defines` for it; the loaded module."""
+        import cupy
+
+        self.state = self.stream = None
+        self._binary_dir = None
+        try:
+            index = int(options.device or 0)
+            if index < 0:
+                raise ValueError(index)
+            self._device = cupy.cuda.Device(index)
+            self._device.use()
+        except (ValueError, cupy.cuda.runtime.CUDARuntimeError):
+            raise ClothbenchError(
+                f"cuda --device must be a device index (0 .. {cupy.cuda.runtime.getDeviceCount() - 1}), "
+                f"got {options.device!r}"
+            ) from None
+        rt = cupy.cuda.runtime
+        props = rt.getDeviceProperties(index)
+        self._name = props["name"].decode() if isinstance(props["name"], bytes) else str(props["name"])
+        self.defines = defines
+        module = self._load_module(options.strict, self._device.compute_capability, defines)
+        # which CuPy (CUDA 12 or 13) and which compiler built the module: part of the tuning key
+        self._driver = cuda_driver(cupy, self._compiler, self._name)
+        self.stream = cupy.cuda.Stream(non_blocking=True)
+        self._start, self._end = cupy.cuda.Event(), cupy.cuda.Event()
+        self._timed = False
+        return module
+
+    def _check_local_size(self, kernel) -> None:
+        limit = kernel.max_threads_per_block
+        local_size = self.options.local_size
+        if local_size is not None and local_size > limit:  # the base refused < 1
+            raise ClothbenchError(f"cuda --local-size must be 1 .. {limit} here, got {local_size}")
+
+    def _load_module(self, strict: bool, arch: str, defines: tuple[str, ...]):
+        import cupy
+
+        using = compiler()
+        if using is None:
+            raise ClothbenchError(f"no CUDA compiler ({install_hint(cuda_major(cupy))}, or put nvcc on PATH)")
+        self._compiler = compiler_name(using)
+        # RawModule loads from a file; keep it until close() in case CuPy reads it lazily
+        self._binary_dir = tempfile.TemporaryDirectory(prefix="clothbench-cuda-")
+        path = Path(self._binary_dir.name) / f"{Path(self.kernel_file).stem}.bin"  # cuModuleLoad tells cubin from PTX
+        path.write_bytes(compile_kernel(strict, arch, using, "cubin", defines, self.kernel_file))
+        return cupy.RawModule(path=str(path))
+
+    @property
+    def device(self) -> str:
+        return self._name
+
+    @property
+    def driver(self) -> str:
+        return self._driver
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        self.state.upload(pos, prev)
+
+    def advance(self, steps: int) -> None:
+        self._start.record(self.stream)
+        self.state.advance(steps)
+        self._end.record(self.stream)
+        self._timed = True
+
+    def synchronize(self) -> None:
+        self.stream.synchronize()
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.state.read()
+
+    def device_elapsed_ms(self) -> float | None:
+        if not self._timed:
+            return None
+        import cupy
+
+        self._end.synchronize()
+        return float(cupy.cuda.get_elapsed_time(self._start, self._end))
+
+    def close(self) -> None:
+        if self.stream is not None:
+            self.stream.synchronize()
+        self.state = self.stream = None  # frees the device buffers
+        if self._binary_dir is not None:
+            self._binary_dir.cleanup()
+            self._binary_dir = None
+
+
+class CudaBackend(CudaDevice):
+    name = "cuda"
     capabilities = Capabilities(
         transfers=TRANSFERS,
         local_size=True,
@@ -315,34 +424,10 @@ class CudaBackend(Backend):
     def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):
         super().__init__(scene, solver, options)
         self.transfer = options.transfer or TRANSFERS[0]
-        import cupy
-
-        try:
-            index = int(options.device or 0)
-            if index < 0:
-                raise ValueError(index)
-            self._device = cupy.cuda.Device(index)
-            self._device.use()
-        except (ValueError, cupy.cuda.runtime.CUDARuntimeError):
-            raise ClothbenchError(
-                f"cuda --device must be a device index (0 .. {cupy.cuda.runtime.getDeviceCount() - 1}), "
-                f"got {options.device!r}"
-            ) from None
-        rt = cupy.cuda.runtime
-        props = rt.getDeviceProperties(index)
-        self._name = props["name"].decode() if isinstance(props["name"], bytes) else str(props["name"])
-        self._binary_dir = None
-        self.defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision)
-        module = self._load_module(options.strict, self._device.compute_capability, self.defines)
-        # which CuPy (CUDA 12 or 13) and which compiler built the module: part of the tuning key
-        self._driver = cuda_driver(cupy, self._compiler, self._name)
+        defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision)
+        module = self._open_device(options, defines)
         self._kernels = {name: module.get_function(name) for name in (launch.STEP_KERNEL, launch.STEPS_KERNEL)}
-        limit = self._kernels[launch.STEP_KERNEL].max_threads_per_block
-        if options.local_size is not None and options.local_size > limit:  # the base refused < 1
-            raise ClothbenchError(f"cuda --local-size must be 1 .. {limit} here, got {options.local_size}")
-        self.stream = cupy.cuda.Stream(non_blocking=True)
-        self._start, self._end = cupy.cuda.Event(), cupy.cuda.Event()
-        self._timed = False
+        self._check_local_size(self._kernels[launch.STEP_KERNEL])
         self.state = self._pingpong(self.pick_shape(self._tuning_key(), self._time_shape))
 
     def _tuning_key(self) -> dict[str, str]:
@@ -380,7 +465,7 @@ class CudaBackend(Backend):
             raise ClothbenchError(f"cuda {shape}: {block} threads a block, at most {kernel.max_threads_per_block} here")
         self.effective_local_size = block
         state = PingPong(
-            _CupyRuntime(kernel, self.stream),
+            CupyRuntime(kernel, self.stream),
             self.scene,
             self.solver,
             self.transfer,
@@ -415,58 +500,6 @@ class CudaBackend(Backend):
             raise ClothbenchError(f"cuda {shape}: {error_name(e)}") from None
         return statistics.median(times)
 
-    def _load_module(self, strict: bool, arch: str, defines: tuple[str, ...]):
-        import cupy
-
-        using = compiler()
-        if using is None:
-            raise ClothbenchError(f"no CUDA compiler ({install_hint(cuda_major(cupy))}, or put nvcc on PATH)")
-        self._compiler = compiler_name(using)
-        # RawModule loads from a file; keep it until close() in case CuPy reads it lazily
-        self._binary_dir = tempfile.TemporaryDirectory(prefix="clothbench-cuda-")
-        path = Path(self._binary_dir.name) / "verlet_cloth.bin"  # cuModuleLoad tells cubin from PTX
-        path.write_bytes(compile_kernel(strict, arch, using, "cubin", defines))
-        return cupy.RawModule(path=str(path))
-
-    @property
-    def device(self) -> str:
-        return self._name
-
-    @property
-    def driver(self) -> str:
-        return self._driver
-
-    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
-        self.state.upload(pos, prev)
-
-    def advance(self, steps: int) -> None:
-        self._start.record(self.stream)
-        self.state.advance(steps)
-        self._end.record(self.stream)
-        self._timed = True
-
-    def synchronize(self) -> None:
-        self.stream.synchronize()
-
-    def read(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.state.read()
-
     def read_normals(self) -> np.ndarray | None:
         """Normals of the positions the last step read (read()[1]), see docs/normals.md."""
         return self.state.read_normals()
-
-    def device_elapsed_ms(self) -> float | None:
-        if not self._timed:
-            return None
-        import cupy
-
-        self._end.synchronize()
-        return float(cupy.cuda.get_elapsed_time(self._start, self._end))
-
-    def close(self) -> None:
-        if self.stream is not None:
-            self.stream.synchronize()
-        self.state = self.stream = None  # frees the device buffers
-        if self._binary_dir is not None:
-            self._binary_dir.cleanup()
-            self._binary_dir = None

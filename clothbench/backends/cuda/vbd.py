@@ -1,0 +1,161 @@
+"""The VBD solver (docs/vbd.md) on CUDA: kernels/vbd_cloth.cu through CuPy.
+
+Host code only; the step is the kernel file's and docs/vbd.md's. One kernel shape: a substep
+is a fixed list of launches on one stream (each sees the one before): predict, then per
+iteration one launch per vertex colour (and with Chebyshev one extrapolation), collide,
+update, each in blocks of --local-size threads (256 by default). `VbdLaunches` holds that
+list once, written against PingPong's small runtime (alloc, upload, download, launch), one
+runtime per kernel: CudaVbdBackend's are CuPy's, cpu.py's ShimRuntime runs the CPU build of
+the same kernels (the tests). The numbers are VbdConstants' (model/kernel_inputs.py).
+
+The device, the compilation (NVRTC or nvcc, strict or fast: verlet.compile_options), the
+stream and the events are CudaDevice's, shared with the Verlet class. The colliders, meshes
+included, are kernels/collide.cuh's, the Verlet kernel's own code, built for the scene
+(scene_defines); moving colliders and attached pins take one row set per substep, at its end,
+from launch.py's per-step table and its window on the device.
+
+What a later change may tune: a small grid would gain from whole substeps in one block (the
+colours separated by __syncthreads(), as verlet_steps does it for Verlet steps).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from clothbench.model.constraints import VERTEX_COLOURS, vertex_colours
+from clothbench.errors import ClothbenchError
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Vbd
+from clothbench.backends.base import BackendOptions, Capabilities
+from clothbench.model.kernel_inputs import VbdConstants
+from clothbench.backends.pbd_device import position_state, velocity_state
+from clothbench.backends.cuda.launch import (
+    AUTO_BLOCK,
+    MotionWindow,
+    attached_pins,
+    mesh_buffers,
+    motion_table,
+    pin_slots,
+)
+from clothbench.backends.cuda.verlet import CudaBackend, CudaDevice, CupyRuntime, scene_defines
+
+KERNEL_FILE = "vbd_cloth.cu"
+PREDICT, SWEEP, CHEBYSHEV, COLLIDE, UPDATE = "vbd_predict", "vbd_sweep", "vbd_chebyshev", "vbd_collide", "vbd_update"
+KERNELS = (PREDICT, SWEEP, CHEBYSHEV, COLLIDE, UPDATE)
+
+
+def vbd_defines(scene: Scene, mesh_collision: str | None = None) -> tuple[str, ...]:
+    """The -D switches that build vbd_cloth.cu for this scene: the grid side and the scene's
+    colliders, meshes and motion as collide.cuh takes them (the Verlet kernel's)."""
+    return (f"-DCLOTH_N={scene.grid}", *scene_defines(scene, mesh_collision))
+
+
+class VbdLaunches:
+    """The device state of docs/vbd.md's step and the launches of one substep.
+
+    `runtimes[name]` runs kernel `name` (KERNELS) and allocates and moves buffers (any of them
+    does), as PingPong's runtime: CuPy's on a device, the CPU build's in the tests. The
+    kernels must be built with vbd_defines(scene, ...)."""
+
+    def __init__(self, runtimes: dict, scene: Scene, solver: Vbd, block: int = AUTO_BLOCK):
+        self.runtimes, self.block = runtimes, block
+        self.substeps = solver.substeps
+        rt = runtimes[PREDICT]
+        self.n2 = scene.particles
+        c = self.constants = VbdConstants.of(scene, solver)
+        self.chebyshev = solver.chebyshev_rho > 0
+        empty = np.zeros((self.n2, 4), np.float32)
+        self.x, self.v, self.xs, self.y = (rt.alloc(empty) for _ in range(4))
+        # Chebyshev: the inputs of the last two sweeps, taking turns
+        self.before = (rt.alloc(empty), rt.alloc(empty)) if self.chebyshev else ()
+        # every particle, by colour (the sweep's order); a launch per colour reads its range
+        colour = vertex_colours(scene.grid)
+        self.order = rt.alloc(np.argsort(colour, kind="stable").astype(np.int32))
+        counts = np.bincount(colour, minlength=VERTEX_COLOURS)
+        mesh = tuple(rt.alloc(b) for b in mesh_buffers(scene)) if scene.meshes else ()
+        # moving scenes: substep j's rows, at its end ((j + 1) h counted from the upload), as the
+        # per-step table gives step j's at (j + 1) dt: the table of h
+        self.motion = (
+            MotionWindow(rt, motion_table(scene, solver.dt / solver.substeps), 1) if scene.has_motion else None
+        )
+        pins = (rt.alloc(pin_slots(scene)),) if scene.has_motion and attached_pins(scene) else ()
+        self.substeps_done = 0  # since the last upload(): the clock of moving bodies
+        f32, i32 = np.float32, np.int32
+
+        # one substep: (kernel, threads, arguments, whether the substep's rows follow them, then `extra`)
+        plan = []
+        plan.append((PREDICT, self.n2, (self.x, self.v, self.xs, self.y, c.h, *c.gh2), bool(pins), pins))
+        sweeps, first = [], 0
+        for count in counts:
+            args = (self.xs, self.y, self.x, self.order, i32(first), i32(count), c.mh2, c.bh, c.k, *c.rest)
+            sweeps.append((SWEEP, int(count), args, False, ()))
+            first += count
+        if self.chebyshev:  # the first sweep's input: the predicted iterate
+            plan.append((CHEBYSHEV, self.n2, (self.xs, self.before[0], f32(1), i32(0)), False, ()))
+        for it in range(solver.iterations):
+            plan += sweeps
+            if self.chebyshev:  # extrapolate from sweep it - 1's input (none after sweep 0), keep sweep it + 1's
+                args = (self.xs, self.before[(it + 1) % 2], c.omega[it], i32(it > 0))
+                plan.append((CHEBYSHEV, self.n2, args, False, ()))
+        if scene.colliders or scene.meshes:
+            plan.append((COLLIDE, self.n2, (self.xs, *mesh), self.motion is not None, ()))
+        plan.append((UPDATE, self.n2, (self.x, self.v, self.xs, c.h), False, ()))
+        self.plan = plan
+
+    def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
+        expected = (self.n2, 4)
+        if np.shape(pos) != expected or np.shape(prev) != expected:
+            raise ClothbenchError(f"state must be two {expected} arrays, got {np.shape(pos)} and {np.shape(prev)}")
+        x, v = velocity_state(pos, prev, self.constants.dt)  # docs/vbd.md, as PBD's
+        rt = self.runtimes[PREDICT]
+        rt.upload(self.x, x)
+        rt.upload(self.v, v)
+        self.substeps_done = 0  # the uploaded state is at t = 0: moving bodies start over
+        if self.motion is not None:  # the first window now, outside any timed advance()
+            self.motion.load(0)
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        rt = self.runtimes[PREDICT]
+        return position_state(rt.download(self.x), rt.download(self.v), self.constants.dt)
+
+    def advance(self, steps: int) -> None:
+        for _ in range(steps * self.substeps):
+            rows = (self.motion.rows(self.substeps_done, 1),) if self.motion is not None else ()
+            for kernel, threads, args, with_rows, extra in self.plan:
+                if threads:  # an empty colour (a 1 x 1 grid) launches nothing
+                    launch_args = (*args, *(rows if with_rows else ()), *extra)
+                    self.runtimes[kernel].launch(math.ceil(threads / self.block), self.block, launch_args)
+            self.substeps_done += 1
+
+
+class CudaVbdBackend(CudaDevice):
+    """VBD on a CUDA device: the Verlet class's device, compiler, stream and events (CudaDevice),
+    vbd_cloth.cu's kernels, one kernel shape."""
+
+    name = "cuda"
+    kernel_file = KERNEL_FILE
+    capabilities = Capabilities(
+        local_size=True,  # the threads a block of every launch
+        device=True,
+        # collide.cuh is the Verlet kernel's collider code, so every scene feature it takes
+        meshes=("vbd",),
+        moving_colliders=("vbd",),
+        boxes=("vbd",),
+        mesh_collisions=CudaBackend.capabilities.mesh_collisions,
+        sweep_variants=({"strict": True}, {"strict": False}),
+    )
+
+    def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
+        super().__init__(scene, solver, options)
+        module = self._open_device(options, vbd_defines(scene, self.mesh_collision))
+        kernels = {name: module.get_function(name) for name in KERNELS}
+        for kernel in kernels.values():
+            self._check_local_size(kernel)
+        self.effective_local_size = options.local_size or AUTO_BLOCK
+        runtimes = {name: CupyRuntime(kernel, self.stream) for name, kernel in kernels.items()}
+        self.state = VbdLaunches(runtimes, scene, solver, self.effective_local_size)
+
+
+__all__ = ["CudaVbdBackend", "VbdLaunches", "vbd_defines"]
