@@ -196,7 +196,7 @@ def test_fast_vbd_error_is_of_the_order_of_numpy_f32s_own(name):
 # --- 3. CudaVbdBackend over the stand-in cupy ---------------------------------------------
 
 
-def test_cuda_vbd_backend_runs_the_cpu_build_of_its_own_kernel(cuda_on_cpu):
+def test_cuda_vbd_backend_runs_the_cpu_build_of_its_own_kernel(cuda_on_cpu):  # noqa: F811
     compiled = cuda_on_cpu.install()
     scene, solver = all_kinds(), Vbd(dt=1 / 60, chebyshev_rho=0.9)
     with vbd.CudaVbdBackend(scene, solver, BackendOptions(strict=True, local_size=64)) as backend:
@@ -223,13 +223,13 @@ def test_cuda_vbd_backend_runs_the_cpu_build_of_its_own_kernel(cuda_on_cpu):
         ({"local_size": 2048}, r"cuda --local-size must be 1 \.\. 1024 here, got 2048"),
     ],
 )
-def test_cuda_vbd_refuses_what_it_does_not_take_in_one_line(cuda_on_cpu, options, message):
+def test_cuda_vbd_refuses_what_it_does_not_take_in_one_line(cuda_on_cpu, options, message):  # noqa: F811
     cuda_on_cpu.install()
     with pytest.raises(ClothbenchError, match=message):
         create_backend("cuda", every_kind(8), Vbd(dt=1 / 60), BackendOptions(**options)).close()
 
 
-def test_the_verlet_class_is_unchanged_by_vbd(cuda_on_cpu):
+def test_the_verlet_class_is_unchanged_by_vbd(cuda_on_cpu):  # noqa: F811
     # the registry still builds the Verlet class for a Verlet solver, with its own kernel
     backend, runtime = cuda_on_cpu(every_kind(8), strict=True)
     with backend:
