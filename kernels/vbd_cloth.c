@@ -26,6 +26,11 @@
  */
 
 #include "verlet_cloth.c"
+/* the LDL^T solve, shared with vbd_cloth.cl and vbd_cloth.cu (its SIMD loop keeps its own
+ * masked sums of the springs) */
+#define VBD_REAL real
+#define VBD_FN INLINE
+#include "vbd_newton.h"
 
 /* libgomp's own entry points (no system headers here, see verlet_cloth.c) */
 int omp_get_thread_num(void);
@@ -100,18 +105,9 @@ INLINE void vbd_particle(const vbd_constants *c, int interior, int row, int col,
         hxz = on ? hxz + bx * dz : hxz;
         hyz = on ? hyz + by * dz : hyz;
     }
-    /* H p = f by LDL^T, docs/vbd.md's order */
-    const real l10 = hxy / hxx, l20 = hxz / hxx;
-    const real d1 = hyy - l10 * hxy;
-    const real t = hyz - l20 * hxy;
-    const real l21 = t / d1;
-    const real d2 = (hzz - l20 * hxz) - l21 * t;
-    const real z1 = fy - l10 * fx;
-    const real z2 = (fz - l20 * fx) - l21 * z1;
-    const real pz = z2 / d2;
-    const real py = z1 / d1 - l21 * pz;
-    const real px = (fx / hxx - l10 * py) - l20 * pz;
-    const int move = (w[i] != 0) & (hxx > 0) & (d1 > 0) & (d2 > 0); /* pinned: never moved */
+    real px, py, pz; /* H p = f by LDL^T, docs/vbd.md's order */
+    const int solved = vbd_ldlt_solve(hxx, hyy, hzz, hxy, hxz, hyz, fx, fy, fz, &px, &py, &pz);
+    const int move = (w[i] != 0) & solved; /* pinned: never moved */
     *ox = move ? xi - px : xi;
     *oy = move ? yi - py : yi;
     *oz = move ? zi - pz : zi;

@@ -70,6 +70,10 @@ INLINE float dot3(float3 a, float3 b)
 }
 
 #include "collide.cl"
+/* one spring's terms and the LDL^T solve, shared with vbd_cloth.c and vbd_cloth.cu */
+#define VBD_REAL float
+#define VBD_FN INLINE
+#include "vbd_newton.h"
 #if CLOTH_MESHES > 0
 /* collide_mesh.cl holds, beside the scalar collide_meshes() used here, the lane forms of
  * verlet_cloth.cl's vector kernels; one particle per work item is their one-lane case. */
@@ -116,8 +120,9 @@ INLINE float3 newton_step(int i, float3 xi, __global const float4 *X, float3 yi,
     }
     float cb = (float)cnt * bh;
     float hd = mh2 + cb;
-    float3 f = (xi - yi) * mh2 + (xi - x0) * cb;
-    float hxx = hd, hyy = hd, hzz = hd, hxy = 0.0f, hxz = 0.0f, hyz = 0.0f;
+    float3 f0 = (xi - yi) * mh2 + (xi - x0) * cb;
+    float f[3] = {f0.x, f0.y, f0.z};
+    float h[6] = {hd, hd, hd, 0.0f, 0.0f, 0.0f}; /* Hxx, Hyy, Hzz, Hxy, Hxz, Hyz */
     for (int o = 0; o < 12; ++o) {
         int r = row + OFFSETS[o].x, c = col + OFFSETS[o].y;
         if (r < 0 || r >= N || c < 0 || c >= N)
@@ -132,29 +137,10 @@ INLINE float3 newton_step(int i, float3 xi, __global const float4 *X, float3 yi,
 #else
         float s = k * (1.0f - rl * rsqrt(L2));
 #endif
-        f = f + d * s;
-        float a = s > 0.0f ? s : 0.0f; /* the clamped isotropic part: k max(1 - rest/L, 0) */
-        float bb = (k - a) / L2;
-        float bx = bb * d.x, by = bb * d.y, bz = bb * d.z;
-        hxx = hxx + (a + bx * d.x);
-        hyy = hyy + (a + by * d.y);
-        hzz = hzz + (a + bz * d.z);
-        hxy = hxy + bx * d.y;
-        hxz = hxz + bx * d.z;
-        hyz = hyz + by * d.z;
+        vbd_add_spring(d.x, d.y, d.z, L2, s, k, f, h);
     }
-    /* H p = f by LDL^T, in docs/vbd.md's order */
-    float l10 = hxy / hxx, l20 = hxz / hxx;
-    float d1 = hyy - l10 * hxy;
-    float t = hyz - l20 * hxy;
-    float l21 = t / d1;
-    float d2 = (hzz - l20 * hxz) - l21 * t;
-    float z1 = f.y - l10 * f.x;
-    float z2 = (f.z - l20 * f.x) - l21 * z1;
-    float pz = z2 / d2;
-    float py = z1 / d1 - l21 * pz;
-    float px = (f.x / hxx - l10 * py) - l20 * pz;
-    if (hxx > 0.0f && d1 > 0.0f && d2 > 0.0f)
+    float px, py, pz;
+    if (vbd_ldlt_solve(h[0], h[1], h[2], h[3], h[4], h[5], f[0], f[1], f[2], &px, &py, &pz))
         return xi - (float3)(px, py, pz);
     return xi; /* never for a finite state: H is positive definite */
 }

@@ -37,6 +37,10 @@
 constexpr int n = CLOTH_N;
 
 #include "collide.cuh"
+// one spring's terms and the LDL^T solve, shared with vbd_cloth.c and vbd_cloth.cl
+#define VBD_REAL float
+#define VBD_FN __device__ __forceinline__
+#include "vbd_newton.h"
 
 #if HAS_PIN_TARGETS
 #define PREDICT_PARAMS , const float4* __restrict__ step_rows PIN_PARAMS
@@ -91,10 +95,9 @@ __device__ __forceinline__ float3 newton_step(int i, float3 xi, const float4* X,
     for (int o = 0; o < 12; ++o) cnt += inside_grid(row + stencil[o].dr, col + stencil[o].dc, n);
     const float cb = (float)cnt * bh;
     const float hd = mh2 + cb;
-    float fx = (xi.x - yi.x) * mh2 + (xi.x - x0.x) * cb;
-    float fy = (xi.y - yi.y) * mh2 + (xi.y - x0.y) * cb;
-    float fz = (xi.z - yi.z) * mh2 + (xi.z - x0.z) * cb;
-    float hxx = hd, hyy = hd, hzz = hd, hxy = 0.0f, hxz = 0.0f, hyz = 0.0f;
+    float f[3] = {(xi.x - yi.x) * mh2 + (xi.x - x0.x) * cb, (xi.y - yi.y) * mh2 + (xi.y - x0.y) * cb,
+                  (xi.z - yi.z) * mh2 + (xi.z - x0.z) * cb};
+    float h[6] = {hd, hd, hd, 0.0f, 0.0f, 0.0f};  // Hxx, Hyy, Hzz, Hxy, Hxz, Hyz
 #pragma unroll
     for (int o = 0; o < 12; ++o) {
         const int r = row + stencil[o].dr, c = col + stencil[o].dc;
@@ -108,31 +111,11 @@ __device__ __forceinline__ float3 newton_step(int i, float3 xi, const float4* X,
 #else
         const float s = k * (1.0f - rest[o / 4] * rsqrtf(L2));
 #endif
-        fx = fx + d.x * s;
-        fy = fy + d.y * s;
-        fz = fz + d.z * s;
-        const float a = s > 0.0f ? s : 0.0f;  // the clamped isotropic part: k max(1 - rest/L, 0)
-        const float bb = (k - a) / L2;
-        const float bx = bb * d.x, by = bb * d.y, bz = bb * d.z;
-        hxx = hxx + (a + bx * d.x);
-        hyy = hyy + (a + by * d.y);
-        hzz = hzz + (a + bz * d.z);
-        hxy = hxy + bx * d.y;
-        hxz = hxz + bx * d.z;
-        hyz = hyz + by * d.z;
+        vbd_add_spring(d.x, d.y, d.z, L2, s, k, f, h);
     }
-    // H p = f by LDL^T, in docs/vbd.md's order
-    const float l10 = hxy / hxx, l20 = hxz / hxx;
-    const float d1 = hyy - l10 * hxy;
-    const float t = hyz - l20 * hxy;
-    const float l21 = t / d1;
-    const float d2 = (hzz - l20 * hxz) - l21 * t;
-    const float z1 = fy - l10 * fx;
-    const float z2 = (fz - l20 * fx) - l21 * z1;
-    const float pz = z2 / d2;
-    const float py = z1 / d1 - l21 * pz;
-    const float px = (fx / hxx - l10 * py) - l20 * pz;
-    if (hxx > 0.0f && d1 > 0.0f && d2 > 0.0f) return make_float3(xi.x - px, xi.y - py, xi.z - pz);
+    float px, py, pz;
+    if (vbd_ldlt_solve(h[0], h[1], h[2], h[3], h[4], h[5], f[0], f[1], f[2], &px, &py, &pz))
+        return make_float3(xi.x - px, xi.y - py, xi.z - pz);
     return xi;  // never for a finite state: H is positive definite
 }
 

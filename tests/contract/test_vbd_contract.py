@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clothbench.backends import BACKENDS, backend_class, create_backend
+from clothbench.backends import BACKENDS, availability, backend_class, create_backend
 from clothbench.harness import reference, run_timed, simulate
 from clothbench.harness.simulate import position_error
 from clothbench.model.solver import Vbd
@@ -16,17 +16,33 @@ from clothbench.model.solver import Vbd
 from conftest import assert_bit_exact
 from registry_variants import backend_params, options, usable
 from test_pbd_contract import SCENES, STRICT_GRID, three_colliders
+from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: CUDA through its CPU build)
 
 AT_60HZ = 1 / 60
 
 
+def vbd_params(**needs) -> list:
+    """backend_params("vbd", ...) and, where no CUDA device is here, CUDA once more through its
+    CPU build (tests/test_cuda.py's stand-in cupy: the backend's own host code and kernel on g++)."""
+    shim = [] if availability("cuda").usable else [pytest.param(("cuda", "shim"), id="cuda-shim")]
+    return backend_params("vbd", **needs) + shim
+
+
+def usable_here(param: tuple, request) -> tuple:
+    """usable(param), or for the CUDA shim the stand-in cupy installed for this test."""
+    if param[1] == "shim":
+        request.getfixturevalue("cuda_on_cpu").install()
+        return param
+    return usable(param)
+
+
 @pytest.mark.parametrize("scene_name", list(SCENES))
-@pytest.mark.parametrize("param", backend_params("vbd", needs="strict"))  # NumPy is the reference itself
-def test_strict_vbd_matches_numpy_f32_bit_for_bit_after_200_steps(param, scene_name):
+@pytest.mark.parametrize("param", vbd_params(needs="strict"))  # NumPy is the reference itself
+def test_strict_vbd_matches_numpy_f32_bit_for_bit_after_200_steps(param, scene_name, request):
     # docs/vbd.md fixes every operation's order, the LDL^T solve's included; within a colour no
     # particle reads another of its colour, so however a kernel spreads a colour over work
     # items, each particle computes the same bits
-    name, _ = usable(param)
+    name, _ = usable_here(param, request)
     scene, solver = SCENES[scene_name](STRICT_GRID), Vbd(dt=AT_60HZ, chebyshev_rho=0.9)
     ref_pos, ref_prev = reference(scene, solver, 200, "f32")
     for shape in shapes_of(name, scene, solver):
@@ -35,10 +51,10 @@ def test_strict_vbd_matches_numpy_f32_bit_for_bit_after_200_steps(param, scene_n
         assert_bit_exact(prev, ref_prev, f"{name} {shape} vbd {scene_name} prev")
 
 
-@pytest.mark.parametrize("param", backend_params("vbd", needs="local_size"))
-def test_work_group_size_changes_no_strict_vbd_bit(param):
+@pytest.mark.parametrize("param", vbd_params(needs="local_size"))
+def test_work_group_size_changes_no_strict_vbd_bit(param, request):
     # 7 divides neither n*n nor a colour's particles: launches are padded and the extra items return
-    name, _ = usable(param)
+    name, _ = usable_here(param, request)
     scene, solver = three_colliders(13), Vbd(dt=AT_60HZ)
     ref = reference(scene, solver, 30, "f32")[0]
     for shape in shapes_of(name, scene, solver):
@@ -47,13 +63,13 @@ def test_work_group_size_changes_no_strict_vbd_bit(param):
             assert_bit_exact(pos, ref, f"{name} vbd {shape} local size {ls}")
 
 
-@pytest.mark.parametrize("param", backend_params("vbd"))
-def test_vbd_f32_stays_within_float32_of_the_f64_reference(param):
+@pytest.mark.parametrize("param", vbd_params())
+def test_vbd_f32_stays_within_float32_of_the_f64_reference(param, request):
     # 60 steps of a sheet across every collider kind: numpy f32 is 7e-7 m RMS from f64 there. A
     # fast mode may reorder and contract, so the bound is 1e-4 m: a wrong step is centimetres
     # off. (The curtain is not used: its contact with the sphere turns one particle pushed a
     # step earlier into 1.7e-4 m by step 60, even for numpy f32.)
-    name, _ = usable(param)
+    name, _ = usable_here(param, request)
     if BACKENDS[name].peer:
         pytest.skip(f"{name} is a peer: it runs its own model of the springs and contacts, held by physics elsewhere")
     scene, solver = three_colliders(16), Vbd(dt=AT_60HZ)
@@ -62,11 +78,11 @@ def test_vbd_f32_stays_within_float32_of_the_f64_reference(param):
     assert position_error(pos, ref)[0] < 1e-4
 
 
-@pytest.mark.parametrize("param", backend_params("vbd"))
-def test_vbd_holds_stiffness_1e5_at_60hz_in_one_substep(param):
+@pytest.mark.parametrize("param", vbd_params())
+def test_vbd_holds_stiffness_1e5_at_60hz_in_one_substep(param, request):
     # issue 33's goal: implicit Euler takes a step far past Verlet's dt <= 2/omega (tests/test_vbd.py
     # shows Verlet blowing up there); run_timed raises BlowUp if it does not hold
-    name, _ = usable(param)
+    name, _ = usable_here(param, request)
     scene, solver = SCENES["curtain"](16).replace(stiffness=1e5), Vbd(dt=AT_60HZ, substeps=1)
     with create_backend(name, scene, solver, options(name, "vbd")) as b:
         pos = run_timed(b, 120).pos
