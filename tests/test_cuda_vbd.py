@@ -213,6 +213,8 @@ def test_cuda_vbd_backend_runs_the_cpu_build_of_its_own_kernel(cuda_on_cpu):  # 
     ref_pos, ref_prev = reference(scene, solver, 40, "f32")
     assert_bit_exact(pos, ref_pos, "pos")
     assert_bit_exact(prev, ref_prev, "prev")
+    with vbd.CudaVbdBackend(scene, solver, BackendOptions()) as backend:  # the defaults: fast, 256 a block
+        assert backend.mode == f"fast/vbd/ls={launch.AUTO_BLOCK}" and backend.state.block == launch.AUTO_BLOCK
 
 
 @pytest.mark.parametrize(

@@ -84,9 +84,9 @@ class VbdLaunches:
         self.substeps_done = 0  # since the last upload(): the clock of moving bodies
         f32, i32 = np.float32, np.int32
 
-        # one substep: (kernel, threads, arguments, whether the substep's rows follow them, then `extra`)
-        plan = []
-        plan.append((PREDICT, self.n2, (self.x, self.v, self.xs, self.y, c.h, *c.gh2), bool(pins), pins))
+        # one substep as (kernel, threads, arguments, whether the substep's rows follow them,
+        # what follows those): predict reads the attached pins' targets, collide the colliders
+        plan = [(PREDICT, self.n2, (self.x, self.v, self.xs, self.y, c.h, *c.gh2), bool(pins), pins)]
         sweeps, first = [], 0
         for count in counts:
             args = (self.xs, self.y, self.x, self.order, i32(first), i32(count), c.mh2, c.bh, c.k, *c.rest)
