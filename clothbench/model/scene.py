@@ -451,11 +451,20 @@ class Setup:
         """The solver a --solvers entry names, with this file's dt, start and [pbd] or [vbd] settings."""
         return solver_for_spec(spec, self.solver, self.pbd, self.vbd)
 
-    def replace(self, grid=None, steps=None, dt=None, solver=None, method=None, iterations=None, substeps=None):
+    def replace(
+        self,
+        grid=None,
+        steps=None,
+        dt=None,
+        solver=None,
+        method=None,
+        iterations=None,
+        substeps=None,
+        chebyshev_rho=None,
+    ):
         """A copy with command-line overrides applied (None: keep), validated again."""
-        pbd_changes = {
-            k: v for k, v in (("method", method), ("iterations", iterations), ("substeps", substeps)) if v is not None
-        }
+        given = dict(method=method, iterations=iterations, substeps=substeps, chebyshev_rho=chebyshev_rho)
+        pbd_changes = {k: v for k, v in given.items() if v is not None}
         pbd = self.pbd.replace(**pbd_changes)
         vbd_changes = {k: v for k, v in pbd_changes.items() if k != "method"}  # a method is PBD's
         vbd = self.vbd.replace(**vbd_changes)
