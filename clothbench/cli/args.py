@@ -141,19 +141,17 @@ def options_from_args(args):
 
     if args.local_size is not None and args.local_size < 1:
         raise ClothbenchError(f"--local-size must be >= 1, got {args.local_size}")
-    return BackendOptions(
-        precision=args.precision,
-        strict=args.strict,
-        transfer=args.transfer,
-        local_size=args.local_size,
-        device=args.device,
-        gl=args.gl,
-        shape=args.shape,
-        retune=getattr(args, "retune", False),
-        normals=args.save_normals,
-        generic=args.generic,
-        mesh_collision=getattr(args, "mesh_collision", None),
-    )
+    return fields_from_args(BackendOptions, args, normals=args.save_normals)
+
+
+def fields_from_args(settings: type, args, **given):
+    """The dataclass `settings` with each field the command has an option of the same name
+    for read from `args`, and `given` for the others (or in place of one); a field with
+    neither keeps its default."""
+    import dataclasses
+
+    names = (f.name for f in dataclasses.fields(settings) if f.init)
+    return settings(**{name: getattr(args, name) for name in names if hasattr(args, name)} | given)
 
 
 def check_mesh_collision(algorithm: str | None, scene) -> None:
