@@ -54,6 +54,25 @@ class SelfContact:
     def buffers(self) -> tuple:
         return (self.keys, self.order)
 
+    def row_launches(self, kernel, x_in, x_out, colliders, bodies: tuple) -> list[tuple[object, int]]:
+        """The pass of a solver that keeps float4 rows (pbd_cloth.cl, vbd_cloth.cl): x_in keyed,
+        sorted, then pushed and collided into x_out by pbd_self_collision, as (kernel, work
+        items) in launch order. `kernel(key, name, dtypes, args, bodies)`: the solver's kernel
+        with its arguments set once, shared by launches of one key; `bodies`: its _body_args()
+        the pass takes after the colliders."""
+        i32, f32 = np.int32, np.float32
+        sort = (self.keys, self.order)
+        cell_keys = kernel(
+            ("cell keys", x_in), "self_cell_keys", [None] * 3 + [f32, i32], (x_in, *sort, self.inv_cell, self.count)
+        )
+        out = [(cell_keys, self.slots)]
+        for j, k in self.stages:
+            out.append((kernel(("sort", j, k), "self_sort_stage", [None, None, i32, i32], (*sort, j, k)), self.slots))
+        dtypes = [None] * 4 + [self.numbers.dtype, i32, None]
+        args = (x_in, x_out, *sort, self.numbers, self.exclude2, colliders)
+        out.append((kernel(("self collision", x_in), "pbd_self_collision", dtypes, args, bodies), int(self.count)))
+        return out
+
 
 def include_text(contact: SelfContact | None) -> str:
     """The text of `#include <self_collision>`: the pass where the scene has it, else nothing."""
