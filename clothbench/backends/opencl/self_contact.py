@@ -1,4 +1,4 @@
-"""What both OpenCL solvers (verlet.py, pbd.py) do the same way for [self_collision]
+"""What the OpenCL solvers (verlet.py, pbd.py, vbd.py) do the same way for [self_collision]
 (docs/semantics.md, "Self-collision"; the kernels are kernels/self_collision.cl): its numbers
 as the kernels take them, its build options, and the sort's buffers and stages.
 
