@@ -233,7 +233,7 @@ def test_strict_ptx_of_the_pass_rounds_every_operation_on_its_own(self_ptx):
 # --- 3. CudaBackend over the stand-in cupy -----------------------------------------------
 
 
-def test_cuda_backend_runs_the_pass_in_every_shape_it_offers_bit_for_bit(cuda_on_cpu):
+def test_cuda_backend_runs_the_pass_in_every_shape_it_offers_bit_for_bit(cuda_on_cpu):  # noqa: F811
     scene, pos = sheet()
     expected = numpy_run(scene, pos, STEPS)
     shapes = cuda.CudaBackend.kernel_shapes(scene, BackendOptions(strict=True))
@@ -250,7 +250,7 @@ def test_cuda_backend_runs_the_pass_in_every_shape_it_offers_bit_for_bit(cuda_on
             assert_bit_exact(got[1], expected[1], f"prev, {shape}, generic={generic}")
 
 
-def test_the_multi_step_kernel_is_not_offered_with_the_pass_and_naming_it_is_refused(cuda_on_cpu):
+def test_the_multi_step_kernel_is_not_offered_with_the_pass_and_naming_it_is_refused(cuda_on_cpu):  # noqa: F811
     scene, _ = sheet()
     options = BackendOptions(strict=True)
     plain = cuda.CudaBackend.kernel_shapes(scene.replace(self_collision=None), options)

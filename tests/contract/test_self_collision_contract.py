@@ -54,7 +54,7 @@ def assert_matches_numpy(got, scene, solver, pos, steps: int, what: str) -> None
 
 
 @pytest.mark.parametrize("steps", [1, 20])
-def test_cuda_strict_self_collision_on_its_cpu_build_matches_numpy_f32_bit_for_bit(cuda_on_cpu, steps):
+def test_cuda_strict_self_collision_on_its_cpu_build_matches_numpy_f32_bit_for_bit(cuda_on_cpu, steps):  # noqa: F811
     scene, pos = folded()
     backend, _ = cuda_on_cpu(scene, strict=True)
     with backend:
