@@ -183,6 +183,6 @@ extern "C" __global__ void self_collision(const float4* __restrict__ x_in, float
     if (i >= n * n) return;
     const float w = x_in[i].w;
     float3 x = self_push(i, n, x_in, keys, order, slots, thickness, thickness2, relax, inv_cell, exclude2);
-    if (w != 0.0f) x = collide_all(x COLLIDE_ARGS MESH_ARGS ROWS_ARG);  // then the colliders
+    if (w != 0.0f) x = apply_colliders(x COLLIDE_ARGS MESH_ARGS ROWS_ARG);  // then the colliders
     x_out[i] = make_float4(x.x, x.y, x.z, w);
 }

@@ -395,7 +395,7 @@ __device__ __forceinline__ float3 normal_at(Positions pos, int row, int col, int
 #define STEP_ROWS_ARGS(step)
 #endif
 
-// What the colliders read (collide_all): generic, the collider parameters; with motion, the
+// What the colliders read (apply_colliders): generic, the collider parameters; with motion, the
 // step's rows (no pin slots).
 #ifdef CLOTH_GENERIC
 #define COLLIDE_PARAMS , COLLIDER_PARAMS
@@ -420,7 +420,7 @@ __device__ __forceinline__ float3 normal_at(Positions pos, int row, int col, int
 
 // The colliders' part of step 6: every collider in the fixed order, all spheres, cylinders,
 // boxes, planes, then meshes (at the step's rows where they move).
-__device__ __forceinline__ float3 collide_all(float3 x_new COLLIDE_PARAMS MESH_PARAMS ROWS_PARAM)
+__device__ __forceinline__ float3 apply_colliders(float3 x_new COLLIDE_PARAMS MESH_PARAMS ROWS_PARAM)
 {
 #if HAS_SPHERES
     for (int s = 0; s < sphere_count; ++s)
@@ -493,7 +493,7 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
                                (2.0f * x.y - xp.y) + acc.y * dt2,
                                (2.0f * x.z - xp.z) + acc.z * dt2);
     // with [self_collision] they act after the pass instead (self_collision.cuh)
-    return COLLIDE_IN_STEP ? collide_all(x_new COLLIDE_ARGS MESH_ARGS ROWS_ARG) : x_new;
+    return COLLIDE_IN_STEP ? apply_colliders(x_new COLLIDE_ARGS MESH_ARGS ROWS_ARG) : x_new;
 }
 
 extern "C" __global__ void verlet_step(

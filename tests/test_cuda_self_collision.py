@@ -29,14 +29,11 @@ from clothbench.backends.cuda.self_contact import KERNELS
 from clothbench.backends.numpy.self_collision import SelfCollisionPass
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error
-from clothbench.model.colliders.analytic import Box, Plane, Sphere
-from clothbench.model.colliders.mesh import Mesh
-from clothbench.model.colliders.motion import Motion
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 from clothbench.model.scene import SelfCollision
 
 from conftest import VERLET, assert_bit_exact, every_kind
-from folded_sheet import folded
+from folded_sheet import folded, on_bodies
 from test_cuda import BUILDS, MODES, entry_body, nvcc_build
 from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
 
@@ -127,19 +124,7 @@ def test_strict_matches_numpy_f32_where_the_cell_keys_are_clamped():
 
 
 def bodies_scene():
-    """The folded sheet lying on a rising floor its pin follows, beside a sphere, a box and a
-    mesh: the colliders act after the pass (a particle pushed into the floor comes back out),
-    at the pose of the step's end (per-step rows), with an attached pin."""
-    scene, pos = sheet(16)
-    h, y = scene.spacing, float(pos[0, 1])
-    floor = Plane(
-        point=(0.0, y - 0.2 * h, 0.0), normal=(0.0, 1.0, 0.0), name="floor", motion=Motion(velocity=(0.0, 0.5, 0.0))
-    )
-    ball = Sphere(center=(0.5, y + 0.5 * h, 0.4), radius=0.1)
-    mesh = Mesh(shape="icosphere", subdivisions=1, position=(0.3, y, 0.3), scale=0.08, name="ico")
-    box = Box(center=(0.7, y, 0.2), half_extents=(0.06, 0.05, 0.06), rotation=(0.0, 30.0, 0.0))
-    scene = scene.replace(planes=(floor,), spheres=(ball,), boxes=(box,), meshes=(mesh,), pin_attach="floor")
-    return scene, pos
+    return on_bodies(sheet(16))
 
 
 @pytest.mark.parametrize("build", [{}, {"generic": True}, {"mesh_collision": "naive"}], ids=str)
@@ -204,14 +189,13 @@ def self_ptx(tmp_path_factory):
     if shutil.which("nvcc") is None:
         pytest.skip("nvcc not found on PATH (CUDA toolkit not installed)")
     folder = tmp_path_factory.mktemp("nvcc-self")
-    out = {}
-    for name, make in NVCC_SCENES.items():
-        for mode in MODES:
-            for build in BUILDS:
-                for normals in (False, True):
-                    path = folder / f"{name}-{mode}-{build}-{normals}.ptx"
-                    out[name, mode, build, normals] = nvcc_build(make(), MODES[mode], BUILDS[build], normals, path)
-    return out
+    variants = [(s, m, b, normals) for s in NVCC_SCENES for m in MODES for b in BUILDS for normals in (False, True)]
+    return {
+        (s, m, b, normals): nvcc_build(
+            NVCC_SCENES[s](), MODES[m], BUILDS[b], normals, folder / f"{s}-{m}-{b}-{normals}.ptx"
+        )
+        for s, m, b, normals in variants
+    }
 
 
 def test_the_pass_compiles_for_sm80_without_errors_or_warnings(self_ptx):
