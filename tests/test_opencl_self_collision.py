@@ -14,14 +14,11 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl import pbd as opencl_pbd
 from clothbench.backends.opencl import verlet as opencl
-from clothbench.model.colliders.analytic import Box, Plane, Sphere
-from clothbench.model.colliders.mesh import Mesh
-from clothbench.model.colliders.motion import Motion
 from clothbench.harness import position_error
 from clothbench.model.scene import SelfCollision
 from clothbench.model.solver import Pbd, Vbd
 from conftest import VERLET, assert_bit_exact, require
-from folded_sheet import folded
+from folded_sheet import folded, on_bodies
 from test_opencl_meshes import program_sources
 
 STEPS = 20  # the contract's longer run: every pair of the fold pushed, several times
@@ -114,19 +111,7 @@ def test_pbd_and_vbd_strict_match_numpy_f32_bit_for_bit_in_every_method(variant)
 
 
 def bodies_scene():
-    """The folded sheet lying on a rising floor its pin follows, beside a sphere, a box and a mesh: the
-    colliders act after the pass (a particle pushed into the floor comes back out), at the pose
-    of the step's end (per-step tables), with an attached pin."""
-    scene, pos = sheet(16)
-    h, y = scene.spacing, float(pos[0, 1])
-    floor = Plane(
-        point=(0.0, y - 0.2 * h, 0.0), normal=(0.0, 1.0, 0.0), name="floor", motion=Motion(velocity=(0.0, 0.5, 0.0))
-    )
-    ball = Sphere(center=(0.5, y + 0.5 * h, 0.4), radius=0.1)
-    mesh = Mesh(shape="icosphere", subdivisions=1, position=(0.3, y, 0.3), scale=0.08, name="ico")
-    box = Box(center=(0.7, y, 0.2), half_extents=(0.06, 0.05, 0.06), rotation=(0.0, 30.0, 0.0))
-    scene = scene.replace(planes=(floor,), spheres=(ball,), boxes=(box,), meshes=(mesh,), pin_attach="floor")
-    return scene, pos
+    return on_bodies(sheet(16))
 
 
 @pytest.mark.parametrize("build", [{}, {"generic": True}, {"mesh_collision": "naive"}], ids=str)

@@ -26,7 +26,7 @@ class SelfContact:
         self.numbers = cl.cltypes.make_float4(c.thickness, c.thickness2, c.relax, c.inv_cell)
         self.exclude2 = np.int32(min(c.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
         self.count = np.int32(scene.particles)
-        self.slots = 1 << max(0, (scene.particles - 1).bit_length())
+        self.slots = sort_slots(scene.particles)
         mf = cl.mem_flags
         self.keys = cl.Buffer(context, mf.READ_WRITE, 8 * self.slots)  # a ulong cell id per slot
         self.order = cl.Buffer(context, mf.READ_WRITE, 4 * self.slots)  # the particle in the slot
@@ -41,15 +41,7 @@ class SelfContact:
 
     @property
     def stages(self) -> list[tuple[np.int32, np.int32]]:
-        """(j, k) of each compare-and-exchange stage of the bitonic sort, in launch order."""
-        out, k = [], 2
-        while k <= self.slots:
-            j = k // 2
-            while j > 0:
-                out.append((np.int32(j), np.int32(k)))
-                j //= 2
-            k *= 2
-        return out
+        return sort_stages(self.slots)
 
     def buffers(self) -> tuple:
         return (self.keys, self.order)
@@ -72,6 +64,24 @@ class SelfContact:
         args = (x_in, x_out, *sort, self.numbers, self.exclude2, colliders)
         out.append((kernel(("self collision", x_in), "pbd_self_collision", dtypes, args, bodies), int(self.count)))
         return out
+
+
+def sort_slots(particles: int) -> int:
+    """The bitonic sort's length: the particle count rounded up to a power of two (the CUDA
+    pass's too, kernels/self_collision.cuh)."""
+    return 1 << max(0, (particles - 1).bit_length())
+
+
+def sort_stages(slots: int) -> list[tuple[np.int32, np.int32]]:
+    """(j, k) of each compare-and-exchange stage of the bitonic sort over `slots`, in launch order."""
+    out, k = [], 2
+    while k <= slots:
+        j = k // 2
+        while j > 0:
+            out.append((np.int32(j), np.int32(k)))
+            j //= 2
+        k *= 2
+    return out
 
 
 def include_text(contact: SelfContact | None) -> str:
