@@ -15,6 +15,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.gl import compute, compute_pbd, shapes
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error
+from clothbench.model.colliders.self_contact import KEY_LIMIT, cell_keys
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 from conftest import VERLET, require
 from test_opencl_self_collision import PBD, STEPS, assert_matches_numpy, bodies_scene, run, sheet, sheet_with_cell
@@ -31,6 +32,25 @@ def _glsl_compute():
 def assert_exact(scene, pos, what: str, solver=VERLET, steps: int = STEPS, **build):
     options = BackendOptions(strict=True, **build)
     assert_matches_numpy(scene, pos, options, what, steps=steps, solver=solver, backend=NAME)
+
+
+def test_the_sort_orders_the_particles_by_cell_then_index_as_numpy_does():
+    # 900 particles in 1024 slots: the pad slots sort last, after every particle's cell
+    scene, pos = sheet(30)
+    with create_backend(NAME, scene, VERLET, BackendOptions(strict=True)) as b:
+        b.upload(pos, pos)
+        b.advance(1)
+        with b.gl:
+            x_new = np.frombuffer(b.x_new.read(), np.float32).reshape(-1, 4)[:, :3]
+            words = np.frombuffer(b.contact.keys.read(), np.uint32).reshape(-1, 2).astype(np.int64)
+            order = np.frombuffer(b.contact.order.read(), np.int32)
+    k = cell_keys(x_new, SelfCollisionConstants.of(scene).inv_cell) + KEY_LIMIT
+    ids = k[:, 0] | (k[:, 1] << 21) | (k[:, 2] << 42)  # OpenCL's one 64-bit id
+    expected = np.argsort(ids, kind="stable")
+    count, slots = len(ids), len(order)
+    assert slots == 1024 and np.array_equal(order[:count], expected), "particles by (cell, index)"
+    assert np.array_equal(order[count:], np.arange(count, slots)), "the pad slots last, by index"
+    assert np.array_equal(words[:count, 0] | (words[:count, 1] << 32), ids[expected]), "two uints: the same id"
 
 
 @pytest.mark.parametrize(
