@@ -156,10 +156,10 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         if self.contact is not None:
             defines.update(self.contact.defines)
         kinds = gl_context.collider_kinds(self.scene, self.options.generic)
-        body = dict(
+        parts = dict(  # what the includes put in: meshes, motion, the self-collision pass
             meshes=bool(self.scene.meshes), moving=self.scene.has_motion, self_collision=self.contact is not None
         )
-        source = gl_context.shader_source(filename, 430, defines, kinds, **body)
+        source = gl_context.shader_source(filename, 430, defines, kinds, **parts)
         # the source is the specialisation key (see fragment.GLSLBackend._program)
         program = self.gl.program(("comp", source), lambda: self.gl.ctx.compute_shader(source))
         self.sources[what] = source

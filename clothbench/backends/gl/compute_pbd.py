@@ -148,10 +148,10 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
         if stage == "jacobi" and self.chebyshev:
             defines["CHEBYSHEV"] = ""
         kinds = gl_context.collider_kinds(self.scene, generic=False)
-        body = dict(
+        parts = dict(  # what the includes put in: meshes, motion, the self-collision pass
             meshes=bool(self.scene.meshes), moving=self.scene.has_motion, self_collision=self.contact is not None
         )
-        source = gl_context.shader_source(KERNEL_FILE, 430, defines, kinds, **body)
+        source = gl_context.shader_source(KERNEL_FILE, 430, defines, kinds, **parts)
         self.sources[stage if part is None else f"{stage} {part}"] = source
         # the source is the specialisation key: the same scene and switches share a program
         program = self.gl.program(("pbd-comp", source), lambda: self.gl.ctx.compute_shader(source))
