@@ -1,10 +1,11 @@
 """[self_collision] on glsl-compute's Verlet and PBD solvers (kernels/self_collision.glsl and
-self_collision.comp, docs/semantics.md "Self-collision"), beyond the contract's default build:
-strict is the NumPy float32 reference bit for bit with several pairs per particle (so the sum's
-order shows), in the generic build, with normals, a padded dispatch and SSBO reads, in every PBD
-method, with cells of 1 and 2.5 thicknesses and clamped keys, and with colliders, a mesh, motion
-and attached pins acting after the pass; fast stays within float32's own error; a scene without
-the table compiles none of it; only the default kernel shape is offered with it."""
+self_collision.comp, docs/semantics.md "Self-collision"), beyond the contract's default build
+(tests/contract/test_self_collision_contract.py): the sort itself against NumPy's; strict is the
+NumPy float32 reference bit for bit with several pairs per particle (so the sum's order shows) in
+the generic build, with normals, a padded dispatch and SSBO reads, in every PBD method, with
+cells of 1 and 2.5 thicknesses and clamped keys, and with colliders, a mesh, motion and attached
+pins acting after the pass; fast stays within float32's own error; a scene without the table
+compiles none of it; only the default kernel shape is offered with it."""
 
 from __future__ import annotations
 
