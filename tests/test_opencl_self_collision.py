@@ -31,6 +31,13 @@ def sheet(n: int = 16):
     return folded(n, thickness=THICK)
 
 
+def sheet_with_cell(cell: float):
+    """The sheet with a search cell of `cell` thicknesses."""
+    scene, pos = sheet()
+    t = scene.self_collision.thickness
+    return scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t)), pos
+
+
 @pytest.fixture(autouse=True)
 def _opencl():
     require("opencl")
@@ -54,8 +61,10 @@ def run(name: str, scene, pos, steps: int, options: BackendOptions, solver=VERLE
         return b.read()
 
 
-def assert_matches_numpy(scene, pos, options: BackendOptions, what: str, steps: int = STEPS, solver=VERLET):
-    got = run("opencl", scene, pos, steps, options, solver)
+def assert_matches_numpy(
+    scene, pos, options: BackendOptions, what: str, steps: int = STEPS, solver=VERLET, backend: str = "opencl"
+):
+    got = run(backend, scene, pos, steps, options, solver)
     expected = run("numpy", scene, pos, steps, BackendOptions(), solver)
     assert_bit_exact(got[0], expected[0], f"pos, {what}")
     assert_bit_exact(got[1], expected[1], f"prev, {what}")
@@ -83,9 +92,7 @@ def test_strict_matches_numpy_f32_bit_for_bit_in_every_build(n, build):
 def test_strict_matches_numpy_f32_with_cells_larger_than_the_thickness(cell):
     # 2.5 thicknesses: every cell holds several particles of both layers, so the runs merged
     # hold candidates past the thickness that the distance test rejects
-    scene, pos = sheet()
-    t = scene.self_collision.thickness
-    scene = scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t))
+    scene, pos = sheet_with_cell(cell)
     for solver in (VERLET, PBD["jacobi"]):
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"cell {cell} {solver.name}", solver=solver)
 

@@ -243,18 +243,6 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.border_particles = np.flatnonzero(~covered).astype(np.int32)
         self.border = self._read_only_buffer(self.border_particles)
 
-    def _substep_plan(self, coloured_sweep: bool = False):
-        """pbd_device's plan; with [self_collision], its pass (and the colliders after it) from
-        the last iterate into the other buffer, which update reads, in place of collide."""
-        plan = super()._substep_plan(coloured_sweep)
-        if self._contact is None:
-            return plan
-        final = plan[-1][1]
-        return [step for step in plan[:-1] if step[0] != "collide"] + [
-            ("self collision", final, 1 - final),
-            ("update", 1 - final),
-        ]
-
     @property
     def vector_width(self) -> int:
         preferred = self._device.preferred_vector_width_float
