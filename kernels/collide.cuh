@@ -18,6 +18,15 @@ struct Offset {
     int dr, dc;
 };
 
+// The 12-spring stencil in summation order (scene.OFFSETS): the springs of step 5, and the
+// pairs the self-collision pass leaves out.
+#define STENCIL                                                                              \
+    {                                                                                        \
+        {0, -1}, {0, 1}, {-1, 0}, {1, 0},     /* structural */                               \
+        {-1, -1}, {-1, 1}, {1, -1}, {1, 1},   /* shear */                                    \
+        {-2, -2}, {-2, 2}, {2, -2}, {2, 2},   /* bend: the long diagonals, as the chapter's demo */ \
+    }
+
 #ifdef CLOTH_GENERIC
 #define HAS_SPHERES 1
 #define HAS_CYLINDERS 1
@@ -228,11 +237,6 @@ __device__ __forceinline__ float3 collide_plane(float3 x, float4 point, float4 n
     const float4* __restrict__ planes, int plane_count        /* 2 rows, collide_plane */
 #define COLLIDER_ARGS spheres, sphere_count, cylinders, cylinder_count, boxes, box_count, planes, plane_count
 #endif
-#define COLLIDE_PARAMS , COLLIDER_PARAMS
-#define COLLIDE_ARGS , COLLIDER_ARGS
-#else
-#define COLLIDE_PARAMS
-#define COLLIDE_ARGS
 #endif
 
 // The meshes' two buffers (collide_mesh.cuh), in both builds; generic: and their count.
@@ -255,39 +259,50 @@ __device__ __forceinline__ float3 collide_plane(float3 x, float4 point, float4 n
 #define PIN_PARAMS
 #define PIN_ARGS
 #endif
+
+// What the colliders read (apply_colliders): generic, the collider parameters; with motion, the
+// step's rows (no pin slots).
+#ifdef CLOTH_GENERIC
+#define COLLIDE_PARAMS , COLLIDER_PARAMS
+#define COLLIDE_ARGS , COLLIDER_ARGS
+#else
+#define COLLIDE_PARAMS
+#define COLLIDE_ARGS
+#endif
 #ifdef CLOTH_MOTION
-#define ROWS_PARAM , const float4* __restrict__ step_rows  // this step's rows (see SPHERE_ROWS)
+#define ROWS_PARAM , const float4* __restrict__ step_rows
 #define ROWS_ARG , step_rows
 #else
 #define ROWS_PARAM
 #define ROWS_ARG
 #endif
 
-// Every collider in the fixed order: all spheres, cylinders, boxes, planes, then meshes.
-__device__ __forceinline__ float3 collide_particle(float3 x COLLIDE_PARAMS MESH_PARAMS ROWS_PARAM)
+// The colliders' part of step 6: every collider in the fixed order, all spheres, cylinders,
+// boxes, planes, then meshes (at the step's rows where they move).
+__device__ __forceinline__ float3 apply_colliders(float3 x_new COLLIDE_PARAMS MESH_PARAMS ROWS_PARAM)
 {
 #ifdef CLOTH_MOTION
     (void)step_rows;  // a scene whose only motion is its attached pins reads no collider rows
 #endif
 #if HAS_SPHERES
     for (int s = 0; s < sphere_count; ++s)
-        x = collide_sphere(x, SPHERE_ROWS[s]);
+        x_new = collide_sphere(x_new, SPHERE_ROWS[s]);
 #endif
 #if HAS_CYLINDERS
     for (int c = 0; c < cylinder_count; ++c)
-        x = collide_cylinder(x, CYLINDER_ROWS[3 * c], CYLINDER_ROWS[3 * c + 1], CYLINDER_ROWS[3 * c + 2]);
+        x_new = collide_cylinder(x_new, CYLINDER_ROWS[3 * c], CYLINDER_ROWS[3 * c + 1], CYLINDER_ROWS[3 * c + 2]);
 #endif
 #if HAS_BOXES
     for (int o = 0; o < box_count; ++o)
-        x = collide_box(x, BOX_ROWS[4 * o], BOX_ROWS[4 * o + 1], BOX_ROWS[4 * o + 2], BOX_ROWS[4 * o + 3]);
+        x_new = collide_box(x_new, BOX_ROWS[4 * o], BOX_ROWS[4 * o + 1], BOX_ROWS[4 * o + 2], BOX_ROWS[4 * o + 3]);
 #endif
 #if HAS_PLANES
     for (int f = 0; f < plane_count; ++f)
-        x = collide_plane(x, PLANE_ROWS[2 * f], PLANE_ROWS[2 * f + 1]);
+        x_new = collide_plane(x_new, PLANE_ROWS[2 * f], PLANE_ROWS[2 * f + 1]);
 #endif
 #if HAS_MESHES
     for (int m = 0; m < mesh_count; ++m)
-        x = collide_mesh(x, mesh_rows, mesh_ints, m, MESH_POSE(m));
+        x_new = collide_mesh(x_new, mesh_rows, mesh_ints, m, MESH_POSE(m));
 #endif
-    return x;
+    return x_new;
 }

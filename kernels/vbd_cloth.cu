@@ -82,12 +82,7 @@ __device__ __forceinline__ float3 newton_step(int i, float3 xi, const float4* X,
                                               float bh, float k, float rest_structural, float rest_shear,
                                               float rest_bend)
 {
-    // the 12-spring stencil in docs/semantics.md's order: structural, shear, bend
-    const Offset stencil[12] = {
-        {0, -1}, {0, 1}, {-1, 0}, {1, 0},
-        {-1, -1}, {-1, 1}, {1, -1}, {1, 1},
-        {-2, -2}, {-2, 2}, {2, -2}, {2, 2},
-    };
+    const Offset stencil[12] = STENCIL;  // collide.cuh: docs/semantics.md's order
     const float rest[3] = {rest_structural, rest_shear, rest_bend};
     const int row = i / n, col = i % n;
     int cnt = 0;  // the springs the particle has: an exact small integer
@@ -161,7 +156,7 @@ extern "C" __global__ void vbd_collide(float4* __restrict__ xs MESH_PARAMS ROWS_
     if (i >= n * n) return;
     const float4 p = xs[i];
     if (p.w == 0.0f) return;  // pinned particles are never collided
-    const float3 q = collide_particle(make_float3(p.x, p.y, p.z) MESH_ARGS ROWS_ARG);
+    const float3 q = apply_colliders(make_float3(p.x, p.y, p.z) MESH_ARGS ROWS_ARG);
     xs[i] = make_float4(q.x, q.y, q.z, p.w);
 }
 

@@ -36,6 +36,9 @@
  *                  rows, each mesh's pose and the attached pins' targets come from a per-step
  *                  table (`motion`, the rows of one step after another) instead of constants.
  *                  Without it there is no motion code.
+ *   CLOTH_SELF_COLLISION   the scene has [self_collision]: self_collision.cuh's kernels, and
+ *                  verlet_step leaves the colliders to its pass (docs/cuda.md, "Self-collision").
+ *                  Without it there is no self-collision code.
  */
 
 #ifndef CLOTH_GENERIC
@@ -51,7 +54,7 @@ constexpr float rest_structural = CLOTH_REST_STRUCTURAL, rest_shear = CLOTH_REST
                 rest_bend = CLOTH_REST_BEND;
 #endif
 
-// the colliders, their rows and the collision response, shared with vbd_cloth.cu
+// the grid, the colliders, their rows and the collision response, shared with vbd_cloth.cu
 #include "collide.cuh"
 
 // Steps 5.3-5.5: the factor s with spring force s * d, d = x_j - x_i: k (L - rest) / L.
@@ -159,6 +162,13 @@ __device__ __forceinline__ float3 normal_at(Positions pos, int row, int col, int
 #define STEP_ROWS_ARGS(step)
 #endif
 
+// The step collides its particles, unless the self-collision pass does it after pushing them.
+#ifdef CLOTH_SELF_COLLISION
+#define COLLIDE_IN_STEP false
+#else
+#define COLLIDE_IN_STEP true
+#endif
+
 // Steps 1-6 of docs/semantics.md for the particle at (row, col), at x(t) = x with x(t - dt) =
 // xp and inverse mass w, its neighbours' x(t) read through pos: x(t + dt).
 template <class Positions>
@@ -174,11 +184,7 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
 
     // step 5: the 12-spring stencil in summation order (differs: row and column offsets
     // are not mixed as in the listing); a neighbour outside the grid adds nothing
-    const Offset stencil[12] = {
-        {0, -1}, {0, 1}, {-1, 0}, {1, 0},      // structural
-        {-1, -1}, {-1, 1}, {1, -1}, {1, 1},    // shear
-        {-2, -2}, {-2, 2}, {2, -2}, {2, 2},    // bend: the long diagonals, as the chapter's demo
-    };
+    const Offset stencil[12] = STENCIL;
     const float rest[3] = {rest_structural, rest_shear, rest_bend};
 #pragma unroll
     for (int o = 0; o < 12; ++o) {
@@ -210,7 +216,8 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
     float3 x_new = make_float3((2.0f * x.x - xp.x) + acc.x * dt2,
                                (2.0f * x.y - xp.y) + acc.y * dt2,
                                (2.0f * x.z - xp.z) + acc.z * dt2);
-    return collide_particle(x_new COLLIDE_ARGS MESH_ARGS ROWS_ARG);
+    // with [self_collision] they act after the pass instead (self_collision.cuh)
+    return COLLIDE_IN_STEP ? apply_colliders(x_new COLLIDE_ARGS MESH_ARGS ROWS_ARG) : x_new;
 }
 
 extern "C" __global__ void verlet_step(
@@ -306,3 +313,7 @@ extern "C" __global__ void __launch_bounds__(MULTISTEP_MAX_THREADS) verlet_steps
 #endif
     }
 }
+
+#ifdef CLOTH_SELF_COLLISION
+#include "self_collision.cuh"
+#endif

@@ -195,8 +195,7 @@ def test_sphere_only_build_holds_no_cylinder_or_plane_code(tmp_path):
     for present in ("collide_sphere", "collide_cylinder", "collide_plane", "normal_at"):
         assert present in everything
     no_colliders = preprocessed(load_scene("drape"), generic=False)
-    for kind in ("sphere", "cylinder", "box", "plane", "mesh"):  # collide_particle is left, empty
-        assert f"collide_{kind}" not in no_colliders
+    assert "collide_" not in no_colliders
     if shutil.which("nvcc"):  # and in nvcc's PTX, only the sphere's constants exist
         done, ptx = nvcc_build(sphere(16), True, False, False, tmp_path / "sphere.ptx")
         assert done.returncode == 0, done.stderr
