@@ -2,7 +2,8 @@
  * What both CUDA cloth kernels, kernels/verlet_cloth.cu and kernels/vbd_cloth.cu, take from the
  * scene: its colliders (the spheres, cylinders, boxes and planes of docs/semantics.md, then the
  * meshes of collide_mesh.cuh) and the collision response, one code for both solvers
- * (docs/vbd.md: VBD collides with the Verlet step's projections), and the grid's helpers.
+ * (docs/vbd.md: VBD collides with the Verlet step's projections), and the grid's helpers
+ * (Offset, STENCIL, inside_grid, minus, dot3).
  *
  * The including kernel defines the grid side `n` first (a constant, or in verlet_cloth.cu's
  * generic build a parameter). Switches, as verlet_cloth.cu's header describes them:
@@ -18,8 +19,8 @@ struct Offset {
     int dr, dc;
 };
 
-// The 12-spring stencil in summation order (scene.OFFSETS): the springs of step 5, and the
-// pairs the self-collision pass leaves out.
+// The 12-spring stencil in summation order (scene.OFFSETS): the springs of step 5 and of VBD's
+// Newton step, and the pairs the self-collision pass leaves out.
 #define STENCIL                                                                              \
     {                                                                                        \
         {0, -1}, {0, 1}, {-1, 0}, {1, 0},     /* structural */                               \
