@@ -27,3 +27,15 @@ def folded(n: int = N, gap: float = 0.5, thickness: float = 0.8, pins=("top-left
     pos[:, :3] += 0.05 * h * rng.standard_normal((n * n, 3))
     pos[scene.pinned(), :3] = scene.initial_state(np.float64)[0][scene.pinned(), :3]
     return scene, pos.astype(np.float32)
+
+
+def crumpled(scene, pos: np.ndarray, width: float = 1.5) -> np.ndarray:
+    """`pos` with its free particles crumpled into a ball `width` thicknesses wide: every particle
+    has dozens of pairs, more than a kernel sorts on its stack (the C and OpenCL kernels merge
+    their cells' runs then)."""
+    pos = pos.copy()
+    rng = np.random.default_rng(7)
+    free = np.ones(scene.particles, dtype=bool)
+    free[scene.pinned()] = False
+    pos[free, :3] = 0.5 + width * scene.self_collision.thickness * rng.random((int(free.sum()), 3))
+    return pos

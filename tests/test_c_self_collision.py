@@ -16,7 +16,7 @@ from clothbench.harness.simulate import position_error
 from clothbench.model.scene import Box, Cylinder, Plane, Sphere
 
 from conftest import VERLET, assert_bit_exact, require
-from folded_sheet import folded
+from folded_sheet import crumpled, folded
 
 
 def folded_over_colliders():
@@ -63,10 +63,7 @@ def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_on_the_stack
     # more than the kernel's MAX_HITS (32), so it sums them by merging its buckets' runs
     require("c")
     scene, pos = folded()
-    rng = np.random.default_rng(7)
-    free = np.ones(scene.particles, dtype=bool)
-    free[scene.pinned()] = False
-    pos[free, :3] = 0.5 + 1.5 * scene.self_collision.thickness * rng.random((int(free.sum()), 3))
+    pos = crumpled(scene, pos)
     got = run("c", scene, pos, (steps,), BackendOptions(strict=True))
     want = run("numpy", scene, pos, (steps,), BackendOptions())
     assert_bit_exact(got[0], want[0], f"pos, crumpled, {steps} steps")

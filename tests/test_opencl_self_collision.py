@@ -18,10 +18,11 @@ from clothbench.model.colliders.analytic import Box, Plane, Sphere
 from clothbench.model.colliders.mesh import Mesh
 from clothbench.model.colliders.motion import Motion
 from clothbench.harness import position_error
+from clothbench.harness.health import self_contact
 from clothbench.model.scene import SelfCollision
 from clothbench.model.solver import Pbd
 from conftest import VERLET, assert_bit_exact, require
-from folded_sheet import folded
+from folded_sheet import crumpled, folded
 from test_opencl_meshes import program_sources
 
 STEPS = 20  # the contract's longer run: every pair of the fold pushed, several times
@@ -97,6 +98,16 @@ def test_strict_matches_numpy_f32_where_the_cell_keys_are_clamped():
     assert float(pos[:, :3].min()) * float(SelfCollisionConstants.of(scene).inv_cell) > 2**20, "keys clamp"
     for solver in (VERLET, PBD["coloured"]):
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"clamped {solver.name}", solver=solver)
+
+
+@pytest.mark.parametrize("generic", [False, True], ids=["specialised", "generic"])
+def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_in_private_memory(generic):
+    # every particle has dozens of pairs, more than the kernel's SELF_HITS (32): it merges its
+    # cells' runs by smallest index instead of sorting the pairs it found
+    scene, pos = folded()
+    pos = crumpled(scene, pos)
+    assert self_contact(pos, scene)[0] > 32 * scene.particles / 2, "the merge is not reached"
+    assert_matches_numpy(scene, pos, BackendOptions(strict=True, generic=generic), f"crumpled {generic}", steps=3)
 
 
 @pytest.mark.parametrize("method", PBD)
