@@ -111,3 +111,17 @@ def test_a_scene_without_the_table_builds_none_of_the_pass():
     assert set(flags) - set(without) == {SELF_FLAG}, "the pass changes nothing else in the build"
     assert not hasattr(load_library(without), "cloth_contact_ints"), "the pass was compiled in"
     assert hasattr(load_library(flags), "cloth_contact_ints")
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_strict_holds_where_the_cell_keys_are_clamped(precision):
+    # 200 km out along every axis the keys pass 2^20 cells and clamp: the whole sheet is in one
+    # cell, whose rows of neighbours along x are that cell's row again; each candidate is met once
+    require("c")
+    scene, pos = folded(thickness=1.5)
+    pos[:, :3] += np.float32(2e5)
+    got = run("c", scene, pos, (5,), BackendOptions(precision=precision, strict=True))
+    want = run("numpy", scene, pos, (5,), BackendOptions(precision=precision))
+    assert_bit_exact(got[0], want[0], f"pos, clamped, {precision}")
+    alone = run("numpy", scene.replace(self_collision=None), pos, (5,), BackendOptions(precision=precision))
+    assert not np.array_equal(want[0], alone[0]), "the pass pushed no pair: the test shows nothing"
