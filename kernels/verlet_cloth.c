@@ -430,22 +430,29 @@ static void sort_buckets(const contact *ct, const real *restrict q)
 }
 
 /* Whether slots [from, to) may hold a pair of i at (x, y, z), grid row and col: the distance and
- * the rest exclusion tested for every candidate at once (SIMD, no early exit); close_pair then
- * decides, stencil included. Most ranges hold none: the sheet's own neighbours fail here. */
+ * the rest exclusion tested for every candidate at once, in whole vectors of LANES slots (SIMD,
+ * no early exit, no scalar remainder: a range is a few vectors, often less than one); close_pair
+ * then decides, stencil and coincidence included. Most ranges hold none: the sheet's own
+ * neighbours fail here. The slots past `to` that the last vector reads are in the work space
+ * (sorted, then bucket, order, then start, follow each other) and are masked out. */
+#define LANES 8
 INLINE int may_pair(const contact *ct, int from, int to, int row, int col, real x, real y, real z)
 {
     const real *sx = ct->sorted, *sy = ct->sorted + N2, *sz = ct->sorted + 2 * N2;
     const real thickness2 = ct->thickness2;
     const int exclude2 = ct->exclude2i, *restrict order = ct->order;
-    int count = 0; /* a sum, written as GCC 12 vectorises it (not an |= of the three tests) */
+    int count = 0; /* a sum, written as GCC 12 vectorises it (not an |= of the tests) */
+    for (int base = from; base < to; base += LANES) {
 #pragma omp simd reduction(+ : count)
-    for (int k = from; k < to; ++k) {
-        real dx = x - sx[k], dy = y - sy[k], dz = z - sz[k];
-        real L2 = (dx * dx + dy * dy) + dz * dz; /* close_pair's operations: the same bits */
-        int j = order[k];
-        int dr = j / N - row, dc = j % N - col;
-        int far = dr * dr + dc * dc >= exclude2;
-        count += (L2 < thickness2 && L2 > 0 && far) ? 1 : 0;
+        for (int lane = 0; lane < LANES; ++lane) {
+            int k = base + lane;
+            real dx = x - sx[k], dy = y - sy[k], dz = z - sz[k];
+            real L2 = (dx * dx + dy * dy) + dz * dz; /* close_pair's operations: the same bits */
+            unsigned j = (unsigned)order[k];
+            int dr = (int)(j / N) - row, dc = (int)(j % N) - col;
+            int far = dr * dr + dc * dc >= exclude2; /* i itself is not: exclude2 >= 1 */
+            count += (k < to && L2 < thickness2 && far) ? 1 : 0;
+        }
     }
     return count > 0;
 }
@@ -505,17 +512,28 @@ INLINE int row_ranges(const contact *ct, int kx, int ky, int kz, int *from, int 
     return added;
 }
 
+/* A cell's ranges of candidates (row_ranges over its 9 rows), kept for the next particle: in
+ * index order a row of the sheet often stays in one cell for several particles. */
+typedef struct {
+    int kx, ky, kz, ranges; /* ranges < 0: none kept */
+    int from[18], to[18];
+} cell_ranges;
+
 /* The pass for free particle i at (x, y, z) = q_i (w_i > 0): its corrections from every pair,
  * in ascending j, added to it when it has one. The candidates are tested first range by range,
  * most failing; the few pairs found are then summed in ascending j. A particle with more than
  * MAX_HITS pairs merges its buckets' runs (each ascending) by smallest j instead. */
-static void push(const contact *ct, int i, const real *restrict q, const real *restrict w, real *x, real *y, real *z)
+static void push(const contact *ct, cell_ranges *cell, int i, const real *restrict q, const real *restrict w, real *x,
+                 real *y, real *z)
 {
     int kx = cell_key(*x, ct->inv_cell), ky = cell_key(*y, ct->inv_cell), kz = cell_key(*z, ct->inv_cell);
-    int from[18], to[18], ranges = 0;
-    for (int dz = -1; dz <= 1; ++dz)
-        for (int dy = -1; dy <= 1; ++dy)
-            ranges += row_ranges(ct, kx, ky + dy, kz + dz, from, to, ranges);
+    if (cell->ranges < 0 || kx != cell->kx || ky != cell->ky || kz != cell->kz) {
+        cell->kx = kx, cell->ky = ky, cell->kz = kz, cell->ranges = 0;
+        for (int dz = -1; dz <= 1; ++dz)
+            for (int dy = -1; dy <= 1; ++dy)
+                cell->ranges += row_ranges(ct, kx, ky + dy, kz + dz, cell->from, cell->to, cell->ranges);
+    }
+    const int *from = cell->from, *to = cell->to, ranges = cell->ranges;
     const int row = i / N, col = i % N;
     const real wi = w[i];
     real d[3], L2, corr[3] = {0, 0, 0};
@@ -574,11 +592,12 @@ static void push(const contact *ct, int i, const real *restrict q, const real *r
 static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
                         real *restrict out, const real *restrict w)
 {
+    cell_ranges cell = {.ranges = -1};
     for (int i = row * N; i < row * N + N; ++i) {
         real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
         if (w[i] != 0) { /* pinned: neither pushed nor collided */
             if (w[i] > 0 && ct->bucket[i] != NOWHERE)
-                push(ct, i, q, w, &x, &y, &z);
+                push(ct, &cell, i, q, w, &x, &y, &z);
             collide(colliders, &x, &y, &z);
         }
         out[i] = x;
