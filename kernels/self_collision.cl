@@ -6,8 +6,9 @@
  * the pass, as the definition places them. PBD: `pbd_self_collision` takes the place of
  * pbd_collide in the substep, after the last constraint iteration.
  *
- * A pass is three kinds of launch, in queue order: self_cell_keys (each particle's cell),
- * self_sort_stage once per stage of a bitonic sort (the particles by cell, then index), then
+ * A pass is four kinds of launch, in queue order: self_cell_keys (each particle's cell), a bitonic
+ * sort of the particles by cell, then index (self_sort_local for the stages that stay within a
+ * block of 2 SORT_GROUP slots, in local memory, self_sort_stage once for each longer one), then
  * the pass itself, one work item per particle reading the positions before the pass (x_in)
  * and writing its own (x_out): a Jacobi projection, race-free, no atomics. Its candidates are
  * the particles of the 27 cells around its own, merged in ascending index: the sum's order,
@@ -16,9 +17,11 @@
  * Numbers (kernel_inputs.SelfCollisionConstants, rounded once on the host): c = (thickness,
  * thickness2, relax, inv_cell), and the integer exclude2 (pairs closer than that on the grid
  * at rest are excluded like stencil neighbours). CLOTH_SELF_SLOTS: the sort's length, the
- * particle count rounded up to a power of two.
+ * particle count rounded up to a power of two; CLOTH_SELF_SORT_GROUP: the work-group size of
+ * self_sort_local, a power of two, at most SLOTS / 2 (self_contact.py chooses it).
  */
 #define SLOTS CLOTH_SELF_SLOTS
+#define SORT_GROUP CLOTH_SELF_SORT_GROUP
 
 #if defined(CLOTH_GENERIC) || defined(CLOTH_PBD)
 /* float4 rows, the inverse mass in w */
@@ -105,6 +108,32 @@ __kernel void self_sort_stage(__global ulong *keys, __global int *order, const i
     bool later = ks > kt || (ks == kt && os > ot); /* s after t in (id, index) order */
     if (((s & k) == 0) == later) /* ascending blocks put the smaller first, descending last */
         keys[s] = kt, keys[t] = ks, order[s] = ot, order[t] = os;
+}
+
+/* Every stage (jj, kk) of the sort whose distance stays within a block of 2 SORT_GROUP slots, for
+ * kk from k_first to k_last (doubling) and jj from min(kk / 2, SORT_GROUP) down to 1, on each
+ * block in local memory: one work-group a block, one work item a compare-and-exchange, a
+ * barrier between stages. The same exchanges as self_sort_stage's, so the same order. */
+__kernel void self_sort_local(__global ulong *keys, __global int *order, const int k_first, const int k_last)
+{
+    __local ulong lk[2 * SORT_GROUP];
+    __local int lo[2 * SORT_GROUP];
+    int t = get_local_id(0), base = get_group_id(0) * 2 * SORT_GROUP;
+    lk[t] = keys[base + t], lo[t] = order[base + t];
+    lk[t + SORT_GROUP] = keys[base + t + SORT_GROUP], lo[t + SORT_GROUP] = order[base + t + SORT_GROUP];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int kk = k_first; kk <= k_last; kk *= 2)
+        for (int jj = min(kk / 2, SORT_GROUP); jj > 0; jj /= 2) {
+            int a = 2 * t - (t & (jj - 1)), b = a + jj; /* the t-th slot with bit jj clear, its partner */
+            ulong ka = lk[a], kb = lk[b];
+            int oa = lo[a], ob = lo[b];
+            bool later = ka > kb || (ka == kb && oa > ob); /* a after b in (id, index) order */
+            if ((((base + a) & kk) == 0) == later)
+                lk[a] = kb, lk[b] = ka, lo[a] = ob, lo[b] = oa;
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+    keys[base + t] = lk[t], order[base + t] = lo[t];
+    keys[base + t + SORT_GROUP] = lk[t + SORT_GROUP], order[base + t + SORT_GROUP] = lo[t + SORT_GROUP];
 }
 
 /* The first slot whose id is at least `id` (keys sorted). */

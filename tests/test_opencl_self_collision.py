@@ -100,6 +100,17 @@ def test_strict_matches_numpy_f32_where_the_cell_keys_are_clamped():
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"clamped {solver.name}", solver=solver)
 
 
+@pytest.mark.parametrize("solver", [VERLET, PBD["jacobi"]], ids=lambda s: s.name)
+def test_strict_holds_where_the_sort_spans_several_local_blocks(solver):
+    # 32^2 = 1,024 slots, two blocks of self_sort_local: the stage between them is a global
+    # launch, then a local one merges each block (at 16^2 one local launch sorts everything)
+    scene, pos = sheet(32)
+    with create_backend("opencl", scene, solver, BackendOptions(strict=True)) as b:
+        kinds = [kind for kind, _, _ in b._contact.sort_passes]
+    assert "stage" in kinds and kinds.count("local") > 1, f"the sort is {kinds}: one block, nothing shown"
+    assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"32^2 {solver.name}", steps=5, solver=solver)
+
+
 @pytest.mark.parametrize("generic", [False, True], ids=["specialised", "generic"])
 def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_in_private_memory(generic):
     # every particle has dozens of pairs, more than the kernel's SELF_HITS (32): it merges its
@@ -113,7 +124,7 @@ def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_in_private_m
 @pytest.mark.parametrize("method", PBD)
 def test_pbd_strict_matches_numpy_f32_bit_for_bit_in_every_method(method):
     scene, pos = sheet()
-    for build in ({}, {"local_size": 24}):  # 24 does not divide 256: padded launches, the sort's too
+    for build in ({}, {"local_size": 24}):  # 24 does not divide 256: padded launches, the cell keys too
         options = BackendOptions(strict=True, **build)
         assert_matches_numpy(scene, pos, options, f"pbd {method} {build}", solver=PBD[method])
 

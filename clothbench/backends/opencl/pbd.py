@@ -453,14 +453,11 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
                 [None] * 3 + [f32, i32],
                 (self.xs[src], *sort, sc.inv_cell, sc.count),
             )
-            kernels = [(keys, sc.slots)]
-            for j, k in sc.stages:
-                kernels.append(
-                    (self._kernel(("sort", j, k), "self_sort_stage", [None, None, i32, i32], (*sort, j, k)), sc.slots)
-                )
             dtypes = [None] * 4 + [float4, i32, None]
             args = (self.xs[src], self.xs[dst], *sort, sc.numbers, sc.exclude2, self.colliders)
-            kernels.append((self._kernel((kind, src), "pbd_self_collision", dtypes, args, meshes), self.n2))
+            push = self._kernel((kind, src), "pbd_self_collision", dtypes, args, meshes)
+            first, last = ((k, *self._launch_size(items)) for k, items in ((keys, sc.slots), (push, self.n2)))
+            return [first, *sc.sort_launches(self._kernel), last]
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)
