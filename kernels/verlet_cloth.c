@@ -512,8 +512,8 @@ INLINE int row_ranges(const contact *ct, int kx, int ky, int kz, int *from, int 
     return added;
 }
 
-/* A cell's ranges of candidates (row_ranges over its 9 rows), kept for the next particle: in
- * index order a row of the sheet often stays in one cell for several particles. */
+/* A cell's ranges of candidates (row_ranges over its 9 rows), kept for the next particle: the
+ * pass walks the particles in the sort's order, a cell's one after another. */
 typedef struct {
     int kx, ky, kz, ranges; /* ranges < 0: none kept */
     int from[18], to[18];
@@ -588,12 +588,16 @@ static void push(const contact *ct, cell_ranges *cell, int i, const real *restri
     *z = *z + corr[2];
 }
 
-/* One row of the pass: q (the updated positions, uncollided) to out, then the colliders. */
+/* One row of the pass: q (the updated positions, uncollided) to out, then the colliders, for
+ * the particles of n slots of the sort (slots row n .. row n + n - 1), so that the particles of
+ * one cell follow each other and share its ranges. Rows 0..n-1 together are every particle once;
+ * no particle's result depends on which row it is in. */
 static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
                         real *restrict out, const real *restrict w)
 {
     cell_ranges cell = {.ranges = -1};
-    for (int i = row * N; i < row * N + N; ++i) {
+    for (int k = row * N; k < row * N + N; ++k) {
+        int i = ct->order[k];
         real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
         if (w[i] != 0) { /* pinned: neither pushed nor collided */
             if (w[i] > 0 && ct->bucket[i] != NOWHERE)
