@@ -573,18 +573,7 @@ __kernel void pbd_coloured(__global float4 *X, __global const int2 *ij, __global
 #include <mesh_colliders>
 #endif
 
-/* collisions as position projections, free particles only: spheres, cylinders, boxes, planes,
- * then meshes (colliders: the substep's table) */
-INLINE float4 collide_particle(float4 p, __constant float4 *colliders MESH_ARG)
-{
-    if (p.w == 0.0f)
-        return p; /* pinned particles are never collided */
-    float3 x = collide(p.xyz, colliders, CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES);
-#if CLOTH_MESHES > 0
-    x = collide_meshes(x, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints);
-#endif
-    return (float4)(x, p.w);
-}
+#include "collide_particle.cl"
 
 __kernel void pbd_collide(__global float4 *xs, __constant float4 *colliders STEP_ARG MESH_ARG)
 {

@@ -23,6 +23,11 @@
  * particle. The threads split rows only, never one particle's work: no bit depends on them.
  * The per-particle passes (predict, Chebyshev, collide and update) split the rows the same
  * way every substep, so a thread reads only what it wrote there, or what a barrier published.
+ *
+ * CLOTH_SELF (the scene's [self_collision], docs/vbd.md): after the last sweep (and Chebyshev)
+ * the final iterate goes through verlet_cloth.c's pass as the Verlet step calls it (bucket_row,
+ * sort_buckets on one thread, contact_row: pushed, then collided) into y, free once the sweeps
+ * are done, and the update reads y, colliding nothing again. Three barriers more per substep.
  */
 
 #include "verlet_cloth.c"
@@ -38,6 +43,16 @@ typedef struct {
     real h, mh2, bh, k, gx, gy, gz, rest[3];
     real kr[3]; /* fast only: k * rest */
 } vbd_constants;
+
+#ifdef CLOTH_SELF
+#define VBD_CONTACT_PARAMS , const real *contact_numbers, long long exclude2, int *cells
+#define CONTACT_ARG , const contact *ct
+#define CONTACT_PASS , ct
+#else
+#define VBD_CONTACT_PARAMS
+#define CONTACT_ARG
+#define CONTACT_PASS
+#endif
 
 /* A barrier among the threads, none on one thread: the serial path calls no OpenMP function
  * (a child forked after its parent ran a parallel region steps that way, docs/c.md). */
@@ -205,7 +220,8 @@ PASS void chebyshev_rows(int lo, int hi, int k, real omega, const real *restrict
         }
 }
 
-/* collide (free particles only), then v = (X - x) / h, x = X. Each plane through a pointer
+/* collide (free particles only; with CLOTH_SELF the pass has, and X is its output), then
+ * v = (X - x) / h, x = X. Each plane through a pointer
  * of its own: through one, x[N2 + i] of iteration i is x[i'] of iteration i' = i + N2, and
  * GCC's predictive commoning carried values across that, writing back rows of the other
  * threads (measured: 2 threads at 4^2 in float64 gave different bits from run to run). */
@@ -214,13 +230,19 @@ PASS void update_rows(const vbd_constants *c, const real *colliders, int lo, int
                       const real *restrict w, const real *restrict X0, const real *restrict X1,
                       const real *restrict X2)
 {
+#ifndef CLOTH_SELF
     real table[COLLIDER_REALS]; /* as locals: see verlet_cloth.c step_row */
     for (int k = 0; k < COLLIDER_REALS; ++k)
         table[k] = colliders[k];
+#else
+    (void)colliders;
+#endif
     const real h = c->h;
     for (int i = lo * N; i < hi * N; ++i) {
         real px = X0[i], py = X1[i], pz = X2[i];
+#ifndef CLOTH_SELF
         collide(table, &px, &py, &pz);
+#endif
         const int free = w[i] != 0;
         px = free ? px : X0[i];
         py = free ? py : X1[i];
@@ -238,7 +260,7 @@ PASS void update_rows(const vbd_constants *c, const real *colliders, int lo, int
  * are written by every thread between the barriers. */
 static void vbd_run(const vbd_constants *c, const real *omega, const real *colliders, real *x, real *v,
                     const real *w, real *y, real *X, real *B, int iterations, int chebyshev, int substeps, int tid,
-                    int threads)
+                    int threads CONTACT_ARG)
 {
     SHARE(N, tid, threads, lo, hi);
     for (int s = 0; s < substeps; ++s) {
@@ -260,15 +282,32 @@ static void vbd_run(const vbd_constants *c, const real *omega, const real *colli
                 BARRIER(threads);
             }
         }
+#ifdef CLOTH_SELF
+        /* [self_collision]: the final iterate (published by the last barrier) keyed, sorted,
+         * then pushed and collided into y; the update reads this thread's rows of y */
+        for (int row = lo; row < hi; ++row)
+            bucket_row(ct, row, X);
+        BARRIER(threads);
+        if (tid == 0)
+            sort_buckets(ct, X);
+        BARRIER(threads);
+        for (int row = lo; row < hi; ++row)
+            contact_row(ct, colliders, row, X, y, w);
+        update_rows(c, colliders, lo, hi, x, x + N2, x + 2 * N2, v, v + N2, v + 2 * N2, w, y, y + N2, y + 2 * N2);
+        BARRIER(threads); /* the next predict writes X, which the pass reads in every row */
+#else
         /* the next predict reads only this thread's rows: no barrier until after it */
         update_rows(c, colliders, lo, hi, x, x + N2, x + 2 * N2, v, v + N2, v + 2 * N2, w, X, X + N2, X + 2 * N2);
+#endif
     }
 }
 
 /* Advance `substeps` substeps of VBD on `threads` threads: x and v (x|y|z planes) in place;
- * y, X and (with chebyshev) B = 2 * 3 n^2 values are scratch. */
+ * y, X and (with chebyshev) B = 2 * 3 n^2 values are scratch. With CLOTH_SELF the pass's
+ * numbers, exclude2 and work space follow, as cloth_advance takes them. */
 void cloth_vbd_advance(real *x, real *v, const real *w, real *y, real *X, real *B, const real *numbers,
-                       const real *colliders, int iterations, int chebyshev, int substeps, int threads)
+                       const real *colliders, int iterations, int chebyshev, int substeps,
+                       int threads VBD_CONTACT_PARAMS)
 {
     vbd_constants c;
     c.h = numbers[V_H];
@@ -283,9 +322,13 @@ void cloth_vbd_advance(real *x, real *v, const real *w, real *y, real *X, real *
         c.kr[kind] = c.k * c.rest[kind];
     }
     const real *omega = numbers + V_OMEGA;
+#ifdef CLOTH_SELF
+    const contact contact_constants = contact_of(contact_numbers, exclude2, cells);
+    const contact *ct = &contact_constants;
+#endif
     if (threads <= 1) {
         FP_ENTER;
-        vbd_run(&c, omega, colliders, x, v, w, y, X, B, iterations, chebyshev, substeps, 0, 1);
+        vbd_run(&c, omega, colliders, x, v, w, y, X, B, iterations, chebyshev, substeps, 0, 1 CONTACT_PASS);
         FP_LEAVE;
         return;
     }
@@ -293,7 +336,7 @@ void cloth_vbd_advance(real *x, real *v, const real *w, real *y, real *X, real *
     {
         FP_ENTER;
         vbd_run(&c, omega, colliders, x, v, w, y, X, B, iterations, chebyshev, substeps, omp_get_thread_num(),
-                omp_get_num_threads());
+                omp_get_num_threads() CONTACT_PASS);
         FP_LEAVE;
     }
 }

@@ -8,7 +8,9 @@
  *   vbd_predict                      x, v -> y, xs
  *   iterations x (vbd_sweep x 4 colours, then with Chebyshev vbd_chebyshev)
  *   vbd_collide                      xs, in place (only when the scene has colliders or meshes)
- *   vbd_update                       x, xs -> v, x
+ *     or, with [self_collision]: self_cell_keys, self_sort_stage x stages, pbd_self_collision
+ *                                    xs -> y, pushed apart, then collided (self_collision.cl)
+ *   vbd_update                       x, xs (or y) -> v, x
  * A sweep launch updates the particles of one colour (docs/vbd.md, "Vertex colours"): no two
  * share a spring, so each reads only neighbours no other item of the launch writes, and the
  * launch order within a colour changes no bit.
@@ -77,6 +79,7 @@ INLINE float dot3(float3 a, float3 b)
 typedef float floatv;
 #include <mesh_colliders>
 #endif
+#include "collide_particle.cl"
 
 /* predict: the inertial target y = (x + v*h) + g*h^2 and the first iterate xs = y; a pinned
  * particle stays (xs = x), or, following a body, goes to its target at the end of the substep
@@ -192,24 +195,16 @@ __kernel void vbd_chebyshev(__global float4 *X, __global float4 *before, const f
     before[i] = p;
 }
 
-/* collisions as position projections, free particles only: spheres, cylinders, planes, then
- * meshes (colliders: the substep's table) */
+/* the colliders, in place (collide_particle.cl: free particles only; the substep's table) */
 __kernel void vbd_collide(__global float4 *xs, __constant float4 *colliders STEP_ARG MESH_ARG)
 {
     int i = get_global_id(0);
     if (i >= N2)
         return;
-    float4 p = xs[i];
-    if (p.w == 0.0f)
-        return; /* pinned particles are never collided */
 #ifdef CLOTH_PER_STEP
     colliders += step * TABLE_ROWS; /* this substep's poses */
 #endif
-    float3 q = collide(p.xyz, colliders, CLOTH_SPHERES, CLOTH_CYLINDERS, CLOTH_BOXES, CLOTH_PLANES);
-#if CLOTH_MESHES > 0
-    q = collide_meshes(q, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints);
-#endif
-    xs[i] = (float4)(q, p.w);
+    xs[i] = collide_particle(xs[i], colliders MESH_PASS);
 }
 
 /* update: v = (xs - x) / h (no damping factor: the damping is in the potential); x = xs */
@@ -222,3 +217,9 @@ __kernel void vbd_update(__global float4 *x, __global float4 *v, __global const 
     v[i] = (float4)((p.xyz - x[i].xyz) / h, 0.0f);
     x[i] = p;
 }
+
+/* [self_collision] (docs/vbd.md), only where the scene has the table: self_collision.cl's pass
+ * for float4 rows, pbd_self_collision (named for PBD, whose rows, collider tables and
+ * collide_particle these are too), from the final iterate into y in place of vbd_collide. */
+#define CLOTH_PBD
+#include <self_collision>

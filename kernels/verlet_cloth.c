@@ -513,7 +513,7 @@ INLINE int row_ranges(const contact *ct, int kx, int ky, int kz, int *from, int 
 }
 
 /* A cell's ranges of candidates (row_ranges over its 9 rows), kept for the next particle: the
- * pass walks the particles in the sort's order, a cell's one after another. */
+ * Verlet pass walks the particles in the sort's order, a cell's one after another. */
 typedef struct {
     int kx, ky, kz, ranges; /* ranges < 0: none kept */
     int from[18], to[18];
@@ -588,26 +588,42 @@ static void push(const contact *ct, cell_ranges *cell, int i, const real *restri
     *z = *z + corr[2];
 }
 
-/* One row of the pass: q (the updated positions, uncollided) to out, then the colliders, for
- * the particles of n slots of the sort (slots row n .. row n + n - 1), so that the particles of
- * one cell follow each other and share its ranges. Rows 0..n-1 together are every particle once;
- * no particle's result depends on which row it is in. */
-static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
+/* Particle i through the pass: q_i (its updated position, uncollided) pushed, then collided,
+ * into out; `cell` keeps the ranges of the last cell met. */
+INLINE void contact_particle(const contact *ct, cell_ranges *cell, const real *colliders, int i,
+                             const real *restrict q, real *restrict out, const real *restrict w)
+{
+    real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
+    if (w[i] != 0) { /* pinned: neither pushed nor collided */
+        if (w[i] > 0 && ct->bucket[i] != NOWHERE)
+            push(ct, cell, i, q, w, &x, &y, &z);
+        collide(colliders, &x, &y, &z);
+    }
+    out[i] = x;
+    out[N2 + i] = y;
+    out[2 * N2 + i] = z;
+}
+
+/* One grid row of the pass: q (the updated positions, uncollided) to out, then the colliders;
+ * it writes that row of out alone (vbd_cloth.c's pass, whose update then reads its own rows). */
+__attribute__((unused)) static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
                         real *restrict out, const real *restrict w)
 {
     cell_ranges cell = {.ranges = -1};
-    for (int k = row * N; k < row * N + N; ++k) {
-        int i = ct->order[k];
-        real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
-        if (w[i] != 0) { /* pinned: neither pushed nor collided */
-            if (w[i] > 0 && ct->bucket[i] != NOWHERE)
-                push(ct, &cell, i, q, w, &x, &y, &z);
-            collide(colliders, &x, &y, &z);
-        }
-        out[i] = x;
-        out[N2 + i] = y;
-        out[2 * N2 + i] = z;
-    }
+    for (int i = row * N; i < row * N + N; ++i)
+        contact_particle(ct, &cell, colliders, i, q, out, w);
+}
+
+/* The pass for the particles of n slots of the sort (slots chunk n .. chunk n + n - 1), so that
+ * the particles of one cell follow each other and share its ranges; chunks 0..n-1 together are
+ * every particle once, each written where contact_row would write it. For a caller that reads
+ * out only after every chunk is done (a barrier), as the Verlet step does. */
+static void contact_chunk(const contact *ct, const real *colliders, int chunk, const real *restrict q,
+                          real *restrict out, const real *restrict w)
+{
+    cell_ranges cell = {.ranges = -1};
+    for (int k = chunk * N; k < chunk * N + N; ++k)
+        contact_particle(ct, &cell, colliders, ct->order[k], q, out, w);
 }
 
 #define SORTED_INTS ((int)(3 * N2 * sizeof(real) / sizeof(int)))
@@ -653,8 +669,8 @@ static int advance_with_contact(const constants *c, const contact *ct, real *a, 
                 bucket_row(ct, row, q);
             }
             sort_buckets(ct, q);
-            for (int row = 0; row < N; ++row)
-                contact_row(ct, colliders, row, q, o, w);
+            for (int chunk = 0; chunk < N; ++chunk)
+                contact_chunk(ct, colliders, chunk, q, o, w);
             real *t = q;
             q = p, p = o, o = t;
         }
@@ -674,12 +690,12 @@ static int advance_with_contact(const constants *c, const contact *ct, real *a, 
             }
 #pragma omp single
             sort_buckets(ct, q);
-            /* each barrier: the pass reads every row's update and the sorted buckets; its rows
-             * cost what their pairs and candidates cost (a fold's rows many, a flat row few), so
-             * they are handed out as threads come free: a row's bits depend on no thread */
+            /* each barrier: the pass reads every row's update and the sorted buckets; its chunks
+             * cost what their pairs and candidates cost (a fold's cells many, a flat sheet's few),
+             * so they are handed out as threads come free: no bit depends on the thread */
 #pragma omp for schedule(guided)
-            for (int row = 0; row < N; ++row)
-                contact_row(ct, colliders, row, q, o, w);
+            for (int chunk = 0; chunk < N; ++chunk)
+                contact_chunk(ct, colliders, chunk, q, o, w);
             real *t = q;
             q = p, p = o, o = t;
         }

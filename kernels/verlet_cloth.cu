@@ -35,12 +35,24 @@
  *                  rows, each mesh's pose and the attached pins' targets come from a per-step
  *                  table (`motion`, the rows of one step after another) instead of constants.
  *                  Without it there is no motion code.
+ *   CLOTH_SELF_COLLISION   the scene has [self_collision]: self_collision.cuh's kernels, and
+ *                  verlet_step leaves the colliders to its pass (docs/cuda.md, "Self-collision").
+ *                  Without it there is no self-collision code.
  */
 
 // A neighbour's offset in the grid: (row, column), as docs/semantics.md writes it.
 struct Offset {
     int dr, dc;
 };
+
+// The 12-spring stencil in summation order (scene.OFFSETS): the springs of step 5, and the
+// pairs the self-collision pass leaves out.
+#define STENCIL                                                                              \
+    {                                                                                        \
+        {0, -1}, {0, 1}, {-1, 0}, {1, 0},     /* structural */                               \
+        {-1, -1}, {-1, 1}, {1, -1}, {1, 1},   /* shear */                                    \
+        {-2, -2}, {-2, 2}, {2, -2}, {2, 2},   /* bend: the long diagonals, as the chapter's demo */ \
+    }
 
 #ifdef CLOTH_GENERIC
 #define HAS_SPHERES 1
@@ -383,6 +395,56 @@ __device__ __forceinline__ float3 normal_at(Positions pos, int row, int col, int
 #define STEP_ROWS_ARGS(step)
 #endif
 
+// What the colliders read (apply_colliders): generic, the collider parameters; with motion, the
+// step's rows (no pin slots).
+#ifdef CLOTH_GENERIC
+#define COLLIDE_PARAMS , COLLIDER_PARAMS
+#define COLLIDE_ARGS , COLLIDER_ARGS
+#else
+#define COLLIDE_PARAMS
+#define COLLIDE_ARGS
+#endif
+#ifdef CLOTH_MOTION
+#define ROWS_PARAM , const float4* __restrict__ step_rows
+#define ROWS_ARG , step_rows
+#else
+#define ROWS_PARAM
+#define ROWS_ARG
+#endif
+// The step collides its particles, unless the self-collision pass does it after pushing them.
+#ifdef CLOTH_SELF_COLLISION
+#define COLLIDE_IN_STEP false
+#else
+#define COLLIDE_IN_STEP true
+#endif
+
+// The colliders' part of step 6: every collider in the fixed order, all spheres, cylinders,
+// boxes, planes, then meshes (at the step's rows where they move).
+__device__ __forceinline__ float3 apply_colliders(float3 x_new COLLIDE_PARAMS MESH_PARAMS ROWS_PARAM)
+{
+#if HAS_SPHERES
+    for (int s = 0; s < sphere_count; ++s)
+        x_new = collide_sphere(x_new, SPHERE_ROWS[s]);
+#endif
+#if HAS_CYLINDERS
+    for (int c = 0; c < cylinder_count; ++c)
+        x_new = collide_cylinder(x_new, CYLINDER_ROWS[3 * c], CYLINDER_ROWS[3 * c + 1], CYLINDER_ROWS[3 * c + 2]);
+#endif
+#if HAS_BOXES
+    for (int o = 0; o < box_count; ++o)
+        x_new = collide_box(x_new, BOX_ROWS[4 * o], BOX_ROWS[4 * o + 1], BOX_ROWS[4 * o + 2], BOX_ROWS[4 * o + 3]);
+#endif
+#if HAS_PLANES
+    for (int f = 0; f < plane_count; ++f)
+        x_new = collide_plane(x_new, PLANE_ROWS[2 * f], PLANE_ROWS[2 * f + 1]);
+#endif
+#if HAS_MESHES
+    for (int m = 0; m < mesh_count; ++m)
+        x_new = collide_mesh(x_new, mesh_rows, mesh_ints, m, MESH_POSE(m));
+#endif
+    return x_new;
+}
+
 // Steps 1-6 of docs/semantics.md for the particle at (row, col), at x(t) = x with x(t - dt) =
 // xp and inverse mass w, its neighbours' x(t) read through pos: x(t + dt).
 template <class Positions>
@@ -398,11 +460,7 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
 
     // step 5: the 12-spring stencil in summation order (differs: row and column offsets
     // are not mixed as in the listing); a neighbour outside the grid adds nothing
-    const Offset stencil[12] = {
-        {0, -1}, {0, 1}, {-1, 0}, {1, 0},      // structural
-        {-1, -1}, {-1, 1}, {1, -1}, {1, 1},    // shear
-        {-2, -2}, {-2, 2}, {2, -2}, {2, 2},    // bend: the long diagonals, as the chapter's demo
-    };
+    const Offset stencil[12] = STENCIL;
     const float rest[3] = {rest_structural, rest_shear, rest_bend};
 #pragma unroll
     for (int o = 0; o < 12; ++o) {
@@ -434,28 +492,8 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
     float3 x_new = make_float3((2.0f * x.x - xp.x) + acc.x * dt2,
                                (2.0f * x.y - xp.y) + acc.y * dt2,
                                (2.0f * x.z - xp.z) + acc.z * dt2);
-    // every collider in the fixed order: all spheres, cylinders, boxes, planes, then meshes
-#if HAS_SPHERES
-    for (int s = 0; s < sphere_count; ++s)
-        x_new = collide_sphere(x_new, SPHERE_ROWS[s]);
-#endif
-#if HAS_CYLINDERS
-    for (int c = 0; c < cylinder_count; ++c)
-        x_new = collide_cylinder(x_new, CYLINDER_ROWS[3 * c], CYLINDER_ROWS[3 * c + 1], CYLINDER_ROWS[3 * c + 2]);
-#endif
-#if HAS_BOXES
-    for (int o = 0; o < box_count; ++o)
-        x_new = collide_box(x_new, BOX_ROWS[4 * o], BOX_ROWS[4 * o + 1], BOX_ROWS[4 * o + 2], BOX_ROWS[4 * o + 3]);
-#endif
-#if HAS_PLANES
-    for (int f = 0; f < plane_count; ++f)
-        x_new = collide_plane(x_new, PLANE_ROWS[2 * f], PLANE_ROWS[2 * f + 1]);
-#endif
-#if HAS_MESHES
-    for (int m = 0; m < mesh_count; ++m)
-        x_new = collide_mesh(x_new, mesh_rows, mesh_ints, m, MESH_POSE(m));
-#endif
-    return x_new;
+    // with [self_collision] they act after the pass instead (self_collision.cuh)
+    return COLLIDE_IN_STEP ? apply_colliders(x_new COLLIDE_ARGS MESH_ARGS ROWS_ARG) : x_new;
 }
 
 extern "C" __global__ void verlet_step(
@@ -551,3 +589,7 @@ extern "C" __global__ void __launch_bounds__(MULTISTEP_MAX_THREADS) verlet_steps
 #endif
     }
 }
+
+#ifdef CLOTH_SELF_COLLISION
+#include "self_collision.cuh"
+#endif

@@ -1,10 +1,14 @@
 """A sheet folded over onto itself, the state the self-collision tests start from
-(tests/test_self_collision.py, tests/contract/test_self_collision_contract.py)."""
+(tests/test_self_collision.py, tests/contract/test_self_collision_contract.py), and that sheet among
+colliders (the OpenCL and CUDA passes' tests)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from clothbench.model.colliders.analytic import Box, Plane, Sphere
+from clothbench.model.colliders.mesh import Mesh
+from clothbench.model.colliders.motion import Motion
 from clothbench.model.scene import SelfCollision, load_setup
 
 N = 16
@@ -39,3 +43,19 @@ def crumpled(scene, pos: np.ndarray, width: float = 1.5) -> np.ndarray:
     free[scene.pinned()] = False
     pos[free, :3] = 0.5 + width * scene.self_collision.thickness * rng.random((int(free.sum()), 3))
     return pos
+
+
+def on_bodies(folded_sheet):
+    """A folded sheet (scene, pos) lying on a rising floor its pin follows, beside a sphere, a
+    box and a mesh: the colliders act after the pass (a particle pushed into the floor comes back
+    out), at the pose of the step's end (per-step tables), with an attached pin."""
+    scene, pos = folded_sheet
+    h, y = scene.spacing, float(pos[0, 1])
+    floor = Plane(
+        point=(0.0, y - 0.2 * h, 0.0), normal=(0.0, 1.0, 0.0), name="floor", motion=Motion(velocity=(0.0, 0.5, 0.0))
+    )
+    ball = Sphere(center=(0.5, y + 0.5 * h, 0.4), radius=0.1)
+    mesh = Mesh(shape="icosphere", subdivisions=1, position=(0.3, y, 0.3), scale=0.08, name="ico")
+    box = Box(center=(0.7, y, 0.2), half_extents=(0.06, 0.05, 0.06), rotation=(0.0, 30.0, 0.0))
+    scene = scene.replace(planes=(floor,), spheres=(ball,), boxes=(box,), meshes=(mesh,), pin_attach="floor")
+    return scene, pos

@@ -70,7 +70,7 @@ def test_measured_limits_are_positive_finite_and_plausible(measured):
     # a pair is a sqrt and a division: never more pairs per second than either alone (a 10 %
     # margin for the noise of three separate measurements)
     assert measured.f32.sqrt_div <= 1.1 * min(measured.f32.sqrt, measured.f32.div), measured.what()
-    assert measured.sqrt_per_s == measured.f32.sqrt and measured.div_per_s == measured.f32.div
+    assert measured.rates("f32") is measured.f32 and measured.rates("f64") is measured.f64
 
 
 def test_measured_once_per_process(measured):

@@ -2,7 +2,9 @@
 strict float32 and compares x(t)): strict float64 is NumPy float64 bit for bit (the float64
 reference steps c), with every collider kind after the pass; x(t - dt) is right too, however the
 steps are split into advances (the three buffers rotate); the thread count changes no bit; fast
-mode stays within float32's error; a scene without the table compiles none of the pass."""
+mode stays within float32's error; a scene without the table compiles none of the pass. The VBD
+solver's pass (kernels/vbd_cloth.c, after the sweeps) is held to the same: float64, colliders
+after the pass, substeps, Chebyshev and the thread count."""
 
 from __future__ import annotations
 
@@ -10,10 +12,12 @@ import numpy as np
 import pytest
 
 from clothbench.backends import BackendOptions, create_backend
+from clothbench.backends.c.vbd import load_vbd_library
 from clothbench.backends.c.verlet import SELF_FLAG, build_flags, load_library
 from clothbench.harness.health import self_contact
 from clothbench.harness.simulate import position_error
 from clothbench.model.scene import Box, Cylinder, Plane, Sphere
+from clothbench.model.solver import Vbd
 
 from conftest import VERLET, assert_bit_exact, require
 from folded_sheet import crumpled, folded
@@ -32,8 +36,19 @@ def folded_over_colliders():
     return scene, pos
 
 
-def run(name, scene, pos, splits, options: BackendOptions) -> tuple[np.ndarray, np.ndarray]:
-    with create_backend(name, scene, VERLET, options) as b:
+# two substeps, each ending in the pass, after Chebyshev's last weight
+VBD = Vbd(dt=VERLET.dt, substeps=2, chebyshev_rho=0.9)
+
+
+def vbd_folded_over_colliders():
+    """folded_over_colliders less its box, which the c VBD does not take (docs/c.md); the
+    colliders act within 20 steps (the sheet moves 0.3 m from where it falls alone)."""
+    scene, pos = folded_over_colliders()
+    return scene.replace(boxes=()), pos
+
+
+def run(name, scene, pos, splits, options: BackendOptions, solver=VERLET) -> tuple[np.ndarray, np.ndarray]:
+    with create_backend(name, scene, solver, options) as b:
         b.upload(pos, pos)
         for steps in splits:
             b.advance(steps)
@@ -57,6 +72,19 @@ def test_strict_with_colliders_matches_numpy_pos_and_prev_bit_for_bit(precision,
         assert not np.allclose(want[0][:, :3], bare[0][:, :3], atol=1e-3), "no collider acted"
 
 
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_vbd_strict_with_colliders_matches_numpy_pos_and_prev_bit_for_bit(precision):
+    require("c")
+    scene, pos = vbd_folded_over_colliders()
+    options = BackendOptions(precision=precision)
+    got = run("c", scene, pos, (1, 19), BackendOptions(precision=precision, strict=True), VBD)
+    want = run("numpy", scene, pos, (20,), options, VBD)
+    assert_bit_exact(got[0], want[0], f"vbd pos {precision}")
+    assert_bit_exact(got[1], want[1], f"vbd prev {precision}")
+    alone = run("numpy", scene.replace(self_collision=None), pos, (20,), options, VBD)
+    assert not np.array_equal(want[0], alone[0]), "the pass pushed no pair: the test shows nothing"
+
+
 @pytest.mark.parametrize("steps", [1, 5])
 def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_on_the_stack(steps):
     # the sheet crumpled into a ball 1.5 thicknesses wide: every particle has dozens of pairs,
@@ -72,34 +100,40 @@ def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_on_the_stack
     assert pairs > 32 * scene.particles / 2, f"only {pairs} pairs: the merge is not reached"
 
 
+@pytest.mark.parametrize("solver", ["verlet", "vbd"])
 @pytest.mark.parametrize("strict", [True, False], ids=["strict", "fast"])
-def test_the_thread_count_changes_no_bit_with_the_pass(monkeypatch, strict):
+def test_the_thread_count_changes_no_bit_with_the_pass(monkeypatch, strict, solver):
     # rows are split among threads for the update and the pass; the bucket sort is one thread's
     require("c")
-    scene, pos = folded_over_colliders()
+    scene, pos = vbd_folded_over_colliders() if solver == "vbd" else folded_over_colliders()
+    steps, stepper = (20, VBD) if solver == "vbd" else (50, VERLET)
     states = []
     for count in ("1", "2", "3"):
         monkeypatch.setenv("OMP_NUM_THREADS", count)
-        states.append(run("c", scene, pos, (50,), BackendOptions(strict=strict))[0])
+        states.append(run("c", scene, pos, (steps,), BackendOptions(strict=strict), stepper)[0])
     for count, state in zip(("2", "3"), states[1:]):
         assert_bit_exact(state, states[0], f"{count} threads against 1")
 
 
-def test_fast_f32_with_the_pass_is_within_float32_error_of_numpy_f64():
-    # Fast mode contracts (FMA) and sums the springs' damping once: it differs from strict in
-    # the last bits, and the pass, a push that starts at the thickness, can turn a last-bit
-    # difference into a pair pushed in one and not the other. Measured after 100 steps (the
-    # sheet over its colliders): NumPy float32 3.3e-5 m from float64, c fast 6.2e-5 (1.9x);
-    # after 20 and 50 steps 1.0x and 0.65x. Tolerance: 3x NumPy float32's distance and below
-    # 1e-3 m (2 % of the 0.053 m thickness); a physics slip as small as relaxation 0.9 instead
-    # of 1 is 0.1 m here.
+@pytest.mark.parametrize("solver", ["verlet", "vbd"])
+def test_fast_f32_with_the_pass_is_within_float32_error_of_numpy_f64(solver):
+    # Fast mode contracts (FMA) and sums the springs' damping once (VBD: one 1/sqrt a spring):
+    # it differs from strict in the last bits, and the pass, a push that starts at the
+    # thickness, can turn a last-bit difference into a pair pushed in one and not the other.
+    # Measured after 100 steps (the sheet over its colliders): NumPy float32 3.3e-5 m from
+    # float64, c fast 6.2e-5 (1.9x); after 20 and 50 steps 1.0x and 0.65x. VBD after 20 steps:
+    # NumPy float32 2.5e-5 m, c fast 1.01x (by 100 steps the fold's contacts have grown NumPy
+    # float32's own distance to 5 mm, so VBD stops at 20). Tolerance: 3x NumPy float32's
+    # distance and below 1e-3 m (2 % of the 0.053 m thickness); a physics slip as small as
+    # relaxation 0.9 instead of 1 is 0.1 m here.
     require("c")
-    scene, pos = folded_over_colliders()
-    ref64 = run("numpy", scene, pos, (100,), BackendOptions(precision="f64"))[0]
-    _, f32_max = position_error(run("numpy", scene, pos, (100,), BackendOptions())[0], ref64)
-    fast = run("c", scene, pos, (100,), BackendOptions(strict=False))[0]
+    scene, pos = vbd_folded_over_colliders() if solver == "vbd" else folded_over_colliders()
+    steps, stepper = (20, VBD) if solver == "vbd" else (100, VERLET)
+    ref64 = run("numpy", scene, pos, (steps,), BackendOptions(precision="f64"), stepper)[0]
+    _, f32_max = position_error(run("numpy", scene, pos, (steps,), BackendOptions(), stepper)[0], ref64)
+    fast = run("c", scene, pos, (steps,), BackendOptions(strict=False), stepper)[0]
     _, fast_max = position_error(fast, ref64)
-    assert fast_max <= min(3 * f32_max, 1e-3), f"c fast {fast_max:.3g} m vs numpy f32 {f32_max:.3g} m"
+    assert fast_max <= min(3 * f32_max, 1e-3), f"c {solver} fast {fast_max:.3g} m vs numpy f32 {f32_max:.3g} m"
 
 
 def test_a_scene_without_the_table_builds_none_of_the_pass():
@@ -111,6 +145,8 @@ def test_a_scene_without_the_table_builds_none_of_the_pass():
     assert set(flags) - set(without) == {SELF_FLAG}, "the pass changes nothing else in the build"
     assert not hasattr(load_library(without), "cloth_contact_ints"), "the pass was compiled in"
     assert hasattr(load_library(flags), "cloth_contact_ints")
+    assert not hasattr(load_vbd_library(without), "cloth_contact_ints"), "VBD: the pass was compiled in"
+    assert hasattr(load_vbd_library(flags), "cloth_contact_ints")
 
 
 @pytest.mark.parametrize("precision", ["f32", "f64"])

@@ -1,8 +1,8 @@
-"""[self_collision] on the OpenCL backend's Verlet and PBD solvers (kernels/self_collision.cl,
+"""[self_collision] on the OpenCL backend's Verlet, PBD and VBD solvers (kernels/self_collision.cl,
 docs/semantics.md "Self-collision"), beyond the contract's default build: strict is the NumPy
 float32 reference bit for bit in the generic build, the split kernels, per-step transfer, with
-normals and a padded launch, in every PBD method, and with colliders, a mesh, motion and
-attached pins acting after the pass; fast stays within float32's own error; a scene without the
+normals and a padded launch, in every PBD method, with VBD's substeps and Chebyshev, and with
+colliders, a mesh, motion and attached pins acting after the pass; fast stays within float32's own error; a scene without the
 table compiles none of it; only the default kernel shape is offered with it."""
 
 from __future__ import annotations
@@ -14,15 +14,12 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl import pbd as opencl_pbd
 from clothbench.backends.opencl import verlet as opencl
-from clothbench.model.colliders.analytic import Box, Plane, Sphere
-from clothbench.model.colliders.mesh import Mesh
-from clothbench.model.colliders.motion import Motion
 from clothbench.harness import position_error
 from clothbench.harness.health import self_contact
 from clothbench.model.scene import SelfCollision
-from clothbench.model.solver import Pbd
+from clothbench.model.solver import Pbd, Vbd
 from conftest import VERLET, assert_bit_exact, require
-from folded_sheet import crumpled, folded
+from folded_sheet import crumpled, folded, on_bodies
 from test_opencl_meshes import program_sources
 
 STEPS = 20  # the contract's longer run: every pair of the fold pushed, several times
@@ -35,6 +32,13 @@ def sheet(n: int = 16):
     return folded(n, thickness=THICK)
 
 
+def sheet_with_cell(cell: float):
+    """The sheet with a search cell of `cell` thicknesses."""
+    scene, pos = sheet()
+    t = scene.self_collision.thickness
+    return scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t)), pos
+
+
 @pytest.fixture(autouse=True)
 def _opencl():
     require("opencl")
@@ -45,6 +49,10 @@ PBD = {
     "chebyshev": Pbd(dt=VERLET.dt, chebyshev_rho=0.9, iterations=5),  # an odd count: the other buffer last
     "coloured": Pbd(dt=VERLET.dt, method="coloured", substeps=2),
 }
+VBD = {
+    "plain": Vbd(dt=VERLET.dt),
+    "chebyshev": Vbd(dt=VERLET.dt, chebyshev_rho=0.9, substeps=2),  # the pass after the last weight, twice a step
+}
 
 
 def run(name: str, scene, pos, steps: int, options: BackendOptions, solver=VERLET):
@@ -54,8 +62,10 @@ def run(name: str, scene, pos, steps: int, options: BackendOptions, solver=VERLE
         return b.read()
 
 
-def assert_matches_numpy(scene, pos, options: BackendOptions, what: str, steps: int = STEPS, solver=VERLET):
-    got = run("opencl", scene, pos, steps, options, solver)
+def assert_matches_numpy(
+    scene, pos, options: BackendOptions, what: str, steps: int = STEPS, solver=VERLET, backend: str = "opencl"
+):
+    got = run(backend, scene, pos, steps, options, solver)
     expected = run("numpy", scene, pos, steps, BackendOptions(), solver)
     assert_bit_exact(got[0], expected[0], f"pos, {what}")
     assert_bit_exact(got[1], expected[1], f"prev, {what}")
@@ -83,9 +93,7 @@ def test_strict_matches_numpy_f32_bit_for_bit_in_every_build(n, build):
 def test_strict_matches_numpy_f32_with_cells_larger_than_the_thickness(cell):
     # 2.5 thicknesses: every cell holds several particles of both layers, so the runs merged
     # hold candidates past the thickness that the distance test rejects
-    scene, pos = sheet()
-    t = scene.self_collision.thickness
-    scene = scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t))
+    scene, pos = sheet_with_cell(cell)
     for solver in (VERLET, PBD["jacobi"]):
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"cell {cell} {solver.name}", solver=solver)
 
@@ -121,28 +129,18 @@ def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_in_private_m
     assert_matches_numpy(scene, pos, BackendOptions(strict=True, generic=generic), f"crumpled {generic}", steps=3)
 
 
-@pytest.mark.parametrize("method", PBD)
-def test_pbd_strict_matches_numpy_f32_bit_for_bit_in_every_method(method):
+@pytest.mark.parametrize("variant", [*(f"pbd-{m}" for m in PBD), *(f"vbd-{v}" for v in VBD)])
+def test_pbd_and_vbd_strict_match_numpy_f32_bit_for_bit_in_every_method(variant):
+    solver_name, _, method = variant.partition("-")
     scene, pos = sheet()
+    solver = (PBD if solver_name == "pbd" else VBD)[method]
     for build in ({}, {"local_size": 24}):  # 24 does not divide 256: padded launches, the cell keys too
         options = BackendOptions(strict=True, **build)
-        assert_matches_numpy(scene, pos, options, f"pbd {method} {build}", solver=PBD[method])
+        assert_matches_numpy(scene, pos, options, f"{variant} {build}", solver=solver)
 
 
 def bodies_scene():
-    """The folded sheet lying on a rising floor its pin follows, beside a sphere, a box and a mesh: the
-    colliders act after the pass (a particle pushed into the floor comes back out), at the pose
-    of the step's end (per-step tables), with an attached pin."""
-    scene, pos = sheet(16)
-    h, y = scene.spacing, float(pos[0, 1])
-    floor = Plane(
-        point=(0.0, y - 0.2 * h, 0.0), normal=(0.0, 1.0, 0.0), name="floor", motion=Motion(velocity=(0.0, 0.5, 0.0))
-    )
-    ball = Sphere(center=(0.5, y + 0.5 * h, 0.4), radius=0.1)
-    mesh = Mesh(shape="icosphere", subdivisions=1, position=(0.3, y, 0.3), scale=0.08, name="ico")
-    box = Box(center=(0.7, y, 0.2), half_extents=(0.06, 0.05, 0.06), rotation=(0.0, 30.0, 0.0))
-    scene = scene.replace(planes=(floor,), spheres=(ball,), boxes=(box,), meshes=(mesh,), pin_attach="floor")
-    return scene, pos
+    return on_bodies(sheet(16))
 
 
 @pytest.mark.parametrize("build", [{}, {"generic": True}, {"mesh_collision": "naive"}], ids=str)
@@ -156,6 +154,12 @@ def test_pbd_colliders_meshes_motion_and_attached_pins_act_after_the_pass_bit_fo
     scene, pos = bodies_scene()
     options = BackendOptions(strict=True)
     assert_matches_numpy(scene, pos, options, f"pbd bodies {method}", steps=40, solver=PBD[method])
+
+
+def test_vbd_colliders_meshes_motion_and_attached_pins_act_after_the_pass_bit_for_bit():
+    scene, pos = bodies_scene()
+    options = BackendOptions(strict=True)
+    assert_matches_numpy(scene, pos, options, "vbd bodies", steps=40, solver=VBD["chebyshev"])
 
 
 @pytest.mark.parametrize("generic", [False, True])
@@ -172,11 +176,11 @@ def test_fast_error_is_of_the_order_of_strict_float32s(generic):
     assert fast_max <= 3 * strict_max + 1e-9, f"fast {fast_max:.3g} m, NumPy f32 {strict_max:.3g} m"
 
 
-@pytest.mark.parametrize("method", PBD)
-def test_pbd_fast_error_is_of_the_order_of_strict_float32s(method):
+@pytest.mark.parametrize("method", [*PBD, "vbd"])
+def test_pbd_and_vbd_fast_error_is_of_the_order_of_strict_float32s(method):
     # as for Verlet; PBD's fast constraints take one rsqrt each (fast_math.cl's estimates in
-    # the vector interior), O(float32 epsilon) too
-    scene, pos, solver = *sheet(), PBD[method]
+    # the vector interior), VBD's springs one each, O(float32 epsilon) too
+    scene, pos, solver = *sheet(), PBD.get(method, VBD["chebyshev"])
     ref64 = run("numpy", scene, pos.astype(np.float64), STEPS, BackendOptions(precision="f64"), solver)[0]
     _, strict_max = position_error(run("numpy", scene, pos, STEPS, BackendOptions(), solver)[0], ref64)
     fast = run("opencl", scene, pos, STEPS, BackendOptions(), solver)[0]
@@ -189,7 +193,7 @@ def compiled(scene, generic: bool, solver=VERLET) -> tuple[str, str]:
     with create_backend("opencl", scene, solver, BackendOptions(generic=generic)) as b:
         if solver is VERLET:
             return program_sources(b), " ".join(o for key in b.key for o in key)
-        return b._source, " ".join(b.build_options())
+        return b.source if solver.name == "vbd" else b._source, " ".join(b.build_options())
 
 
 @pytest.mark.parametrize("generic", [False, True])
@@ -201,11 +205,12 @@ def test_a_scene_without_self_collision_compiles_none_of_it(generic):
     assert "self_push" not in source and "CLOTH_SELF_COLLISION" not in options
 
 
-def test_a_pbd_scene_without_self_collision_compiles_none_of_it():
+@pytest.mark.parametrize("solver", [PBD["jacobi"], VBD["plain"]], ids=["pbd", "vbd"])
+def test_a_pbd_or_vbd_scene_without_self_collision_compiles_none_of_it(solver):
     scene, _ = sheet()
-    source, options = compiled(scene, False, PBD["jacobi"])
+    source, options = compiled(scene, False, solver)
     assert "self_push" in source and "-DCLOTH_SELF_COLLISION" in options, "the scene with the table has the pass"
-    source, options = compiled(scene.replace(self_collision=None), False, PBD["jacobi"])
+    source, options = compiled(scene.replace(self_collision=None), False, solver)
     assert "self_push" not in source and "CLOTH_SELF_COLLISION" not in options
 
 

@@ -2,6 +2,7 @@
 to the exact implicit-Euler step (clothbench/harness/implicit.py)."""
 
 import csv
+import json
 
 import numpy as np
 import pytest
@@ -158,3 +159,37 @@ def test_stability_finds_vbd_stable_at_60hz_and_the_cap_at_stiffness_1e5(tmp_pat
     assert all(r["at_60hz"] == "stable" for r in vbd)
     assert all(r["at_60hz"].startswith("unstable") for r in verlet)
     assert "VBD stays stable in 2 of 2" in capsys.readouterr().out
+
+
+def test_run_takes_chebyshev_rho_for_vbd_and_jacobi_pbd_and_names_it(capsys):
+    # the flag reaches the solver (the run's model says it) and is refused where it would be ignored
+    argv = ["run", "--backend", "numpy", "--scene", "drape", "--grid", "8", "--solver", "vbd", "--dt", "0.0166",
+            "--iterations", "4", "--chebyshev-rho", "0.9", "--steps", "2", "--json"]  # fmt: skip
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out)["model"] == "vbd/4it, chebyshev_rho 0.9"
+    jacobi = [
+        "run",
+        "--solver",
+        "pbd",
+        "--pbd-method",
+        "jacobi",
+        "--chebyshev-rho",
+        "0.5",
+        "--grid",
+        "8",
+        "--steps",
+        "1",
+    ]
+    assert main(jacobi) == 0
+    capsys.readouterr()
+    for argv, message in (
+        (["run", "--chebyshev-rho", "0.5"], "--chebyshev-rho applies to the pbd and vbd solvers only"),
+        (
+            ["run", "--solver", "pbd", "--pbd-method", "coloured", "--chebyshev-rho", "0.5"],
+            "--chebyshev-rho applies to PBD's jacobi method and to vbd",
+        ),
+        (["run", "--solver", "vbd", "--chebyshev-rho", "1"], "chebyshev_rho must be in [0, 1)"),
+    ):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and message in err

@@ -17,7 +17,7 @@ from clothbench.analysis.lattice import gershgorin_dt_max, predicted_dt_max
 from clothbench.backends import create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.harness import faults
-from clothbench.harness.energy import ENERGY_GROWTH, energy_bound, energy_problem, total_energy
+from clothbench.harness.energy import ENERGY_GROWTH, energy_bound, energy_past, energy_problem, total_energy
 from clothbench.harness.plan import Variant
 from clothbench.model.scene import Scene
 from clothbench.model.solver import ITERATIVE, Solver
@@ -111,16 +111,9 @@ def stability_problem(
     stiffness = 1.0 / max(min(solver.compliance_for(scene)), 1e-300) if solver.name == "pbd" else scene.stiffness
     springs = scene.replace(stiffness=stiffness)
     limit += ENERGY_GROWTH * abs(total_energy(*start, springs, solver.dt).spring)
-    with np.errstate(all="ignore"):
-        e = total_energy(pos, prev, scene, solver.dt).watched(solver)
-    if not math.isfinite(e):
-        return "the kinetic energy is not finite"
-    if e > limit:
-        return (
-            f"the kinetic + gravitational energy grew from {e0:.4g} J to {e:.4g} J, past the "
-            f"bound {limit:.4g} J (start energy + strain energy + scale)"
-        )
-    return None
+    return energy_past(
+        pos, prev, scene, solver, e0, limit, "kinetic + gravitational energy", "start energy + strain energy + scale"
+    )
 
 
 def is_stable(

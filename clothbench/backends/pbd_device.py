@@ -3,7 +3,7 @@ the host side of the solver (docs/pbd.md) apart from the device calls.
 
 One substep is a fixed list of launches, each seeing the previous one's writes: predict,
 then `iterations` Jacobi passes ping-ponging two buffers (or 12 coloured batches per
-iteration), collide, update. This module plans that list, converts the state to and from
+iteration), collide (or the self-collision pass, which collides after it), update. This module plans that list, converts the state to and from
 velocity, advances and profiles by stage; a subclass makes each launch for its device.
 """
 
@@ -115,7 +115,9 @@ class PbdDeviceBackend(Backend):
         iteration, source index, target index), ("coloured", iteration, batch index) or, with
         `coloured_sweep`, ("coloured sweep", iteration) for all 12 batches in one launch,
         ("collide", buffer index), ("update", buffer index), where a buffer index names one
-        of the two predicted-position buffers (predict writes 0)."""
+        of the two predicted-position buffers (predict writes 0). With [self_collision],
+        ("self collision", source index, target index) takes collide's place: the pass (and
+        the colliders after it) from the last iterate into the other buffer, which update reads."""
         plan = [("predict",)]
         for it in range(self.solver.iterations):
             if self.jacobi:
@@ -125,6 +127,8 @@ class PbdDeviceBackend(Backend):
             else:
                 plan += [("coloured", it, b) for b in range(len(self.batches))]
         final = self.solver.iterations % 2 if self.jacobi else 0
+        if self.scene.self_collision is not None:
+            return plan + [("self collision", final, 1 - final), ("update", 1 - final)]
         if self.scene.colliders or self.scene.meshes:
             plan.append(("collide", final))
         plan.append(("update", final))

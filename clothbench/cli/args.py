@@ -51,6 +51,21 @@ def add_scene_args(
         p.add_argument("--pbd-method", choices=PBD_METHODS, help="PBD: Jacobi or coloured Gauss-Seidel")
         p.add_argument("--iterations", type=int, help="PBD: constraint passes per substep; VBD: colour sweeps")
         p.add_argument("--substeps", type=int, help="PBD, VBD: substeps per step")
+        p.add_argument(
+            "--chebyshev-rho",
+            type=float,
+            help="PBD Jacobi, VBD: Chebyshev acceleration's spectral radius estimate, in [0, 1) (0: off; "
+            "docs/pbd.md, docs/vbd.md)",
+        )
+
+
+# the solvers each solver setting of the command line applies to (a run of another refuses it)
+SOLVER_SETTINGS = {"pbd_method": ("pbd",), "iterations": ITERATIVE, "substeps": ITERATIVE, "chebyshev_rho": ITERATIVE}
+
+
+def flag(option: str) -> str:
+    """The command-line flag of an argparse destination: 'pbd_method' -> '--pbd-method'."""
+    return "--" + option.replace("_", "-")
 
 
 def setup_from_args(args):
@@ -65,18 +80,20 @@ def setup_from_args(args):
         method=getattr(args, "pbd_method", None),
         iterations=getattr(args, "iterations", None),
         substeps=getattr(args, "substeps", None),
+        chebyshev_rho=getattr(args, "chebyshev_rho", None),
     )
-    if setup.solver.name != "pbd":  # the PBD settings would be ignored: say so instead
-        given = [o for o in ("pbd_method", "iterations", "substeps") if getattr(args, o, None) is not None]
-        if setup.solver.name in ITERATIVE:
-            given = [o for o in given if o == "pbd_method"]
-        if given:
-            option = "--" + given[0].replace("_", "-")
-            takers = ("pbd",) if given[0] == "pbd_method" else ITERATIVE
+    name = setup.solver.name
+    for option, takers in SOLVER_SETTINGS.items():  # a setting this run's solver would ignore: say so instead
+        if getattr(args, option, None) is not None and name not in takers:
             raise ClothbenchError(
-                f"{option} applies to the {' and '.join(takers)} solver{'s' * (len(takers) > 1)} only, and this "
-                f"run's is {setup.solver.name}: add --solver {' or '.join(takers)}"
+                f"{flag(option)} applies to the {' and '.join(takers)} solver{'s' * (len(takers) > 1)} only, and "
+                f"this run's is {name}: add --solver {' or '.join(takers)}"
             )
+    if getattr(args, "chebyshev_rho", None) is not None and name == "pbd" and setup.solver.method != "jacobi":
+        raise ClothbenchError(
+            f"--chebyshev-rho applies to PBD's jacobi method and to vbd, and this run's PBD is {setup.solver.method}: "
+            "add --pbd-method jacobi"
+        )
     if getattr(args, "precision", "f32") == "f32":
         from clothbench.harness.preflight import check_float32_motion
 
@@ -124,19 +141,17 @@ def options_from_args(args):
 
     if args.local_size is not None and args.local_size < 1:
         raise ClothbenchError(f"--local-size must be >= 1, got {args.local_size}")
-    return BackendOptions(
-        precision=args.precision,
-        strict=args.strict,
-        transfer=args.transfer,
-        local_size=args.local_size,
-        device=args.device,
-        gl=args.gl,
-        shape=args.shape,
-        retune=getattr(args, "retune", False),
-        normals=args.save_normals,
-        generic=args.generic,
-        mesh_collision=getattr(args, "mesh_collision", None),
-    )
+    return fields_from_args(BackendOptions, args, normals=args.save_normals)
+
+
+def fields_from_args(settings: type, args, **given):
+    """The dataclass `settings` with each field the command has an option of the same name
+    for read from `args`, and `given` for the others (or in place of one); a field with
+    neither keeps its default."""
+    import dataclasses
+
+    names = (f.name for f in dataclasses.fields(settings) if f.init)
+    return settings(**{name: getattr(args, name) for name in names if hasattr(args, name)} | given)
 
 
 def check_mesh_collision(algorithm: str | None, scene) -> None:

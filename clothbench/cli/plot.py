@@ -8,18 +8,11 @@ import zlib
 from pathlib import Path
 
 from clothbench.errors import ClothbenchError
+from clothbench.harness.sweep_csv import KEY_COLUMNS, KEY_COLUMNS_ADDED_LATER
 
-# What compare needs of both files.
-COMPARE_REQUIRED = (
-    "backend",
-    "solver",
-    "scene",
-    "grid",
-    "precision",
-    "strict",
-    "transfer",
-    "generic",
-    "local_size",
+# What compare needs of both files: the key columns but those added later (an older file's
+# rows still compare with a newer's), and what it compares.
+COMPARE_REQUIRED = tuple(c for c in KEY_COLUMNS if c not in KEY_COLUMNS_ADDED_LATER) + (
     "mode",
     "status",
     "ms_median",

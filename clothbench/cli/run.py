@@ -15,6 +15,7 @@ from clothbench.cli.args import (
     setup_from_args,
     sigterm_interrupts,
 )
+from clothbench.variant_names import model_name
 
 
 def register(subparsers) -> None:
@@ -134,6 +135,7 @@ def cmd_run(args) -> int:
         "mode": result.mode,
         "scene": scene.name,
         "solver": solver.name,
+        "model": model_name(solver),  # the solver with its settings: 'vbd/10it, chebyshev_rho 0.9'
         "grid": scene.grid,
         "particles": scene.particles,
         "springs": scene.springs,

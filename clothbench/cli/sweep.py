@@ -74,11 +74,12 @@ def register(subparsers) -> None:
         f"shorter chunks (at least 3), recorded in its budget_s, steps, repeats and note (default {DEFAULT_ROW_BUDGET:g})",
     )
     p.add_argument("--dt", type=float, help="time step (s); default: the scene's")
-    p.add_argument(
+    _add_dimension(
+        p,
         "--local-sizes",
-        type=int_list("--local-sizes", 1),
-        default=[],
-        help="also time these work-group / block sizes on backends that have one, e.g. 16,32,64,128",
+        int_list,
+        1,
+        "also time these work-group / block sizes on backends that have one, e.g. 16,32,64,128",
     )
     add_device_args(p)
     p.add_argument(
@@ -96,32 +97,36 @@ def register(subparsers) -> None:
         help=f"comma-separated: {', '.join(SOLVER_SPECS)}: verlet (mass-spring), pbd (docs/pbd.md, the scene's "
         "method), vbd (implicit Euler, docs/vbd.md) (default verlet)",
     )
-    p.add_argument(
+    _add_dimension(
+        p,
         "--mesh-collision",
-        type=choice_list("--mesh-collision", MESH_COLLISIONS),
-        default=[],
-        help="scenes with meshes: the mesh algorithms to time, a row each where a backend has it "
+        choice_list,
+        MESH_COLLISIONS,
+        "scenes with meshes: the mesh algorithms to time, a row each where a backend has it "
         "(naive, accelerated; default: each backend's own)",
     )
-    p.add_argument(
+    _add_dimension(
+        p,
         "--mesh-triangles",
-        type=int_list("--mesh-triangles", 1),
-        default=[],
-        help="scenes with built-in mesh shapes: set each shape's subdivisions to the level nearest each count, "
+        int_list,
+        1,
+        "scenes with built-in mesh shapes: set each shape's subdivisions to the level nearest each count, "
         "e.g. 20,320,5120,20480 (icosphere 20*4^s, box 12*4^s, torus 256*4^s), a row each",
     )
-    p.add_argument(
+    _add_dimension(
+        p,
         "--motion",
-        type=choice_list("--motion", MOTION_CHOICES),
-        default=[],
-        help="scenes with motion: on (as the file says), off (every collider fixed where it is placed, attached "
+        choice_list,
+        MOTION_CHOICES,
+        "scenes with motion: on (as the file says), off (every collider fixed where it is placed, attached "
         "pins fixed where they start), or on,off: a row each, the cost of motion",
     )
-    p.add_argument(
+    _add_dimension(
+        p,
         "--self-collision",
-        type=choice_list("--self-collision", SELF_COLLISION_CHOICES),
-        default=[],
-        help="scenes with a [self_collision] table (twist, fold, pile): on (with the pass), off (the same scene "
+        choice_list,
+        SELF_COLLISION_CHOICES,
+        "scenes with a [self_collision] table (twist, fold, pile): on (with the pass), off (the same scene "
         "without the table), or on,off: a row each, the cost of the pass; refused for a scene without the table",
     )
     p.add_argument("--out", default="sweep.csv", help="the CSV to write (default sweep.csv)")
@@ -145,6 +150,12 @@ def register(subparsers) -> None:
     add_row_args(p)
     p.add_argument("--columns", action="store_true", help="print what every CSV column means, and exit")
     p.set_defaults(func=cmd_sweep)
+
+
+def _add_dimension(p, option: str, parse, values, help: str) -> None:
+    """An option that adds a dimension to the sweep: a comma-separated list checked by
+    parse(option, values), a row for each; not given, no dimension (the empty list)."""
+    p.add_argument(option, type=parse(option, values), default=[], help=help)
 
 
 def cmd_sweep(args) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from clothbench.cli.args import add_documented_command, add_scene_args, setup_from_args
+from clothbench.cli.args import add_documented_command, add_scene_args, fields_from_args, setup_from_args
 from clothbench.cli.render import size
 from clothbench.errors import ClothbenchError
 
@@ -114,18 +114,7 @@ def settings_from_args(args):
         (args.log, None, "--log"),
     ):
         _output(path, suffix, option)
-    return ViewSettings(
-        frames=args.frames,
-        size=args.size,
-        steps_per_frame=args.steps_per_frame,
-        keys=keys,
-        screenshot=args.screenshot,
-        record=args.record,
-        save=args.save,
-        log=args.log,
-        headless=args.headless,
-        fps=args.fps,
-    )
+    return fields_from_args(ViewSettings, args, keys=keys)
 
 
 def cmd_view(args) -> int:

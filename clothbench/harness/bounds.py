@@ -73,14 +73,6 @@ class MachineBounds:
         """The best streaming rate measured: what the bound's memory part divides by."""
         return max(self.triad_gb_s, self.copy_gb_s)
 
-    @property
-    def sqrt_per_s(self) -> float:
-        return self.f32.sqrt
-
-    @property
-    def div_per_s(self) -> float:
-        return self.f32.div
-
     def rates(self, precision: str) -> Rates:
         return self.f64 if precision == "f64" else self.f32
 

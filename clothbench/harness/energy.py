@@ -135,15 +135,23 @@ def energy_problem(
 
     Same signature as harness.health.state_problem, so it can be chained after it."""
     e0, limit = energy_bound(scene, solver, start)
+    return energy_past(
+        pos, prev, scene, solver, e0, limit, "total energy", "a stable run only loses energy; try a smaller dt"
+    )
+
+
+def energy_past(
+    pos: np.ndarray, prev: np.ndarray, scene: Scene, solver: Solver, e0: float, limit: float, what: str, bound: str
+) -> str | None:
+    """None while the energy the check watches (Energy.watched) stays within `limit`, else
+    what is wrong in one line, naming the energy as `what` and saying what the bound is as
+    `bound`: the test every energy check ends in."""
     with np.errstate(all="ignore"):
         e = total_energy(pos, prev, scene, solver.dt).watched(solver)
     if not math.isfinite(e):
-        return "the total energy is not finite"
+        return f"the {what} is not finite"
     if e > limit:
-        return (
-            f"the total energy grew from {e0:.4g} J to {e:.4g} J, past the bound {limit:.4g} J "
-            f"(a stable run only loses energy; try a smaller dt)"
-        )
+        return f"the {what} grew from {e0:.4g} J to {e:.4g} J, past the bound {limit:.4g} J ({bound})"
     return None
 
 

@@ -148,6 +148,9 @@ KEY_COLUMNS = (
     "motion",
     "self_collision",
 )
+# The key columns a file written before they were added lacks: row_key reads each as "" there,
+# the value every row of such a file had (no PBD method, mesh, motion or self-collision).
+KEY_COLUMNS_ADDED_LATER = ("pbd_method", "mesh_triangles", "mesh_collision", "motion", "self_collision")
 MEASUREMENT_COLUMNS = (
     "ms_median",
     "ms_min",

@@ -154,6 +154,15 @@ def rest_by_kind(scene: Scene, dtype=np.float32) -> tuple:
     return kinds
 
 
+def substep_constants(scene: Scene, solver: Pbd | Vbd, dtype=np.float32) -> tuple[float, dict]:
+    """(h, what every substepping solver's constants hold): the substep h = dt / substeps in
+    float64, for the solver's own products of it, and dt, h, the rest lengths and each
+    iteration's Chebyshev weight, rounded once to `dtype` (docs/pbd.md, docs/vbd.md)."""
+    t, h = dtype, solver.dt / solver.substeps
+    omega = tuple(t(w) for w in solver.chebyshev_omega())
+    return h, dict(dt=t(solver.dt), h=t(h), rest=rest_by_kind(scene, t), omega=omega)
+
+
 @dataclass(frozen=True)
 class VerletConstants:
     """docs/semantics.md, "Constants": the Verlet step's numbers, rounded once to the working
@@ -196,16 +205,13 @@ class PbdConstants:
     @classmethod
     def of(cls, scene: Scene, solver: Pbd, dtype=np.float32) -> "PbdConstants":
         t = dtype
-        h = solver.dt / solver.substeps
+        h, shared = substep_constants(scene, solver, t)
         return cls(
-            dt=t(solver.dt),
-            h=t(h),
+            **shared,
             gh=tuple(t(g * h) for g in scene.gravity),
             at=tuple(t(c / (h * h)) for c in solver.compliance_for(scene)),
-            rest=rest_by_kind(scene, t),
             damp=t(max(0.0, 1.0 - 12.0 * scene.damping * h / scene.mass)),
             relax=t(solver.relaxation),
-            omega=tuple(t(w) for w in solver.chebyshev_omega()),
         )
 
 
@@ -249,14 +255,11 @@ class VbdConstants:
     @classmethod
     def of(cls, scene: Scene, solver: Vbd, dtype=np.float32) -> "VbdConstants":
         t = dtype
-        h = solver.dt / solver.substeps
+        h, shared = substep_constants(scene, solver, t)
         return cls(
-            dt=t(solver.dt),
-            h=t(h),
+            **shared,
             gh2=tuple(t(g * h * h) for g in scene.gravity),
             mh2=t(scene.mass / (h * h)),
             bh=t(scene.damping / h),
             k=t(scene.stiffness),
-            rest=rest_by_kind(scene, t),
-            omega=tuple(t(w) for w in solver.chebyshev_omega()),
         )

@@ -33,6 +33,7 @@ from clothbench.model.colliders.motion import (
     finite3,
     frames_from_toml,
     motion_from_toml,
+    refuse_unknown_keys,
 )
 from clothbench.model.colliders.self_contact import SelfCollision, self_collision_from_toml
 from clothbench.errors import SceneError
@@ -338,11 +339,7 @@ def _table(data: dict, key: str, allowed: set, where: str) -> dict:
     table = data.get(key, {})
     if not isinstance(table, dict):
         raise SceneError(f"{where}: [{key}] must be a table")
-    unknown = set(table) - allowed
-    if unknown:
-        raise SceneError(
-            f"{where}: unknown key {sorted(unknown)[0]!r} in [{key}] (allowed: {', '.join(sorted(allowed))})"
-        )
+    refuse_unknown_keys(table, allowed, where, f"[{key}]")
     return table
 
 
@@ -385,11 +382,7 @@ def _meshes(data: dict, where: str, folder: Path | None) -> tuple:
     """The [[mesh]] tables; a relative file is read from the scene file's folder."""
     out = []
     for table in array_of_tables(data.get("mesh", []), "mesh", "meshes", where):
-        unknown = set(table) - _MESH_KEYS
-        if unknown:
-            raise SceneError(
-                f"{where}: unknown key {sorted(unknown)[0]!r} in [[mesh]] (allowed: {', '.join(sorted(_MESH_KEYS))})"
-            )
+        refuse_unknown_keys(table, _MESH_KEYS, where, "[[mesh]]")
         values = _optional_keys(table, "mesh", where)
         if "file" in table:
             if not isinstance(table["file"], str):
@@ -451,11 +444,20 @@ class Setup:
         """The solver a --solvers entry names, with this file's dt, start and [pbd] or [vbd] settings."""
         return solver_for_spec(spec, self.solver, self.pbd, self.vbd)
 
-    def replace(self, grid=None, steps=None, dt=None, solver=None, method=None, iterations=None, substeps=None):
+    def replace(
+        self,
+        grid=None,
+        steps=None,
+        dt=None,
+        solver=None,
+        method=None,
+        iterations=None,
+        substeps=None,
+        chebyshev_rho=None,
+    ):
         """A copy with command-line overrides applied (None: keep), validated again."""
-        pbd_changes = {
-            k: v for k, v in (("method", method), ("iterations", iterations), ("substeps", substeps)) if v is not None
-        }
+        given = dict(method=method, iterations=iterations, substeps=substeps, chebyshev_rho=chebyshev_rho)
+        pbd_changes = {k: v for k, v in given.items() if v is not None}
         pbd = self.pbd.replace(**pbd_changes)
         vbd_changes = {k: v for k, v in pbd_changes.items() if k != "method"}  # a method is PBD's
         vbd = self.vbd.replace(**vbd_changes)
@@ -476,11 +478,7 @@ class Setup:
 
 
 def setup_from_dict(data: dict, where: str = "scene", folder: Path | None = None) -> Setup:
-    unknown = set(data) - _TABLES
-    if unknown:
-        raise SceneError(
-            f"{where}: unknown table or key {sorted(unknown)[0]!r} (allowed: {', '.join(sorted(_TABLES))})"
-        )
+    refuse_unknown_keys(data, _TABLES, where, what="table or key")
     cloth = _table(data, "cloth", _CLOTH_KEYS, where)
     sim = dict(_table(data, "sim", _SIM_KEYS, where))
     pins, pin_groups = _pins(data, where)

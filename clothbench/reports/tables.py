@@ -16,6 +16,7 @@ def print_run(s: dict) -> None:
     spread = f"{s['ms_per_step']:.3f} (min {s['ms_per_step_min']:.3f}, max {s['ms_per_step_max']:.3f})"
     rows = [
         ("backend", f"{s['backend']} ({s['mode']})"),
+        ("solver", s["model"]),
         ("device", s["device"]),
         *((("driver", s["driver"]),) if s.get("driver") else ()),  # which runtime: the device name may not say
         ("grid", f"{s['grid']} x {s['grid']}"),
@@ -33,6 +34,9 @@ def print_run(s: dict) -> None:
         ("finite", "yes" if s["finite"] else "NO"),
         ("max penetration", f"{s['max_penetration']:.3g} m"),
     ]
+    if "self_pairs" in s:  # a self-colliding scene: docs/semantics.md, "The measure"
+        closest = f"closest {s['self_min_distance']:.3g} m"
+        rows.append(("self-contact", f"{s['self_pairs']:,} pairs closer than the thickness, {closest}"))
     if s.get("stages_ms_per_step"):
         for stage, ms in s["stages_ms_per_step"].items():
             rows.append((f"  stage {stage}", f"{ms:.3f} ms/step (synchronised per stage)"))

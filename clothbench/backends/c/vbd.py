@@ -8,6 +8,10 @@ operations (docs/vbd.md, "One step"), so the reference's bits go in and come out
 the Verlet class's kernel shape (CBackend: threads=T, tuned by measurement); they split rows
 of a colour, never one particle's work, so they change no bit.
 
+[self_collision] (docs/vbd.md, "Self-collision"): the Verlet library's pass, built in by the same
+-DCLOTH_SELF and given the same numbers, exclude2 and work space (CBackend._contact_args); it
+runs every substep after the sweeps, before the colliders.
+
 Arithmetics (docs/c.md has the flags): strict is NumPy float32 (and float64) bit for bit;
 fast contracts and takes one 1/sqrt per spring (tests/contract/test_vbd_contract.py holds it
 within 1e-4 m of the float64 reference).
@@ -17,6 +21,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+from dataclasses import replace
 
 import numpy as np
 
@@ -25,7 +30,7 @@ from clothbench.native import build_library
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Vbd
 from clothbench.backends.base import Backend, BackendOptions
-from clothbench.backends.c.verlet import CBackend, aligned, build_flags, thread_count
+from clothbench.backends.c.verlet import SELF_FLAG, CBackend, aligned, build_flags, thread_count
 from clothbench.model.kernel_inputs import VbdConstants, collider_rows
 from clothbench.kernel_source import read_kernel
 
@@ -41,6 +46,9 @@ def load_vbd_library(flags: tuple[str, ...]) -> ctypes.CDLL:
         lib = build_library(VBD_KERNEL_FILE, flags)
         p, i = ctypes.c_void_p, ctypes.c_int
         lib.cloth_vbd_advance.argtypes = [p, p, p, p, p, p, p, p, i, i, i, i]
+        if SELF_FLAG in flags:  # the pass's numbers, exclude2, the work space (cloth_advance's)
+            lib.cloth_vbd_advance.argtypes += [p, ctypes.c_longlong, p]
+            lib.cloth_contact_ints.restype = ctypes.c_int
         lib.cloth_vbd_advance.restype = None
         lib.cloth_grid.restype = lib.cloth_real_bytes.restype = ctypes.c_int
         _VBD_LIBRARIES[flags] = lib
@@ -50,8 +58,9 @@ def load_vbd_library(flags: tuple[str, ...]) -> ctypes.CDLL:
 class CVbdBackend(CBackend):
     """VBD on the CPU: the Verlet class's threads, capabilities and tuning, its own state."""
 
-    # the Verlet class's: its precisions, both arithmetics, thread shapes; neither meshes nor motion
-    capabilities = CBackend.capabilities
+    # the Verlet class's: its precisions, both arithmetics, thread shapes, [self_collision] (after
+    # the sweeps, before the colliders: docs/vbd.md); neither meshes, motion nor boxes
+    capabilities = replace(CBackend.capabilities, self_collision=(*CBackend.capabilities.self_collision, "vbd"))
 
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
         Backend.__init__(self, scene, solver, options)  # none of the Verlet state
@@ -69,6 +78,7 @@ class CVbdBackend(CBackend):
         self._x, self._v, self._y, self._iterate = (aligned(3 * self.n2, t) for _ in range(4))
         self._before = aligned(2 * 3 * self.n2 if self._chebyshev else 1, t)
         self._w = aligned(self.n2, t)
+        self._contact = self._contact_args(scene, t)  # [self_collision]: (numbers, exclude2, cells), or ()
         self.threads = thread_count(self.pick_shape(self._tuning_key(), self._time_shape))
         self.run_note = self._fewer_threads_if_busy()
 
@@ -92,6 +102,10 @@ class CVbdBackend(CBackend):
             return
         if self._x.size == 0:
             raise ClothbenchError("c: advance after close")
+        contact = ()
+        if self._contact:
+            numbers, exclude2, cells = self._contact
+            contact = (numbers.ctypes.data, exclude2, cells.ctypes.data)
         self._lib.cloth_vbd_advance(
             self._x.ctypes.data,
             self._v.ctypes.data,
@@ -105,6 +119,7 @@ class CVbdBackend(CBackend):
             int(self._chebyshev),
             int(steps) * self.solver.substeps,
             self._threads_now(),
+            *contact,
         )
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:

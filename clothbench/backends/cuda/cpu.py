@@ -84,10 +84,11 @@ def build(strict: bool, defines: tuple[str, ...]) -> ctypes.CDLL:
 
 class ShimRuntime:
     """PingPong's runtime (alloc, upload, download, copy, launch) on the CPU: NumPy arrays as
-    device buffers (float32, or int32 for an int buffer), one kernel of a `build` library
-    ("verlet_step" or "verlet_steps")."""
+    device buffers (float32, or int32 for an int buffer, uint64 for cell ids), one kernel of a
+    `build` library ("verlet_step", "verlet_steps", or one of the self-collision pass's)."""
 
     CODES = ((np.float32, "f"), (np.int32, "i"))
+    BUFFER_CODES = {np.dtype(np.int32): "q", np.dtype(np.uint64): "k"}  # any other: float32, "p"
 
     def __init__(self, lib: ctypes.CDLL, kernel: str = "verlet_step"):
         self.lib = lib
@@ -114,7 +115,8 @@ class ShimRuntime:
         schedule(seed)
 
     def alloc(self, host):
-        dtype = np.int32 if np.asarray(host).dtype == np.int32 else np.float32
+        dtype = np.asarray(host).dtype
+        dtype = dtype if dtype in self.BUFFER_CODES else np.float32
         return np.array(host, dtype=dtype, order="C", copy=True)
 
     def upload(self, buffer, host):
@@ -134,8 +136,8 @@ class ShimRuntime:
         values = []
         for a in args:
             if isinstance(a, np.ndarray):
-                if a.dtype not in (np.float32, np.int32) or not a.flags.c_contiguous:
-                    raise TypeError("a buffer must be C-contiguous float32 (or int32 for an int buffer)")
+                if a.dtype not in (np.float32, *self.BUFFER_CODES) or not a.flags.c_contiguous:
+                    raise TypeError("a buffer must be C-contiguous float32 (or int32, uint64 for those buffers)")
                 values.append(ctypes.c_void_p(a.ctypes.data))
             elif isinstance(a, np.float32):
                 values.append(ctypes.c_float(a))
@@ -150,8 +152,8 @@ class ShimRuntime:
 
     @classmethod
     def code(cls, a) -> str:
-        """The shim's type letter of one argument (shim.h: type_code): 'q' an int buffer, 'p'
-        any other buffer, 'f' float32, 'i' int32."""
+        """The shim's type letter of one argument (shim.h: type_code): 'q' an int buffer, 'k' a
+        uint64 one, 'p' any other buffer, 'f' float32, 'i' int32."""
         if isinstance(a, np.ndarray):
-            return "q" if a.dtype == np.int32 else "p"
+            return cls.BUFFER_CODES.get(a.dtype, "p")
         return next((c for t, c in cls.CODES if isinstance(a, t)), "?")

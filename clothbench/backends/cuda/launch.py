@@ -14,6 +14,8 @@ driven with the same argument list, launch geometry, shared memory and swap or c
 A scene with meshes adds two buffers, uploaded once (`mesh_buffers`); a scene with motion
 (moving colliders, pins attached to a body) adds a table of per-step rows (`MotionTable`),
 uploaded a window of steps at a time, and a pin-slot buffer (docs/cuda.md, "Meshes and motion").
+A scene with [self_collision] adds the pass's launches after each verlet_step launch
+(self_contact.py).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Solver
+from clothbench.backends.cuda.self_contact import SelfContact
 from clothbench.variant_names import TRANSFERS as ALL_TRANSFERS
 from clothbench.model.kernel_inputs import (
     MeshConstants,
@@ -231,6 +234,8 @@ class PingPong:
     steps_per_launch steps a launch). CudaBackend's runtime is CuPy; cpu.py's is the CPU build
     of the same kernels, so both launch them with the argument list built here, in this order.
     `generic` and `normals` must be those the kernels were built with (kernel_defines).
+    A scene with [self_collision] needs verlet_step and `self_collision`: a runtime for each of
+    the pass's kernels (self_contact.KERNELS).
     """
 
     def __init__(
@@ -243,11 +248,14 @@ class PingPong:
         generic: bool = False,
         normals: bool = False,
         steps_per_launch: int | None = None,
+        self_collision: tuple | None = None,
     ):
         if transfer not in TRANSFERS:
             raise ValueError(f"transfer must be swap or copy, got {transfer!r}")
         if steps_per_launch is not None and steps_per_launch < 1:
             raise ValueError(f"steps_per_launch must be >= 1, got {steps_per_launch}")
+        if scene.self_collision is not None and (steps_per_launch is not None or self_collision is None):
+            raise ValueError("a self-colliding scene runs verlet_step with the pass's kernels (self_collision=...)")
         self.runtime = runtime
         self.transfer = transfer
         self.block = block
@@ -270,6 +278,8 @@ class PingPong:
                     colliders.append(runtime.alloc(rows if len(rows) else np.zeros((1, 4), np.float32)))
                 colliders.append(np.int32(len(rows) // kind.rows))
             self.scene_args = (*kernel_constants(scene, solver).values(), *colliders)
+        # what the pass's colliders take (generic: n and the collider arguments)
+        self.pass_args: tuple = (np.int32(scene.grid), *colliders) if generic else ()
         self.mesh_args: tuple = ()
         if scene.meshes:  # uploaded once: the body frame does not change when a mesh moves
             rows, ints = mesh_buffers(scene)
@@ -290,6 +300,7 @@ class PingPong:
         self.pos_in, self.prev_in = runtime.alloc(empty), runtime.alloc(empty)
         self.pos_out, self.prev_out = runtime.alloc(empty), runtime.alloc(empty)
         self.normals = runtime.alloc(empty) if normals else None  # written, never read back in
+        self.contact = SelfContact(scene, self_collision, block) if scene.self_collision is not None else None
         self.has_normals = False  # whether the last launch since upload() wrote them
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
@@ -320,15 +331,17 @@ class PingPong:
         rows = (np.int32(self.motion.rows),) if self.generic else ()
         return (view, *rows, *self.pin_args)
 
-    def args(self, steps: int = 1) -> tuple:
+    def args(self, steps: int = 1, motion: tuple | None = None) -> tuple:
         """The kernel's arguments, in its parameter order; `steps` is verlet_steps' count (and,
-        in a moving scene, how many steps of rows the launch reads from the step count on)."""
+        in a moving scene, how many steps of rows the launch reads from the step count on);
+        `motion`, motion_args(steps) where the caller has them already."""
         buffers = (self.pos_in, self.prev_in, self.pos_out, self.prev_out)
         if self.normals is not None:
             buffers += (self.normals,)
         if self.steps_per_launch is not None:
             buffers += (np.int32(steps),)
-        return (*buffers, *self.scene_args, *self.mesh_args, *self.motion_args(steps))
+        motion = self.motion_args(steps) if motion is None else motion
+        return (*buffers, *self.scene_args, *self.mesh_args, *motion)
 
     def launches(self, steps: int) -> list[int]:
         """The steps of each launch that advance(steps) makes: all of steps_per_launch, then
@@ -340,7 +353,10 @@ class PingPong:
 
     def advance(self, steps: int) -> None:
         for count in self.launches(steps):
-            self.runtime.launch(self.grid, self.block, self.args(count), self.shared_bytes)
+            motion = self.motion_args(count)
+            self.runtime.launch(self.grid, self.block, self.args(count, motion), self.shared_bytes)
+            if self.contact is not None:  # x_new pushed apart and collided, at the step's rows
+                self.pos_out = self.contact.push(self.pos_out, (*self.pass_args, *self.mesh_args, *motion[:1]))
             self.steps_done += count
             if self.transfer == "copy":  # the chapter: cudaMemcpy(in, out, DeviceToDevice), per launch
                 self.runtime.copy(self.pos_in, self.pos_out)

@@ -16,7 +16,9 @@ colliders compile-time constants (exact float literals in -D defines) and the co
 collider kind the scene lacks left out; `--generic` builds the one module that takes them all
 as arguments. `kernel_defines` gives the -D switches, and compiled modules are cached by them.
 Meshes (kernels/collide_mesh.cuh) and motion are switched in only for a scene that has them
-(docs/cuda.md, "Meshes and motion").
+(docs/cuda.md, "Meshes and motion"), and so is [self_collision] (kernels/self_collision.cuh,
+self_contact.py: its pass after every verlet_step launch; not verlet_steps, which has no launch
+between steps to run it in, so its shapes are not offered then).
 
 Compilation: we compile the kernels ourselves (NVRTC through CuPy's binding, or nvcc) and
 load the binary with RawModule(path=...). CuPy's own RawModule(code=...) path appends
@@ -70,6 +72,7 @@ from clothbench.backends.cuda.launch import (
     kernel_constants,
     motion_rows,
 )
+from clothbench.backends.cuda.self_contact import KERNELS as SELF_KERNELS
 from clothbench.model.kernel_inputs import collider_rows
 
 __all__ = ["AUTO_BLOCK", "TRANSFERS", "PingPong", "CudaBackend", "kernel_constants", "kernel_defines"]
@@ -107,8 +110,11 @@ def kernel_defines(
     colliders of each kind the scene has as a brace list of float4 rows (a moving scene: only
     the counts and the per-step table's size, CLOTH_MOTION_ROWS and CLOTH_PIN_COUNT), and the
     mesh count. `mesh_collision` (accelerated, the default, or naive) picks CLOTH_MESH_BVH.
+    A scene with [self_collision] adds CLOTH_SELF_COLLISION in either build (its numbers are
+    kernel arguments).
     """
     defines = ["-DCLOTH_NORMALS"] if normals else []
+    defines += ["-DCLOTH_SELF_COLLISION"] if scene.self_collision is not None else []
     algorithm = mesh_collision or "accelerated"
     if algorithm not in CudaBackend.capabilities.mesh_collisions:
         raise ValueError(f"mesh_collision must be accelerated or naive, got {mesh_collision!r}")
@@ -304,13 +310,17 @@ class CudaBackend(Backend):
         meshes=("verlet",),
         moving_colliders=("verlet",),
         boxes=("verlet",),  # collide_box, fixed and moving, both kernels
+        self_collision=("verlet",),  # kernels/self_collision.cuh, after verlet_step (not verlet_steps)
         mesh_collisions=("accelerated", "naive"),
         sweep_variants=({"strict": True}, {"strict": False}, {"strict": False, "transfer": "copy"}),
     )
 
     @classmethod
     def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
-        return launch.kernel_shapes(scene.particles, options.local_size, shared_memory_limit(options.device))
+        shapes = launch.kernel_shapes(scene.particles, options.local_size, shared_memory_limit(options.device))
+        if scene.self_collision is not None:  # the pass runs between two steps: verlet_steps has no such launch
+            return tuple(s for s in shapes if launch.parse_shape(s, scene.particles)[0] is None)
+        return shapes
 
     def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):
         super().__init__(scene, solver, options)
@@ -336,7 +346,8 @@ class CudaBackend(Backend):
         module = self._load_module(options.strict, self._device.compute_capability, self.defines)
         # which CuPy (CUDA 12 or 13) and which compiler built the module: part of the tuning key
         self._driver = cuda_driver(cupy, self._compiler, self._name)
-        self._kernels = {name: module.get_function(name) for name in (launch.STEP_KERNEL, launch.STEPS_KERNEL)}
+        names = (launch.STEP_KERNEL, launch.STEPS_KERNEL, *(SELF_KERNELS if scene.self_collision is not None else ()))
+        self._kernels = {name: module.get_function(name) for name in names}
         limit = self._kernels[launch.STEP_KERNEL].max_threads_per_block
         if options.local_size is not None and options.local_size > limit:  # the base refused < 1
             raise ClothbenchError(f"cuda --local-size must be 1 .. {limit} here, got {options.local_size}")
@@ -370,6 +381,7 @@ class CudaBackend(Backend):
             ),
             **({"motion": "per-step poses"} if s.has_motion else {}),
             **({"boxes": str(len(s.boxes))} if s.boxes else {}),
+            **({"self_collision": "verlet_step and the pass"} if s.self_collision is not None else {}),
         }
 
     def _pingpong(self, shape: str) -> PingPong:
@@ -379,6 +391,9 @@ class CudaBackend(Backend):
         if block > kernel.max_threads_per_block:
             raise ClothbenchError(f"cuda {shape}: {block} threads a block, at most {kernel.max_threads_per_block} here")
         self.effective_local_size = block
+        contact = None
+        if self.scene.self_collision is not None:
+            contact = tuple(_CupyRuntime(self._kernels[name], self.stream) for name in SELF_KERNELS)
         state = PingPong(
             _CupyRuntime(kernel, self.stream),
             self.scene,
@@ -388,6 +403,7 @@ class CudaBackend(Backend):
             self.options.generic,
             self.options.normals,
             steps_per_launch,
+            contact,
         )
         if state.shared_bytes:  # above 48 KiB a kernel must opt in, up to the device's limit
             kernel.max_dynamic_shared_size_bytes = state.shared_bytes

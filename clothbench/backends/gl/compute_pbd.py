@@ -13,6 +13,11 @@ attached pins"): gl/context.py's GLBodies and body_defines, as the Verlet kernel
 with one block of rows per substep (the poses and pin targets at its end), written inside
 advance() (so the harness times it) MOTION_BLOCK substeps at a time; the predict and collide
 programs read block `motion_step`, set before each substep's dispatches.
+
+Self-collision ([self_collision], docs/semantics.md), only where the scene has it: per substep,
+in collide's place, the last iterate is keyed and sorted (gl/self_contact.py,
+kernels/self_collision.comp), then STAGE_SELF_COLLISION pushes it apart and collides it into
+the other buffer, which update reads (pbd_device's plan).
 """
 
 from __future__ import annotations
@@ -26,11 +31,20 @@ from clothbench.model.scene import Scene
 from clothbench.model.solver import Pbd
 from clothbench.backends.gl import context as gl_context
 from clothbench.backends.base import BackendOptions, Capabilities
-from clothbench.backends.gl.context import open_compute_device, work_groups
+from clothbench.backends.gl.context import dispatch, open_compute_device, work_groups
+from clothbench.backends.gl.self_contact import GLSelfContact
 from clothbench.backends.pbd_device import PbdDeviceBackend
 
 KERNEL_FILE = "pbd_cloth.comp"
-STAGES = {"predict": 0, "jacobi": 1, "coloured": 2, "collide": 3, "update": 4, "coloured sweep": 5}  # as the kernel's
+STAGES = {
+    "predict": 0,
+    "jacobi": 1,
+    "coloured": 2,
+    "collide": 3,
+    "update": 4,
+    "coloured sweep": 5,
+    "self collision": 6,
+}  # as the kernel's
 PARTS = {"all": 0, "interior": 1, "border": 2}  # of a Jacobi pass, as the kernel's
 # The constraint passes read positions through imageBuffer views of their buffers where the
 # driver allows a view that large: llvmpipe gathers image loads and loads SSBOs lane by lane
@@ -64,6 +78,7 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
         moving_colliders=("pbd",),
         boxes=("pbd",),
         mesh_collisions=("accelerated", "naive"),  # compute.py's default, the same bits
+        self_collision=("pbd",),
     )
 
     def __init__(self, scene: Scene, solver: Pbd, options: BackendOptions):
@@ -74,6 +89,8 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
         self.sources: dict[str, str] = {}
         # meshes, per-substep rows of moving bodies, attached-pin slots (none without them)
         self.bodies = gl_context.GLBodies(self.gl, scene, solver.dt / solver.substeps, self.mesh_collision)
+        # [self_collision]: its defines, sort buffers and search programs; None: no pass, no code
+        self.contact = GLSelfContact.of(self.gl, scene, self.local_size)
         with self.gl:
             ctx = self.gl.ctx
             self.x = ctx.buffer(reserve=size)
@@ -111,6 +128,8 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             DAMP_VALUE=glsl_float(c.damp),
             RELAX_VALUE=glsl_float(c.relax),
         )
+        if self.contact is not None:
+            defines.update(self.contact.defines)
         return defines
 
     def _program(self, stage: str, part: str | None = None):
@@ -129,9 +148,10 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
         if stage == "jacobi" and self.chebyshev:
             defines["CHEBYSHEV"] = ""
         kinds = gl_context.collider_kinds(self.scene, generic=False)
-        source = gl_context.shader_source(
-            KERNEL_FILE, 430, defines, kinds, meshes=bool(self.scene.meshes), moving=self.scene.has_motion
+        parts = dict(  # what the includes put in: meshes, motion, the self-collision pass
+            meshes=bool(self.scene.meshes), moving=self.scene.has_motion, self_collision=self.contact is not None
         )
+        source = gl_context.shader_source(KERNEL_FILE, 430, defines, kinds, **parts)
         self.sources[stage if part is None else f"{stage} {part}"] = source
         # the source is the specialisation key: the same scene and switches share a program
         program = self.gl.program(("pbd-comp", source), lambda: self.gl.ctx.compute_shader(source))
@@ -183,6 +203,11 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
             return [(program, (1, 1), tuple(enumerate(bindings)), (), uniforms)]
         elif kind == "collide":
             bindings = (self.xs[step[1]],)
+        elif kind == "self collision":
+            _, src, dst = step
+            ssbos = ((0, self.xs[src]), (1, self.xs[dst]), *self.contact.bindings)
+            push = (program, work_groups(items, self.local_size), ssbos, (), ())
+            return [*self.contact.search(self.xs[src]), push]
         else:
             bindings = (self.x, self.v, self.xs[step[1]])
         uniforms = tuple((program[u], v) for u, v in uniforms)
@@ -190,15 +215,7 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
 
     # --- PbdDeviceBackend ----------------------------------------------------------------
     def _enqueue(self, launch) -> None:
-        program, groups, ssbos, images, uniforms = launch
-        for binding, buf in ssbos:
-            buf.bind_to_storage_buffer(binding)
-        for unit, view in images:
-            self.gl.bind_image_read(unit, view)
-        for uniform, value in uniforms:
-            uniform.value = value
-        program.run(*groups)
-        self.gl.ctx.memory_barrier()  # the next dispatch reads what this one wrote
+        dispatch(self.gl, launch)
 
     def _timed(self, launch) -> float:
         # wall clock around finish(): llvmpipe's timer queries are not to be trusted
@@ -248,4 +265,6 @@ class GLSLComputePbdBackend(gl_context.GLDeviceMixin, PbdDeviceBackend):
                 if buf is not None:
                     buf.release()
         self.bodies.release()
+        if self.contact is not None:
+            self.contact.release()
         self.x = None

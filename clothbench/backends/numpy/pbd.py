@@ -101,14 +101,7 @@ class NumpyPbdBackend(GridPlanes, Backend):
             xs = self._jacobi(xs)
         else:
             xs = self._coloured(xs)
-        contact = self.self_collision_pass
-        if self.bodies is not None:  # the poses at the end of the substep; meshes after the planes
-            self.bodies.collide(xs, free, contact)
-        else:
-            if contact is not None:
-                contact(xs)
-            for kind, constants in self.colliders:
-                COLLIDE[kind](xs, free, **constants)
+        self.contact_then_collide(xs)  # the poses at the end of the substep
         v = (xs - x) / self.h
         self.vel = v * self.damp
         self.pos = xs

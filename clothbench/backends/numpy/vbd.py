@@ -20,6 +20,7 @@ from clothbench.backends.base import Backend, BackendOptions
 from clothbench.model.kernel_inputs import VbdConstants, pin_targets
 from clothbench.backends.numpy.collide_mesh import Bodies
 from clothbench.backends.numpy.pbd import NumpyPbdBackend
+from clothbench.backends.numpy.self_collision import SelfCollisionPass
 from clothbench.backends.numpy.verlet import COLLIDE, GridPlanes, collider_constants, dot3
 
 
@@ -46,6 +47,7 @@ class NumpyVbdBackend(GridPlanes, Backend):
         meshes=(*NumpyPbdBackend.capabilities.meshes, "vbd"),
         moving_colliders=(*NumpyPbdBackend.capabilities.moving_colliders, "vbd"),
         boxes=(*NumpyPbdBackend.capabilities.boxes, "vbd"),  # COLLIDE is the kinds table's: boxes included
+        self_collision=(*NumpyPbdBackend.capabilities.self_collision, "vbd"),
     )
 
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
@@ -69,6 +71,8 @@ class NumpyVbdBackend(GridPlanes, Backend):
         self.bodies = Bodies(colliding, self.substep_seconds, t, collider_constants, COLLIDE) if needed else None
         self.pinned = scene.pinned() if scene.pin_attach is not None else None
         self.substeps_done = 0
+        # [self_collision]: per substep after the iterations, before the colliders (as PBD's)
+        self.self_collision = SelfCollisionPass(scene, t) if scene.self_collision is not None else None
         self.pos = self.vel = np.zeros((3, n, n), dtype=t)
         self.w, self.free = np.zeros((n, n), dtype=t), np.zeros((n, n), dtype=bool)
         self.sweep_order: list[np.ndarray] = []
@@ -107,11 +111,7 @@ class NumpyVbdBackend(GridPlanes, Backend):
             time = self.substeps_done * self.substep_seconds
             xs.reshape(3, -1)[:, self.pinned] = pin_targets(self.scene, time, self.dtype).T
         xs = self.solve(xs, y, x)
-        if self.bodies is not None:  # the poses at the end of the substep; meshes after the planes
-            self.bodies.collide(xs, free)
-        else:
-            for kind, constants in self.colliders:
-                COLLIDE[kind](xs, free, **constants)
+        self.contact_then_collide(xs)  # the poses at the end of the substep
         self.vel = (xs - x) / self.h
         self.pos = xs
 

@@ -58,6 +58,19 @@ class GridPlanes:
             return None
         return lambda x: self.self_collision(x, self.w)
 
+    def contact_then_collide(self, x: np.ndarray) -> None:
+        """x (3, n, n) in place: the [self_collision] pass where the scene has it, then every
+        collider in the order of colliders/kinds.py, meshes after the planes (Bodies: per-step
+        poses and attached pins first). The end of a Verlet step and of a PBD or VBD substep."""
+        contact = self.self_collision_pass
+        if self.bodies is not None:
+            self.bodies.collide(x, self.free, contact)
+            return
+        if contact is not None:
+            contact(x)
+        for kind, constants in self.colliders:
+            COLLIDE[kind](x, self.free, **constants)
+
     def state(self, planes: np.ndarray) -> np.ndarray:
         """(n*n, 4) rows of `planes` with the inverse mass as w."""
         n2 = self.scene.particles
@@ -134,14 +147,7 @@ class NumpyBackend(GridPlanes, Backend):
         new -= prev
         new += force
         np.copyto(new, pos, where=~self.free)  # pinned particles do not move
-        contact = self.self_collision_pass
-        if self.bodies is not None:  # per-step poses, attached pins, then every collider and mesh
-            self.bodies.collide(new, self.free, contact)
-            return new
-        if contact is not None:
-            contact(new)
-        for kind, constants in self.colliders:  # in the order of colliders/kinds.py
-            COLLIDE[kind](new, self.free, **constants)
+        self.contact_then_collide(new)
         return new
 
 

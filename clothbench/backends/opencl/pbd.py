@@ -243,18 +243,6 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.border_particles = np.flatnonzero(~covered).astype(np.int32)
         self.border = self._read_only_buffer(self.border_particles)
 
-    def _substep_plan(self, coloured_sweep: bool = False):
-        """pbd_device's plan; with [self_collision], its pass (and the colliders after it) from
-        the last iterate into the other buffer, which update reads, in place of collide."""
-        plan = super()._substep_plan(coloured_sweep)
-        if self._contact is None:
-            return plan
-        final = plan[-1][1]
-        return [step for step in plan[:-1] if step[0] != "collide"] + [
-            ("self collision", final, 1 - final),
-            ("update", 1 - final),
-        ]
-
     @property
     def vector_width(self) -> int:
         preferred = self._device.preferred_vector_width_float
@@ -444,20 +432,9 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
             kernels = [(k, len(batch.i))]
         elif kind == "self collision":
             _, src, dst = step
-            sc = self._contact
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
-            sort = (sc.keys, sc.order)
-            keys = self._kernel(
-                ("cell keys", src),
-                "self_cell_keys",
-                [None] * 3 + [f32, i32],
-                (self.xs[src], *sort, sc.inv_cell, sc.count),
-            )
-            dtypes = [None] * 4 + [float4, i32, None]
-            args = (self.xs[src], self.xs[dst], *sort, sc.numbers, sc.exclude2, self.colliders)
-            push = self._kernel((kind, src), "pbd_self_collision", dtypes, args, meshes)
-            first, last = ((k, *self._launch_size(items)) for k, items in ((keys, sc.slots), (push, self.n2)))
-            return [first, *sc.sort_launches(self._kernel), last]
+            sizes = self._launch_size
+            return self._contact.row_launches(self._kernel, sizes, self.xs[src], self.xs[dst], self.colliders, meshes)
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)

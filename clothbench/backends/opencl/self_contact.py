@@ -1,4 +1,4 @@
-"""What both OpenCL solvers (verlet.py, pbd.py) do the same way for [self_collision]
+"""What the OpenCL solvers (verlet.py, pbd.py, vbd.py) do the same way for [self_collision]
 (docs/semantics.md, "Self-collision"; the kernels are kernels/self_collision.cl): its numbers
 as the kernels take them, its build options, and the sort's buffers and stages.
 
@@ -29,7 +29,7 @@ class SelfContact:
         self.numbers = cl.cltypes.make_float4(c.thickness, c.thickness2, c.relax, c.inv_cell)
         self.exclude2 = np.int32(min(c.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
         self.count = np.int32(scene.particles)
-        self.slots = 1 << max(0, (scene.particles - 1).bit_length())
+        self.slots = sort_slots(scene.particles)
         # a power of two, so a group's block of 2 sort_group slots tiles the slots
         fits = min(SORT_GROUP, self.slots // 2, *(d.max_work_group_size for d in context.devices))
         self.sort_group = 1 << (fits.bit_length() - 1)
@@ -91,6 +91,42 @@ class SelfContact:
 
     def buffers(self) -> tuple:
         return (self.keys, self.order)
+
+    def row_launches(self, kernel, sizes, x_in, x_out, colliders, bodies: tuple) -> list[tuple]:
+        """The pass of a solver that keeps float4 rows (pbd_cloth.cl, vbd_cloth.cl): x_in keyed,
+        sorted, then pushed and collided into x_out by pbd_self_collision, as (kernel, global
+        size, local size) in launch order. `kernel(key, name, dtypes, args, bodies)`: the
+        solver's kernel with its arguments set once, shared by launches of one key; `sizes(items)`:
+        the solver's (global, local) size of a launch of `items` work items, which the cell keys
+        and the pass take (the sort takes its own, sort_launches); `bodies`: its _body_args() the
+        pass takes after the colliders."""
+        i32, f32 = np.int32, np.float32
+        sort = (self.keys, self.order)
+        cell_keys = kernel(
+            ("cell keys", x_in), "self_cell_keys", [None] * 3 + [f32, i32], (x_in, *sort, self.inv_cell, self.count)
+        )
+        dtypes = [None] * 4 + [self.numbers.dtype, i32, None]
+        args = (x_in, x_out, *sort, self.numbers, self.exclude2, colliders)
+        push = kernel(("self collision", x_in), "pbd_self_collision", dtypes, args, bodies)
+        return [(cell_keys, *sizes(self.slots)), *self.sort_launches(kernel), (push, *sizes(int(self.count)))]
+
+
+def sort_slots(particles: int) -> int:
+    """The bitonic sort's length: the particle count rounded up to a power of two (the CUDA
+    pass's too, kernels/self_collision.cuh)."""
+    return 1 << max(0, (particles - 1).bit_length())
+
+
+def sort_stages(slots: int) -> list[tuple[np.int32, np.int32]]:
+    """(j, k) of each compare-and-exchange stage of the bitonic sort over `slots`, in launch order."""
+    out, k = [], 2
+    while k <= slots:
+        j = k // 2
+        while j > 0:
+            out.append((np.int32(j), np.int32(k)))
+            j //= 2
+        k *= 2
+    return out
 
 
 def include_text(contact: SelfContact | None) -> str:

@@ -14,6 +14,12 @@ What a later change may tune: the sweep is one particle per work item, gathered 
 index list of the colour's particles (half of them would be one vector lane apart in a
 planar layout); a small grid would gain from whole substeps in one launch, as PBD's
 one-launch shape does.
+
+Self-collision ([self_collision], docs/vbd.md), only where the scene has it
+(-DCLOTH_SELF_COLLISION, kernels/self_collision.cl): per substep after the last sweep (and
+Chebyshev), the iterate's cells are keyed and sorted and pbd_self_collision pushes the pairs
+apart and collides into y (which the sweeps no longer read), in place of vbd_collide; the
+update reads y. self_contact.py's row_launches, as the PBD solver's.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from clothbench.model.solver import Vbd
 from clothbench.backends.base import Backend, BackendOptions, Capabilities
 from clothbench.model.kernel_inputs import VbdConstants
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
+from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.pbd_device import position_state, velocity_state
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
@@ -50,6 +57,7 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         meshes=("vbd",),
         moving_colliders=("vbd",),
         boxes=("vbd",),  # vbd_collide is collide.cl's, which the kinds table gives every kind
+        self_collision=("vbd",),  # after the sweeps, before the colliders (docs/vbd.md)
         mesh_collisions=("accelerated", "naive"),  # verlet.py's default, for the same reason
     )
 
@@ -62,8 +70,11 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self._open_queue(options)
         cl, context = self._cl, self._context
         self._open_bodies(solver.dt / solver.substeps, 1)  # one table per substep, at its end
+        # [self_collision]: its numbers and sort buffers (self_contact.py); None: no pass, no code
+        self._contact = SelfContact.of(scene, cl, context)
         # the one program: what it was built from, kept to say what a scene compiles
-        self.source = program_source(KERNEL_FILE, {"mesh_colliders": self._mesh_source})
+        generated = {"mesh_colliders": self._mesh_source, "self_collision": lambda: include_text(self._contact)}
+        self.source = program_source(KERNEL_FILE, generated)
         self.program = build_program(context, self.source, self.build_options())
 
         size = self.n2 * 16  # one float4 per particle
@@ -80,11 +91,13 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self.substeps_done = 0  # since the last upload(): the clock of moving bodies
 
     def build_options(self) -> tuple[str, ...]:
-        return (*shape_options(self.scene, SCALAR), *self._body_options(), *arithmetic_options(self.strict))
+        contact = self._contact.build_options if self._contact is not None else ()
+        return (*shape_options(self.scene, SCALAR), *self._body_options(), *arithmetic_options(self.strict), *contact)
 
     def _kernel(self, name: str, dtypes: list, args: tuple, bodies: tuple = ()):
         """Kernel `name` with its typed arguments set once; `bodies`: the _body_args() it takes
-        after `args` (the substep index first, where the scene moves, set per substep)."""
+        after `args` (the substep index first, where the scene moves, set per substep). Every
+        launch has its own: the plan sets each kernel's arguments once."""
         k = self._cl.Kernel(self.program, name)
         k.set_scalar_arg_dtypes(list(dtypes) + [np.int32 if isinstance(a, np.int32) else None for a in bodies])
         k.set_args(*args, *bodies)
@@ -127,10 +140,16 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
                 before = self.before[(it + 1) % 2]
                 args = (self.xs, before, c.omega[it], i32(it > 0))
                 launch("chebyshev", self._kernel("vbd_chebyshev", chebyshev, args), self.n2)
-        if self.scene.colliders or self.scene.meshes:
-            meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
+        meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
+        final = self.xs  # the iterate the update reads
+        if self._contact is not None:  # the pass and then the colliders, from the final iterate into y
+            fresh = lambda _key, *rest: self._kernel(*rest)  # noqa: E731 (here every launch has a kernel of its own)
+            for sized in self._contact.row_launches(fresh, self._launch_size, self.xs, self.y, self._colliders, meshes):
+                plan.append(("self collision", sized))
+            final = self.y  # no longer read: the sweeps are done
+        elif self.scene.colliders or self.scene.meshes:
             launch("collide", self._kernel("vbd_collide", [None, None], (self.xs, self._colliders), meshes), self.n2)
-        update = self._kernel("vbd_update", [None] * 3 + [f32], (self.x, self.v, self.xs, c.h))
+        update = self._kernel("vbd_update", [None] * 3 + [f32], (self.x, self.v, final, c.h))
         launch("update", update, self.n2)
         return plan
 
@@ -188,7 +207,8 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         return {stage: 1e3 * seconds / max(steps, 1) for stage, seconds in totals.items()}
 
     def _buffers(self) -> tuple:
-        return (self.x, self.v, self.xs, self.y, *self.before, self.order, *self._body_buffers())
+        contact = self._contact.buffers() if self._contact is not None else ()
+        return (self.x, self.v, self.xs, self.y, *self.before, self.order, *contact, *self._body_buffers())
 
 
 __all__ = ["OpenCLVbdBackend"]

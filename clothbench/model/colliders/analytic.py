@@ -4,8 +4,9 @@ tables and everything a kernel names them by, are one table: colliders/kinds.py.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -23,37 +24,50 @@ def _positive(value, what: str) -> None:
 
 
 @dataclass(frozen=True)
-class Sphere:
-    center: tuple[float, float, float]
-    radius: float
-    name: str = ""
-    motion: Motion | None = None
+class Collider:
+    """What every analytic collider has beside its geometry: the COLLIDER_OPTIONAL_KEYS,
+    keyword-only (after the geometry in its constructor), and the checks of that geometry."""
 
-    kind = "sphere"
-    anchor = "center"  # the point its motion moves and rotates it about
+    name: str = field(default="", kw_only=True)  # what pins attach to
+    motion: Motion | None = field(default=None, kw_only=True)
+
+    kind = "?"
+    anchor = "?"  # the point its motion moves and rotates it about
 
     def check(self) -> None:
-        finite3(self.center, "sphere center")
-        _positive(self.radius, "sphere radius")
+        """Every geometry field three finite numbers, or (one declared a float: a radius) a
+        number > 0, in the order declared; then the kind's own rule."""
+        for f in dataclasses.fields(self):
+            if f.name not in COLLIDER_OPTIONAL_KEYS:
+                check = _positive if f.type in ("float", float) else finite3
+                check(getattr(self, f.name), f"{self.kind} {f.name}")
+        self.check_shape()
+
+    def check_shape(self) -> None:
+        """The kind's own rule, beside the checks of every field: none."""
 
 
 @dataclass(frozen=True)
-class Cylinder:
+class Sphere(Collider):
+    center: tuple[float, float, float]
+    radius: float
+
+    kind = "sphere"
+    anchor = "center"
+
+
+@dataclass(frozen=True)
+class Cylinder(Collider):
     """A capped cylinder around the segment start-end."""
 
     start: tuple[float, float, float]
     end: tuple[float, float, float]
     radius: float
-    name: str = ""
-    motion: Motion | None = None
 
     kind = "cylinder"
     anchor = "start"
 
-    def check(self) -> None:
-        finite3(self.start, "cylinder start")
-        finite3(self.end, "cylinder end")
-        _positive(self.radius, "cylinder radius")
+    def check_shape(self) -> None:
         if self.length == 0:
             raise SceneError(f"cylinder start and end must differ (zero-length cylinder at {self.start})")
 
@@ -85,23 +99,18 @@ class Cylinder:
 
 
 @dataclass(frozen=True)
-class Box:
+class Box(Collider):
     """An oriented box: half extents along its own three axes, which are the columns of its
     rotation (Euler degrees, as a mesh's: motion.euler_degrees). docs/semantics.md, "Box"."""
 
     center: tuple[float, float, float]
     half_extents: tuple[float, float, float]
     rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    name: str = ""
-    motion: Motion | None = None
 
     kind = "box"
     anchor = "center"
 
-    def check(self) -> None:
-        finite3(self.center, "box center")
-        finite3(self.half_extents, "box half_extents")
-        finite3(self.rotation, "box rotation")
+    def check_shape(self) -> None:
         if not all(h > 0 for h in self.half_extents):
             raise SceneError(f"box half_extents must be > 0, got {self.half_extents!r}")
 
@@ -112,20 +121,16 @@ class Box:
 
 
 @dataclass(frozen=True)
-class Plane:
+class Plane(Collider):
     """A one-sided half-space: the solid is where (x - point) . normal < 0."""
 
     point: tuple[float, float, float]
     normal: tuple[float, float, float]
-    name: str = ""
-    motion: Motion | None = None
 
     kind = "plane"
     anchor = "point"
 
-    def check(self) -> None:
-        finite3(self.point, "plane point")
-        finite3(self.normal, "plane normal")
+    def check_shape(self) -> None:
         if not any(self.normal):
             raise SceneError("plane normal must not be zero")
 

@@ -106,11 +106,7 @@ def motion_from_toml(value, what: str) -> Motion:
     [[t, [dx, dy, dz], [rx, ry, rz]], ...] }`, every value checked."""
     if not isinstance(value, dict):
         raise SceneError(f"{what} motion must be a table, e.g. {{ velocity = [0.1, 0, 0] }}")
-    unknown = set(value) - _MOTION_KEYS
-    if unknown:
-        raise SceneError(
-            f"{what} motion: unknown key {sorted(unknown)[0]!r} (allowed: {', '.join(sorted(_MOTION_KEYS))})"
-        )
+    refuse_unknown_keys(value, _MOTION_KEYS, f"{what} motion")
     if "keyframes" in value:
         if set(value) & {"velocity", "angular_velocity"}:
             raise SceneError(f"{what} motion: give keyframes or velocities, not both")
@@ -144,6 +140,16 @@ def motion_from_toml(value, what: str) -> Motion:
     )
 
 
+def refuse_unknown_keys(table: dict, allowed, where: str, inside: str = "", what: str = "key") -> None:
+    """One line naming the first key of `table` (in sorted order) that is not in `allowed`,
+    and those allowed: the check every table of a scene file gets. `inside` names the table
+    (e.g. "[[mesh]]") where `where` does not."""
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        table_name = f" in {inside}" if inside else ""
+        raise SceneError(f"{where}: unknown {what} {unknown[0]!r}{table_name} (allowed: {', '.join(sorted(allowed))})")
+
+
 def array_of_tables(raw, name: str, plural: str, where: str) -> list[dict]:
     """A scene file's [[name]] entries, refused in one line unless an array of tables: the
     shape every collider, mesh and frame list of a scene file shares."""
@@ -158,11 +164,7 @@ def array_of_tables(raw, name: str, plural: str, where: str) -> list[dict]:
 def frames_from_toml(raw, where: str) -> tuple[Frame, ...]:
     out = []
     for table in array_of_tables(raw, "frame", "kinematic frames", where):
-        unknown = set(table) - _FRAME_KEYS
-        if unknown:
-            raise SceneError(
-                f"{where}: unknown key {sorted(unknown)[0]!r} in [[frame]] (allowed: {', '.join(sorted(_FRAME_KEYS))})"
-            )
+        refuse_unknown_keys(table, _FRAME_KEYS, where, "[[frame]]")
         if not isinstance(table.get("name"), str) or not table["name"]:
             raise SceneError(f"{where}: [[frame]] needs a name (pins attach to it by name)")
         out.append(

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothbench.errors import SceneError
+from clothbench.model.colliders.motion import refuse_unknown_keys
 from clothbench.model.solver import FLOAT32_MAX, FLOAT32_TINY, finite_number
 
 TOML_KEYS = ("thickness", "cell", "relaxation")
@@ -71,9 +72,7 @@ def self_collision_from_toml(table, where: str) -> SelfCollision | None:
         return None
     if not isinstance(table, dict):
         raise SceneError(f"{where}: [self_collision] must be a table")
-    unknown = sorted(set(table) - set(TOML_KEYS))
-    if unknown:
-        raise SceneError(f"{where}: unknown key {unknown[0]!r} in [self_collision] (allowed: {', '.join(TOML_KEYS)})")
+    refuse_unknown_keys(table, TOML_KEYS, where, "[self_collision]")
     if "thickness" not in table:
         raise SceneError(f"{where}: [self_collision] needs thickness (m)")
     try:

@@ -75,6 +75,8 @@ inline float __int_as_float(int i)
 // rsqrtf is approximate; 1/sqrt is the nearest portable stand-in (fast mode only).
 inline float rsqrtf(float x) { return 1.0f / std::sqrt(x); }
 
+using std::isfinite;  // CUDA's isfinite(float) is global
+
 // The built-in variables, set by launch() before each thread runs.
 inline uint3 threadIdx, blockIdx;
 inline dim3 blockDim, gridDim;
@@ -225,11 +227,14 @@ int launch(dim3 grid, dim3 block, std::size_t shared_bytes, bool barriers, void 
 
 // One letter per parameter type, so the caller can check its argument list against the
 // kernel's signature (a real GPU launch would reinterpret mismatched bytes silently).
-// 'q' is a pointer to int (an int buffer), 'p' any other pointer (float4 buffers).
+// 'q' is a pointer to int (an int buffer), 'k' to unsigned long long (the self-collision pass's
+// cell ids), 'p' any other pointer (float4 buffers).
 template <typename T>
 constexpr char type_code()
 {
     if constexpr (std::is_pointer_v<T> && std::is_same_v<std::remove_cv_t<std::remove_pointer_t<T>>, int>) return 'q';
+    else if constexpr (std::is_pointer_v<T> &&
+                       std::is_same_v<std::remove_cv_t<std::remove_pointer_t<T>>, unsigned long long>) return 'k';
     else if constexpr (std::is_pointer_v<T>) return 'p';
     else if constexpr (std::is_same_v<T, float>) return 'f';
     else if constexpr (std::is_same_v<T, int>) return 'i';

@@ -7,3 +7,8 @@
 CUDA_SHIM_DYNAMIC_SHARED(float, cloth_shared)
 CUDA_SHIM_EXPORT(verlet_step)
 CUDA_SHIM_EXPORT_WITH_BARRIERS(verlet_steps)
+#ifdef CLOTH_SELF_COLLISION
+CUDA_SHIM_EXPORT(self_cell_keys)
+CUDA_SHIM_EXPORT(self_sort_stage)
+CUDA_SHIM_EXPORT(self_collision)
+#endif

@@ -1,0 +1,57 @@
+"""[self_collision] on the CUDA Verlet step (docs/semantics.md, "Self-collision"; the kernels are
+kernels/self_collision.cuh, built into verlet_cloth.cu only with -DCLOTH_SELF_COLLISION): its
+numbers as the kernels take them, the sort's buffers, and the launches of one pass.
+
+After each verlet_step launch (which then leaves the colliders out), PingPong runs the pass on
+the step's x_new: self_cell_keys over the sort's slots, one self_sort_stage per stage of the
+bitonic sort (the schedule opencl/self_contact.py gives its own kernels), then self_collision,
+which pushes the pairs apart, collides, and writes a spare state buffer; that buffer becomes the
+step's output and x_new's the next spare.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from clothbench.model.kernel_inputs import SelfCollisionConstants
+from clothbench.backends.opencl.self_contact import sort_slots, sort_stages
+
+KERNELS = ("self_cell_keys", "self_sort_stage", "self_collision")  # in launch order
+
+
+class SelfContact:
+    """One backend's pass: `runtimes` are PingPong runtimes holding KERNELS' kernels, in order;
+    `block` the threads a block of every launch (the shape's, as verlet_step's)."""
+
+    def __init__(self, scene, runtimes, block: int):
+        if len(runtimes) != len(KERNELS):
+            raise ValueError(f"the self-collision pass needs a runtime for each of {KERNELS}")
+        self.keys_kernel, self.sort_kernel, self.pass_kernel = runtimes
+        c = SelfCollisionConstants.of(scene)  # rounded once on the host, never recomputed here
+        self.inv_cell = c.inv_cell
+        self.numbers = (c.thickness, c.thickness2, c.relax, c.inv_cell)
+        self.exclude2 = np.int32(min(c.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
+        self.count = np.int32(scene.particles)
+        self.slots = np.int32(sort_slots(scene.particles))
+        self.stages = sort_stages(int(self.slots))
+        self.block = block
+        alloc = self.keys_kernel.alloc
+        self.keys = alloc(np.zeros(self.slots, np.uint64))  # a cell id per slot
+        self.order = alloc(np.zeros(self.slots, np.int32))  # the particle in the slot
+        self.spare = alloc(np.zeros((scene.particles, 4), np.float32))  # the pass's output
+
+    def push(self, x_new, tail: tuple):
+        """Runs the pass on x_new (the step's output) and returns the buffer holding the result;
+        x_new's buffer is the next pass's output. `tail`: the colliders' arguments (generic: n
+        and the collider buffers and counts), the mesh buffers, the step's per-step rows."""
+        block = self.block
+        slots = math.ceil(int(self.slots) / block)
+        self.keys_kernel.launch(slots, block, (x_new, self.keys, self.order, self.inv_cell, self.count, self.slots))
+        for j, k in self.stages:
+            self.sort_kernel.launch(slots, block, (self.keys, self.order, j, k, self.slots))
+        out, self.spare = self.spare, x_new
+        args = (x_new, out, self.keys, self.order, self.slots, *self.numbers, self.exclude2, *tail)
+        self.pass_kernel.launch(math.ceil(int(self.count) / block), block, args)
+        return out
