@@ -4,7 +4,7 @@ numbers as the kernels take them, the sort's buffers, and the launches of one pa
 
 After each verlet_step launch (which then leaves the colliders out), PingPong runs the pass on
 the step's x_new: self_cell_keys over the sort's slots, one self_sort_stage per stage of the
-bitonic sort (the schedule opencl/self_contact.py gives its own kernels), then self_collision,
+bitonic sort (opencl/self_contact.py's sort_stages), then self_collision,
 which pushes the pairs apart, collides, and writes a spare state buffer; that buffer becomes the
 step's output and x_new's the next spare.
 """

@@ -118,7 +118,9 @@ def sort_slots(particles: int) -> int:
 
 
 def sort_stages(slots: int) -> list[tuple[np.int32, np.int32]]:
-    """(j, k) of each compare-and-exchange stage of the bitonic sort over `slots`, in launch order."""
+    """(j, k) of each compare-and-exchange stage of the bitonic sort over `slots`, in launch order:
+    the CUDA pass's schedule, one launch a stage (OpenCL's runs the short stages in local memory,
+    SelfContact.sort_passes)."""
     out, k = [], 2
     while k <= slots:
         j = k // 2
