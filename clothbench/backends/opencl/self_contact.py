@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from clothbench.errors import ClothbenchError
+from clothbench.model.colliders.self_contact import sort_slots
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 
 KERNEL_FILE = "self_collision.cl"  # in a program's source only where the scene has the table
@@ -109,26 +110,6 @@ class SelfContact:
         args = (x_in, x_out, *sort, self.numbers, self.exclude2, colliders)
         push = kernel(("self collision", x_in), "pbd_self_collision", dtypes, args, bodies)
         return [(cell_keys, *sizes(self.slots)), *self.sort_launches(kernel), (push, *sizes(int(self.count)))]
-
-
-def sort_slots(particles: int) -> int:
-    """The bitonic sort's length: the particle count rounded up to a power of two (the CUDA
-    pass's too, kernels/self_collision.cuh)."""
-    return 1 << max(0, (particles - 1).bit_length())
-
-
-def sort_stages(slots: int) -> list[tuple[np.int32, np.int32]]:
-    """(j, k) of each compare-and-exchange stage of the bitonic sort over `slots`, in launch order:
-    the CUDA pass's schedule, one launch a stage (OpenCL's runs the short stages in local memory,
-    SelfContact.sort_passes)."""
-    out, k = [], 2
-    while k <= slots:
-        j = k // 2
-        while j > 0:
-            out.append((np.int32(j), np.int32(k)))
-            j //= 2
-        k *= 2
-    return out
 
 
 def include_text(contact: SelfContact | None) -> str:
