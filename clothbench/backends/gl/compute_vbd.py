@@ -12,11 +12,13 @@ stage its weight. One kernel shape: a particle per invocation.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from clothbench.kernel_source import glsl_float
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Vbd
 from clothbench.backends.base import BackendOptions
-from clothbench.backends.gl.compute_pbd import GLComputeSolver
+from clothbench.backends.gl.compute_pbd import GLComputeSolver, GLSLComputePbdBackend
 from clothbench.backends.gl.context import work_groups
 from clothbench.backends.pbd_device import VbdDeviceBackend
 
@@ -25,6 +27,13 @@ STAGES = {"predict": 0, "sweep": 1, "chebyshev": 2, "collide": 3, "update": 4}  
 
 
 class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
+    # the PBD solver's options and scene features: its collide stage is the same colliders' code
+    capabilities = replace(
+        GLSLComputePbdBackend.capabilities,
+        meshes=(*GLSLComputePbdBackend.capabilities.meshes, "vbd"),
+        moving_colliders=(*GLSLComputePbdBackend.capabilities.moving_colliders, "vbd"),
+        boxes=(*GLSLComputePbdBackend.capabilities.boxes, "vbd"),
+    )
     kernel_file = KERNEL_FILE
 
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
