@@ -2,7 +2,7 @@
 the NumPy float32 reference bit for bit with meshes, moving colliders and pins attached to a
 body (either mesh search, one collider table per substep across an upload of them) and on every
 runtime here that compiles; fast stays within a few times NumPy float32's own error; a scene
-compiles only the parts it has; the profile names every stage."""
+compiles only the parts it has."""
 
 from __future__ import annotations
 
@@ -111,12 +111,3 @@ def test_a_scene_compiles_only_the_parts_it_has():
         found = {o.split("=")[0] for o in built if any(o.startswith(f"-D{p}") for p in parts)}
         assert found == {o.split("=")[0] for o in expected}, f"{name}: {built}"
         assert has_mesh_code == bool(scene.meshes), f"{name}: mesh code in the source"
-
-
-def test_profile_names_every_stage():
-    scene, solver = scene_of("curtain"), Vbd(dt=1 / 60, chebyshev_rho=0.9)
-    with create_backend("opencl", scene, solver, BackendOptions(strict=True)) as b:
-        b.upload(*b.initial_state())
-        stages = b.profile_stages(2)
-    assert set(stages) == {"predict", "sweep", "chebyshev", "collide", "update"}
-    assert all(ms >= 0 for ms in stages.values())

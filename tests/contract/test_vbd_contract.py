@@ -1,7 +1,8 @@
 """The backend contract for the VBD solver (docs/vbd.md), on every backend of the registry that
 implements it: strict is the NumPy float32 reference bit for bit in every kernel shape, the
 work-group size changes no bit, every mode stays within float32's reach of the float64
-reference, and one substep at 60 Hz holds a cloth 100 times stiffer than the scenes'."""
+reference, one substep at 60 Hz holds a cloth 100 times stiffer than the scenes', and a
+profile by stage names docs/vbd.md's stages."""
 
 from __future__ import annotations
 
@@ -72,6 +73,25 @@ def test_vbd_holds_stiffness_1e5_at_60hz_in_one_substep(param):
         pos = run_timed(b, 120).pos
     assert np.isfinite(pos).all()
     assert pos[:, 1].min() > scene.height - 2 * scene.size  # hangs within the sheet's length
+
+
+@pytest.mark.parametrize("param", backend_params("vbd"))
+def test_a_vbd_profile_names_every_stage_and_changes_no_bit(param):
+    # where a backend profiles (a device's synchronised launches), each stage of docs/vbd.md's
+    # substep is timed, and the profiled steps are the steps
+    name, _ = usable(param)
+    scene, solver = SCENES["curtain"](13), Vbd(dt=AT_60HZ, chebyshev_rho=0.9)
+    runs, stages = [], None
+    for profiled in (False, True):
+        with create_backend(name, scene, solver, options(name, "vbd", strict=True)) as b:
+            b.upload(*b.initial_state())
+            stages = b.profile_stages(3) if profiled else b.advance(3)
+            runs.append(b.read()[0])
+    if stages is None:
+        pytest.skip(f"{name} does not profile by stage")
+    assert set(stages) == {"predict", "sweep", "chebyshev", "collide", "update"}
+    assert all(ms >= 0 for ms in stages.values())
+    assert_bit_exact(runs[1], runs[0], f"{name}: the profiled steps")
 
 
 def shapes_of(name: str, scene, solver) -> tuple:
