@@ -21,6 +21,7 @@ from clothbench.model.colliders.mesh import Mesh
 from clothbench.model.colliders.motion import Frame, Motion
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
+from clothbench.harness.plan import without_motion
 from clothbench.model.scene import Scene, load_scene
 from clothbench.model.solver import PBD_METHODS, Pbd, Vbd, solver_for_spec
 
@@ -514,3 +515,14 @@ def test_strict_vbd_matches_numpy_f32_bit_for_bit_with_bodies(param, scene_name,
     scene = scene_named(scene_name, PBD_N)
     solver = Vbd(dt=PBD_DT, substeps=VBD_SUBSTEPS, chebyshev_rho=0.9)
     assert_pbd_reference_bits(name, scene, solver, VBD_STEPS[scene_name], search, f"{scene_name} vbd")
+
+
+@pytest.mark.parametrize("scene_name", list(VBD_STEPS))
+def test_the_vbd_bodies_change_the_result(scene_name):
+    # not vacuous: without its mesh, or with its motion stopped, the reference ends elsewhere
+    scene = scene_named(scene_name, PBD_N)
+    solver = Vbd(dt=PBD_DT, substeps=VBD_SUBSTEPS, chebyshev_rho=0.9)
+    pos, _ = reference(scene, solver, VBD_STEPS[scene_name], "f32")
+    other = scene.replace(meshes=()) if scene.meshes else without_motion(scene)
+    bare, _ = reference(other, solver, VBD_STEPS[scene_name], "f32")
+    assert np.abs(pos[:, :3] - bare[:, :3]).max() > 1e-2, f"{scene_name}: the bodies never reached the cloth"
