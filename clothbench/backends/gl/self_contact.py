@@ -10,7 +10,13 @@ from __future__ import annotations
 import numpy as np
 
 from clothbench.kernel_source import glsl_float
-from clothbench.model.colliders.self_contact import KEY_LIMIT, STENCIL_REACH, neighbour_table
+from clothbench.model.colliders.self_contact import (
+    KEY_LIMIT,
+    STENCIL_REACH,
+    bitonic_stages,
+    neighbour_table,
+    sort_slots,
+)
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 from clothbench.model.scene import OFFSETS, Scene
 from clothbench.backends.gl.context import shader_source, work_groups
@@ -18,13 +24,6 @@ from clothbench.backends.gl.context import shader_source, work_groups
 SEARCH_FILE = "self_collision.comp"
 SEARCH_STAGES = {"keys": 0, "sort": 1}  # SELF_STAGE, as the kernel's
 SELF_KEYS, SELF_ORDER = 11, 12  # storage-buffer bindings (kernels/self_collision.glsl)
-
-
-def bitonic_stages(slots: int) -> list[tuple[int, int]]:
-    """(j, k) of each compare-and-exchange stage of a bitonic sort of `slots` (a power of two)
-    entries, in dispatch order: blocks k = 2, 4, .., slots, each at distances k/2, .., 1."""
-    blocks = [1 << e for e in range(1, slots.bit_length())]
-    return [(k >> s, k) for k in blocks for s in range(1, k.bit_length())]
 
 
 def neighbour_mask() -> int:
@@ -40,7 +39,7 @@ class GLSelfContact:
     def __init__(self, device, scene: Scene, local_size: int):
         c = SelfCollisionConstants.of(scene)  # rounded once on the host, never recomputed here
         self.device, self.local_size = device, local_size
-        self.slots = 1 << max(0, (scene.particles - 1).bit_length())
+        self.slots = sort_slots(scene.particles)
         self.stages = bitonic_stages(self.slots)
         numbers = ", ".join(map(glsl_float, (c.thickness, c.thickness2, c.relax, c.inv_cell)))
         self.defines = {

@@ -433,7 +433,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         elif kind == "self collision":
             _, src, dst = step
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
-            kernels = self._contact.row_launches(self._kernel, self.xs[src], self.xs[dst], self.colliders, meshes)
+            sizes = self._launch_size
+            return self._contact.row_launches(self._kernel, sizes, self.xs[src], self.xs[dst], self.colliders, meshes)
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)
