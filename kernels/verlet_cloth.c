@@ -605,7 +605,7 @@ INLINE void contact_particle(const contact *ct, cell_ranges *cell, const real *c
 }
 
 /* One grid row of the pass: q (the updated positions, uncollided) to out, then the colliders;
- * it writes that row of out alone (vbd_cloth.c's pass, whose update then reads its own rows). */
+ * it writes that row of out alone (the implicit solver's pass, whose update then reads its own rows). */
 __attribute__((unused)) static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
                         real *restrict out, const real *restrict w)
 {
