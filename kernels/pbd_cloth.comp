@@ -11,7 +11,9 @@
 //                   border (PART); the host then swaps X and Y; or
 //   STAGE_COLOURED  one dispatch per batch of constraints sharing no particle, 12 per iteration,
 //   or STAGE_COLOURED_SWEEP: the 12 batches in one dispatch of one work-group (barriers)
-//   STAGE_COLLIDE   xs in place (only when the scene has colliders or meshes)
+//   STAGE_COLLIDE   xs in place (only when the scene has colliders or meshes); or, with
+//   STAGE_SELF_COLLISION  ([self_collision] only, after the host's keys and sort,
+//                   kernels/self_collision.comp) X -> Y: pushed apart, then collided
 //   STAGE_UPDATE    x, xs -> v, x
 //
 // The host prepends #version 430 and:
@@ -49,6 +51,7 @@
 #define STAGE_COLLIDE 3
 #define STAGE_UPDATE 4
 #define STAGE_COLOURED_SWEEP 5
+#define STAGE_SELF_COLLISION 6
 #define PART_ALL 0  // which particles a Jacobi dispatch covers: every one, with bounds tests,
 #define PART_INTERIOR 1  // the (n - 4)^2 with all 12 neighbours, without,
 #define PART_BORDER 2  // or the 8n - 16 others, with
@@ -322,14 +325,23 @@ void main()
 }
 #endif
 
-#elif STAGE == STAGE_COLLIDE
+#elif STAGE == STAGE_COLLIDE || STAGE == STAGE_SELF_COLLISION
+#if STAGE == STAGE_COLLIDE
 layout(std430, binding = 0) buffer Pred { vec4 xs[]; };
+#else
+// the last iterate, read by every particle's pass (kernels/self_collision.glsl), and the pushed
+layout(std430, binding = 0) readonly buffer From { vec4 X[]; };
+layout(std430, binding = 1) writeonly buffer To { vec4 Y[]; };
+#define SELF_X(j) X[j]
+#include <self_collision>  // kernels/self_collision.glsl, where the scene has the table
+#endif
 
 // `vec3 collide(vec3 x)`: the scene's colliders in the fixed order (spheres, cylinders,
 // boxes, planes, meshes), from kernels/collide_KIND.glsl and collide_mesh.glsl (the host puts
 // them here; with MOTION they read this substep's rows)
 #include <colliders>
 
+#if STAGE == STAGE_COLLIDE
 // collisions as position projections, free particles only
 void main()
 {
@@ -341,6 +353,20 @@ void main()
         return;  // pinned particles are never collided
     xs[i] = vec4(collide(p.xyz), p.w);
 }
+#else
+// the pass (docs/semantics.md, "Self-collision"), then the colliders, free particles only
+void main()
+{
+    int i = item();
+    if (i >= n2)
+        return;
+    float w = X[i].w;
+    vec3 x = self_push(i, n);
+    if (w != 0.0)
+        x = collide(x);
+    Y[i] = vec4(x, w);
+}
+#endif
 
 #elif STAGE == STAGE_UPDATE
 layout(std430, binding = 0) buffer Pos { vec4 x[]; };

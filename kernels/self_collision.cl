@@ -6,8 +6,9 @@
  * the pass, as the definition places them. PBD: `pbd_self_collision` takes the place of
  * pbd_collide in the substep, after the last constraint iteration.
  *
- * A pass is three kinds of launch, in queue order: self_cell_keys (each particle's cell),
- * self_sort_stage once per stage of a bitonic sort (the particles by cell, then index), then
+ * A pass is four kinds of launch, in queue order: self_cell_keys (each particle's cell), a bitonic
+ * sort of the particles by cell, then index (self_sort_local for the stages that stay within a
+ * block of 2 SORT_GROUP slots, in local memory, self_sort_stage once for each longer one), then
  * the pass itself, one work item per particle reading the positions before the pass (x_in)
  * and writing its own (x_out): a Jacobi projection, race-free, no atomics. Its candidates are
  * the particles of the 27 cells around its own, merged in ascending index: the sum's order,
@@ -16,9 +17,11 @@
  * Numbers (kernel_inputs.SelfCollisionConstants, rounded once on the host): c = (thickness,
  * thickness2, relax, inv_cell), and the integer exclude2 (pairs closer than that on the grid
  * at rest are excluded like stencil neighbours). CLOTH_SELF_SLOTS: the sort's length, the
- * particle count rounded up to a power of two.
+ * particle count rounded up to a power of two; CLOTH_SELF_SORT_GROUP: the work-group size of
+ * self_sort_local, a power of two, at most SLOTS / 2 (self_contact.py chooses it).
  */
 #define SLOTS CLOTH_SELF_SLOTS
+#define SORT_GROUP CLOTH_SELF_SORT_GROUP
 
 #if defined(CLOTH_GENERIC) || defined(CLOTH_PBD)
 /* float4 rows, the inverse mass in w */
@@ -39,6 +42,8 @@ bool self_excluded(int dr, int dc, int exclude2)
 {
     if (dr * dr + dc * dc < exclude2)
         return true;
+    if (abs(dr) > 2 || abs(dc) > 2) /* beyond every offset: most candidates end here */
+        return false;
     for (int o = 0; o < 12; ++o)
         if (OFFSETS[o].x == dr && OFFSETS[o].y == dc)
             return true;
@@ -105,6 +110,32 @@ __kernel void self_sort_stage(__global ulong *keys, __global int *order, const i
         keys[s] = kt, keys[t] = ks, order[s] = ot, order[t] = os;
 }
 
+/* Every stage (jj, kk) of the sort whose distance stays within a block of 2 SORT_GROUP slots, for
+ * kk from k_first to k_last (doubling) and jj from min(kk / 2, SORT_GROUP) down to 1, on each
+ * block in local memory: one work-group a block, one work item a compare-and-exchange, a
+ * barrier between stages. The same exchanges as self_sort_stage's, so the same order. */
+__kernel void self_sort_local(__global ulong *keys, __global int *order, const int k_first, const int k_last)
+{
+    __local ulong lk[2 * SORT_GROUP];
+    __local int lo[2 * SORT_GROUP];
+    int t = get_local_id(0), base = get_group_id(0) * 2 * SORT_GROUP;
+    lk[t] = keys[base + t], lo[t] = order[base + t];
+    lk[t + SORT_GROUP] = keys[base + t + SORT_GROUP], lo[t + SORT_GROUP] = order[base + t + SORT_GROUP];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int kk = k_first; kk <= k_last; kk *= 2)
+        for (int jj = min(kk / 2, SORT_GROUP); jj > 0; jj /= 2) {
+            int a = 2 * t - (t & (jj - 1)), b = a + jj; /* the t-th slot with bit jj clear, its partner */
+            ulong ka = lk[a], kb = lk[b];
+            int oa = lo[a], ob = lo[b];
+            bool later = ka > kb || (ka == kb && oa > ob); /* a after b in (id, index) order */
+            if ((((base + a) & kk) == 0) == later)
+                lk[a] = kb, lk[b] = ka, lo[a] = ob, lo[b] = oa;
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+    keys[base + t] = lk[t], order[base + t] = lo[t];
+    keys[base + t + SORT_GROUP] = lk[t + SORT_GROUP], order[base + t + SORT_GROUP] = lo[t + SORT_GROUP];
+}
+
 /* The first slot whose id is at least `id` (keys sorted). */
 int lower_slot(__global const ulong *keys, ulong id)
 {
@@ -119,25 +150,51 @@ int lower_slot(__global const ulong *keys, ulong id)
     return lo;
 }
 
-/* Particle i's position after the pass: x_i plus its pairs' corrections, summed in ascending j:
- * the runs of the 27 cells around i's (each a distinct cell once, sorted by index) merged by
- * smallest j. */
+/* Whether j is one of i's pairs (docs/semantics.md, "Which pairs"), with d = x_i - x_j and its L2. */
+bool self_pair(int j, float3 xi, int row, int col, int n, SC_STATE x_in, float thickness2, int exclude2, float3 *d,
+               float *L2)
+{
+    *d = xi - SC_X(x_in, j);
+    *L2 = ((*d).x * (*d).x + (*d).y * (*d).y) + (*d).z * (*d).z; /* not dot(): its order is the driver's */
+    /* j == i has L2 = 0; coincident particles have no direction: nothing added */
+    return *L2 < thickness2 && *L2 > 0.0f && !self_excluded(j / n - row, j % n - col, exclude2);
+}
+
+/* One pair's correction of i, added to corr (docs/semantics.md, in its order). */
+float3 self_add(float3 corr, float3 d, float L2, float wi, float wj, float4 c)
+{
+    float thickness = c.x, relax = c.z;
+    float L = sqrt(L2);
+    float share = wi / (wi + wj); /* i's part of the shortfall, by inverse mass */
+    float s = relax * (thickness - L);
+    s = s * share;
+    s = s / L;
+    return corr + d * s;
+}
+
+#define SELF_HITS 32 /* pairs of one particle sorted in private memory; more take the merge */
+
+/* Particle i's position after the pass: x_i plus its pairs' corrections, summed in ascending j.
+ * The 27 cells around i's are nine rows along x, each one range of sorted slots; the candidates
+ * are tested range by range (most fail) and the few pairs found summed sorted by j. A particle
+ * with more than SELF_HITS pairs merges its cells' runs (each a distinct cell once, sorted by
+ * index) by smallest j instead. */
 float3 self_push(int i, int n, SC_STATE x_in, __global const float *inv_mass, __global const ulong *keys,
                  __global const int *order, float4 c, int exclude2)
 {
-    float thickness = c.x, thickness2 = c.y, relax = c.z, inv_cell = c.w;
+    float thickness2 = c.y, inv_cell = c.w;
     float3 xi = SC_X(x_in, i);
     float wi = SC_W(x_in, inv_mass, i);
     if (!(wi > 0.0f) || !finite3(xi))
         return xi; /* a pinned particle does not move; one not finite is in no pair */
-    /* The 27 cells as nine rows along x: a row's cells have consecutive ids (x is the id's low
-     * field), so one search finds the row's first particle and a scan its cells' runs; a cell
-     * clamping made one with its neighbour is one id, met once. Rows are one only at the
-     * key's limits, where clamping makes them so: there a row met before is skipped. */
+    /* A row's cells have consecutive ids (x is the id's low field), so one search finds the
+     * row's first slot, and its cells are the slots up to the first id past the row; a cell
+     * clamping made one with its neighbour is one id, met once. Rows are one only at the key's
+     * limits, where clamping makes them so: there a row met before is skipped. */
     int3 k = cell_of(xi, inv_cell);
     bool edge = any(k <= -KEY_LIMIT + 1) || any(k >= KEY_LIMIT - 2);
     ulong rows[9];
-    int next[27], end[27], runs = 0, row_count = 0;
+    int from[9], to[9], row_count = 0;
     for (int dy = -1; dy <= 1; ++dy)
         for (int dz = -1; dz <= 1; ++dz) {
             ulong lo = cell_id(clamp(k + (int3)(-1, dy, dz), -KEY_LIMIT, KEY_LIMIT - 1));
@@ -147,19 +204,47 @@ float3 self_push(int i, int n, SC_STATE x_in, __global const float *inv_mass, __
                 seen = seen || rows[r] == lo;
             if (seen)
                 continue;
-            rows[row_count++] = lo;
-            int slot = lower_slot(keys, lo);
-            while (slot < SLOTS && keys[slot] <= hi) { /* each cell of the row: one run */
-                ulong id = keys[slot];
-                next[runs] = slot;
-                while (slot < SLOTS && keys[slot] == id)
-                    ++slot;
-                end[runs++] = slot;
-            }
+            rows[row_count] = lo;
+            from[row_count] = lower_slot(keys, lo);
+            to[row_count++] = lower_slot(keys, hi + 1);
         }
     int row = i / n, col = i % n;
-    float3 corr = (float3)(0.0f);
-    bool pushed = false;
+    int hits[SELF_HITS], count = 0;
+    float3 d, corr = (float3)(0.0f);
+    float L2;
+    for (int r = 0; r < row_count; ++r)
+        for (int s = from[r]; s < to[r]; ++s) {
+            int j = order[s];
+            if (self_pair(j, xi, row, col, n, x_in, thickness2, exclude2, &d, &L2)) {
+                if (count < SELF_HITS)
+                    hits[count] = j;
+                ++count;
+            }
+        }
+    if (count == 0)
+        return xi; /* a particle with no pair keeps its bits */
+    if (count <= SELF_HITS) {
+        for (int a = 1; a < count; ++a) /* insertion sort: ascending j */
+            for (int b = a; b > 0 && hits[b - 1] > hits[b]; --b) {
+                int t = hits[b];
+                hits[b] = hits[b - 1], hits[b - 1] = t;
+            }
+        for (int h = 0; h < count; ++h) {
+            int j = hits[h];
+            self_pair(j, xi, row, col, n, x_in, thickness2, exclude2, &d, &L2);
+            corr = self_add(corr, d, L2, wi, SC_W(x_in, inv_mass, j), c);
+        }
+        return xi + corr;
+    }
+    int next[27], end[27], runs = 0; /* each row's cells: one run (ascending index) a cell */
+    for (int r = 0; r < row_count; ++r)
+        for (int s = from[r]; s < to[r];) {
+            ulong id = keys[s];
+            next[runs] = s;
+            while (s < to[r] && keys[s] == id)
+                ++s;
+            end[runs++] = s;
+        }
     for (;;) {
         int best = -1, j = 0;
         for (int r = 0; r < runs; ++r)
@@ -168,21 +253,10 @@ float3 self_push(int i, int n, SC_STATE x_in, __global const float *inv_mass, __
         if (best < 0)
             break;
         ++next[best];
-        float3 d = xi - SC_X(x_in, j);
-        float L2 = (d.x * d.x + d.y * d.y) + d.z * d.z; /* not dot(): its order is the driver's */
-        /* j == i has L2 = 0; coincident particles have no direction: nothing added */
-        if (!(L2 < thickness2) || !(L2 > 0.0f) || self_excluded(j / n - row, j % n - col, exclude2))
-            continue;
-        float wj = SC_W(x_in, inv_mass, j);
-        float L = sqrt(L2);
-        float share = wi / (wi + wj); /* i's part of the shortfall, by inverse mass */
-        float s = relax * (thickness - L);
-        s = s * share;
-        s = s / L;
-        corr = corr + d * s;
-        pushed = true;
+        if (self_pair(j, xi, row, col, n, x_in, thickness2, exclude2, &d, &L2))
+            corr = self_add(corr, d, L2, wi, SC_W(x_in, inv_mass, j), c);
     }
-    return pushed ? xi + corr : xi;
+    return xi + corr;
 }
 
 #if defined(CLOTH_PBD)

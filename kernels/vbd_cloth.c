@@ -289,7 +289,7 @@ static void vbd_run(const vbd_constants *c, const real *omega, const real *colli
             bucket_row(ct, row, X);
         BARRIER(threads);
         if (tid == 0)
-            sort_buckets(ct);
+            sort_buckets(ct, X);
         BARRIER(threads);
         for (int row = lo; row < hi; ++row)
             contact_row(ct, colliders, row, X, y, w);

@@ -337,8 +337,12 @@ static void step_row(const constants *c, const real *colliders, int row, const r
  * projection reads q and writes x(t+dt), collided, into a third buffer: the three buffers
  * rotate, so nothing is copied. The search is a uniform grid of cells, hashed into BUCKETS
  * buckets and sorted by a counting sort in ascending particle order (deterministic, no atomics).
- * A particle's corrections are summed in ascending j, each partner once, as the definition sums
- * them, whatever order its 27 cells' buckets deliver them in (push). A hash collision or a
+ * A cell's bucket keeps its x coordinate's low RUN_BITS bits, so the three cells of a row along x
+ * are consecutive buckets, one range of the sorted particles (two where the row crosses a block
+ * of 2^RUN_BITS cells): a particle reads 9 to 18 ranges, not 27 buckets. The sort also lays the
+ * positions out in its order, so a range's candidates are tested from contiguous memory, as one
+ * SIMD loop. A particle's corrections are summed in ascending j, each partner once, as the
+ * definition sums them, whatever order its ranges deliver them in (push). A hash collision or a
  * clamped key only adds candidates, which the distance test rejects. */
 
 /* The pass's numbers, as the host packs them (kernel_inputs.SelfCollisionConstants). */
@@ -356,11 +360,16 @@ enum { S_THICKNESS, S_THICKNESS2, S_RELAX, S_INV_CELL, S_COUNT };
 #define BUCKET_BITS (N2 > 2 ? 32 - __builtin_clz((unsigned)N2 - 1u) : 1)
 #define BUCKETS (1 << BUCKET_BITS)
 #define NOWHERE BUCKETS /* the bucket of a particle with a coordinate that is not finite: no pair */
+#define RUN_BITS (BUCKET_BITS > 4 ? 3 : BUCKET_BITS - 1) /* 2^RUN_BITS cells along x: consecutive buckets */
+#define RUN_MASK ((1 << RUN_BITS) - 1)
+_Static_assert(N <= 32768, "dr^2 + dc^2 must fit an int"); /* 2 (N - 1)^2 < 2^31 */
 
 typedef struct {
     real thickness, thickness2, relax, inv_cell;
     long long exclude2;         /* dr^2 + dc^2 < exclude2 apart on the grid: closer at rest, excluded */
+    int exclude2i;              /* the same as an int, for the SIMD candidate test */
     unsigned char joined[5][5]; /* [dr + 2][dc + 2]: a stencil offset (a spring joins them) */
+    real *sorted;               /* 3 n*n: the positions as x | y | z planes in the sort's order */
     int *bucket;                /* n*n: each particle's bucket */
     int *order;                 /* n*n: the particles by bucket, ascending index within one */
     int *start;                 /* BUCKETS + 3: bucket b holds order[start[b] .. start[b + 1]) */
@@ -375,12 +384,15 @@ INLINE int cell_key(real v, real inv_cell)
     return (int)k;
 }
 
-/* The cell (kx, ky, kz) (clamped keys) hashed to a bucket: Fibonacci hashing of its 63-bit id. */
+/* The cell (kx, ky, kz) (clamped keys) to a bucket: its block of 2^RUN_BITS cells along x
+ * (Fibonacci hashing of the block's id) and, within the block, the low bits of x. */
 INLINE int bucket_of(int kx, int ky, int kz)
 {
-    unsigned long long id = (unsigned long long)(kx + KEY_LIMIT) | ((unsigned long long)(ky + KEY_LIMIT) << 21) |
+    unsigned ux = (unsigned)(kx + KEY_LIMIT);
+    unsigned long long id = (unsigned long long)(ux >> RUN_BITS) | ((unsigned long long)(ky + KEY_LIMIT) << 21) |
                             ((unsigned long long)(kz + KEY_LIMIT) << 42);
-    return (int)((id * 0x9E3779B97F4A7C15ull) >> (64 - BUCKET_BITS));
+    int block = (int)((id * 0x9E3779B97F4A7C15ull) >> (64 - (BUCKET_BITS - RUN_BITS)));
+    return (block << RUN_BITS) | (int)(ux & RUN_MASK);
 }
 
 INLINE int clamp_key(int k) { return k < -KEY_LIMIT ? -KEY_LIMIT : k > KEY_LIMIT - 1 ? KEY_LIMIT - 1 : k; }
@@ -397,8 +409,9 @@ static void bucket_row(const contact *ct, int row, const real *restrict q)
     }
 }
 
-/* The counting sort: particles by bucket, ascending index within a bucket (one thread). */
-static void sort_buckets(const contact *ct)
+/* The counting sort: particles by bucket, ascending index within a bucket, and their positions
+ * q in that order (one thread). */
+static void sort_buckets(const contact *ct, const real *restrict q)
 {
     int *start = ct->start;
     for (int b = 0; b < BUCKETS + 3; ++b)
@@ -407,8 +420,41 @@ static void sort_buckets(const contact *ct)
         start[ct->bucket[i] + 2] += 1;
     for (int b = 2; b < BUCKETS + 3; ++b) /* start[b + 1]: the first slot of bucket b */
         start[b] += start[b - 1];
-    for (int i = 0; i < N2; ++i) /* ... then, filled, its end: bucket b is [start[b], start[b + 1]) */
-        ct->order[start[ct->bucket[i] + 1]++] = i;
+    for (int i = 0; i < N2; ++i) { /* ... then, filled, its end: bucket b is [start[b], start[b + 1]) */
+        int k = start[ct->bucket[i] + 1]++;
+        ct->order[k] = i;
+        ct->sorted[k] = q[i];
+        ct->sorted[N2 + k] = q[N2 + i];
+        ct->sorted[2 * N2 + k] = q[2 * N2 + i];
+    }
+}
+
+/* Whether slots [from, to) may hold a pair of i at (x, y, z), grid row and col: the distance and
+ * the rest exclusion tested for every candidate at once, in whole vectors of LANES slots (SIMD,
+ * no early exit, no scalar remainder: a range is a few vectors, often less than one); close_pair
+ * then decides, stencil and coincidence included. Most ranges hold none: the sheet's own
+ * neighbours fail here. The slots past `to` that the last vector reads are in the work space
+ * (sorted, then bucket, order, then start, follow each other) and are masked out. */
+#define LANES 8
+INLINE int may_pair(const contact *ct, int from, int to, int row, int col, real x, real y, real z)
+{
+    const real *sx = ct->sorted, *sy = ct->sorted + N2, *sz = ct->sorted + 2 * N2;
+    const real thickness2 = ct->thickness2;
+    const int exclude2 = ct->exclude2i, *restrict order = ct->order;
+    int count = 0; /* a sum, written as GCC 12 vectorises it (not an |= of the tests) */
+    for (int base = from; base < to; base += LANES) {
+#pragma omp simd reduction(+ : count)
+        for (int lane = 0; lane < LANES; ++lane) {
+            int k = base + lane;
+            real dx = x - sx[k], dy = y - sy[k], dz = z - sz[k];
+            real L2 = (dx * dx + dy * dy) + dz * dz; /* close_pair's operations: the same bits */
+            unsigned j = (unsigned)order[k];
+            int dr = (int)(j / N) - row, dc = (int)(j % N) - col;
+            int far = dr * dr + dc * dc >= exclude2; /* i itself is not: exclude2 >= 1 */
+            count += (k < to && L2 < thickness2 && far) ? 1 : 0;
+        }
+    }
+    return count > 0;
 }
 
 /* Whether (i, j) is a pair (not neighbours, closer than the thickness, not coincident), with
@@ -443,32 +489,59 @@ INLINE void add_push(const contact *ct, real wi, real wj, const real *d, real L2
 
 #define MAX_HITS 32 /* pairs of one particle sorted on the stack; more take the merge */
 
+/* The slots [from, to) of i's cells along x from kx - 1 to kx + 1 (clamped) in the row (ky, kz):
+ * one range, or two where the row crosses from one block of buckets into the next. Returns how
+ * many it added to from/to, skipping a range met before (hashing, clamping: then it is the same
+ * range, whole: the ranges of one particle share their x split, so two differ by block or by
+ * x and are disjoint). */
+INLINE int row_ranges(const contact *ct, int kx, int ky, int kz, int *from, int *to, int ranges)
+{
+    int lo = clamp_key(kx - 1), hi = clamp_key(kx + 1), y = clamp_key(ky), z = clamp_key(kz);
+    int first = bucket_of(lo, y, z), last = bucket_of(hi, y, z), added = 0;
+    int split = ((unsigned)(lo + KEY_LIMIT) >> RUN_BITS) != ((unsigned)(hi + KEY_LIMIT) >> RUN_BITS);
+    int piece_first[2] = {first, last & ~RUN_MASK}, piece_last[2] = {split ? first | RUN_MASK : last, last};
+    for (int p = 0; p <= split; ++p) {
+        int f = ct->start[piece_first[p]], t = ct->start[piece_last[p] + 1], seen = f == t;
+        for (int r = 0; r < ranges + added && !seen; ++r)
+            seen = from[r] == f;
+        if (!seen) {
+            from[ranges + added] = f;
+            to[ranges + added++] = t;
+        }
+    }
+    return added;
+}
+
+/* A cell's ranges of candidates (row_ranges over its 9 rows), kept for the next particle: the
+ * Verlet pass walks the particles in the sort's order, a cell's one after another. */
+typedef struct {
+    int kx, ky, kz, ranges; /* ranges < 0: none kept */
+    int from[18], to[18];
+} cell_ranges;
+
 /* The pass for free particle i at (x, y, z) = q_i (w_i > 0): its corrections from every pair,
- * in ascending j, added to it when it has one. The candidates are tested first in the cells'
- * order, most failing; the few pairs found are then summed in ascending j. A particle with
- * more than MAX_HITS pairs merges its buckets' runs (each ascending) by smallest j instead. */
-static void push(const contact *ct, int i, const real *restrict q, const real *restrict w, real *x, real *y, real *z)
+ * in ascending j, added to it when it has one. The candidates are tested first range by range,
+ * most failing; the few pairs found are then summed in ascending j. A particle with more than
+ * MAX_HITS pairs merges its buckets' runs (each ascending) by smallest j instead. */
+static void push(const contact *ct, cell_ranges *cell, int i, const real *restrict q, const real *restrict w, real *x,
+                 real *y, real *z)
 {
     int kx = cell_key(*x, ct->inv_cell), ky = cell_key(*y, ct->inv_cell), kz = cell_key(*z, ct->inv_cell);
-    int next[27], end[27], runs = 0;
-    for (int dz = -1; dz <= 1; ++dz)
-        for (int dy = -1; dy <= 1; ++dy)
-            for (int dx = -1; dx <= 1; ++dx) {
-                int b = bucket_of(clamp_key(kx + dx), clamp_key(ky + dy), clamp_key(kz + dz));
-                int from = ct->start[b], to = ct->start[b + 1], seen = from == to;
-                for (int r = 0; r < runs && !seen; ++r)
-                    seen = next[r] == from; /* a bucket met twice (hashing, clamping) counts once */
-                if (!seen) {
-                    next[runs] = from;
-                    end[runs++] = to;
-                }
-            }
+    if (cell->ranges < 0 || kx != cell->kx || ky != cell->ky || kz != cell->kz) {
+        cell->kx = kx, cell->ky = ky, cell->kz = kz, cell->ranges = 0;
+        for (int dz = -1; dz <= 1; ++dz)
+            for (int dy = -1; dy <= 1; ++dy)
+                cell->ranges += row_ranges(ct, kx, ky + dy, kz + dz, cell->from, cell->to, cell->ranges);
+    }
+    const int *from = cell->from, *to = cell->to, ranges = cell->ranges;
     const int row = i / N, col = i % N;
     const real wi = w[i];
     real d[3], L2, corr[3] = {0, 0, 0};
     int hits[MAX_HITS], count = 0;
-    for (int r = 0; r < runs; ++r)
-        for (int k = next[r]; k < end[r]; ++k) {
+    for (int r = 0; r < ranges; ++r) {
+        if (!may_pair(ct, from[r], to[r], row, col, *x, *y, *z))
+            continue;
+        for (int k = from[r]; k < to[r]; ++k) {
             int j = ct->order[k];
             if (close_pair(ct, i, row, col, j, q, *x, *y, *z, d, &L2)) {
                 if (count < MAX_HITS)
@@ -476,6 +549,7 @@ static void push(const contact *ct, int i, const real *restrict q, const real *r
                 ++count;
             }
         }
+    }
     if (count == 0)
         return; /* a particle with no pair keeps its bits */
     if (count <= MAX_HITS) {
@@ -489,6 +563,14 @@ static void push(const contact *ct, int i, const real *restrict q, const real *r
             add_push(ct, wi, w[hits[h]], d, L2, corr);
         }
     } else {
+        int next[27], end[27], runs = 0; /* each bucket of the ranges: one run, ascending */
+        for (int r = 0; r < ranges; ++r)
+            for (int k = from[r]; k < to[r];) {
+                int b = ct->bucket[ct->order[k]], e = ct->start[b + 1];
+                next[runs] = k;
+                end[runs++] = e;
+                k = e;
+            }
         for (;;) {
             int best = -1, j = N2;
             for (int r = 0; r < runs; ++r) /* the smallest index at the head of any run */
@@ -506,22 +588,45 @@ static void push(const contact *ct, int i, const real *restrict q, const real *r
     *z = *z + corr[2];
 }
 
-/* One row of the pass: q (the updated positions, uncollided) to out, then the colliders. */
-static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
+/* Particle i through the pass: q_i (its updated position, uncollided) pushed, then collided,
+ * into out; `cell` keeps the ranges of the last cell met. */
+INLINE void contact_particle(const contact *ct, cell_ranges *cell, const real *colliders, int i,
+                             const real *restrict q, real *restrict out, const real *restrict w)
+{
+    real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
+    if (w[i] != 0) { /* pinned: neither pushed nor collided */
+        if (w[i] > 0 && ct->bucket[i] != NOWHERE)
+            push(ct, cell, i, q, w, &x, &y, &z);
+        collide(colliders, &x, &y, &z);
+    }
+    out[i] = x;
+    out[N2 + i] = y;
+    out[2 * N2 + i] = z;
+}
+
+/* One grid row of the pass: q (the updated positions, uncollided) to out, then the colliders;
+ * it writes that row of out alone (vbd_cloth.c's pass, whose update then reads its own rows). */
+__attribute__((unused)) static void contact_row(const contact *ct, const real *colliders, int row, const real *restrict q,
                         real *restrict out, const real *restrict w)
 {
-    for (int i = row * N; i < row * N + N; ++i) {
-        real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
-        if (w[i] != 0) { /* pinned: neither pushed nor collided */
-            if (w[i] > 0 && ct->bucket[i] != NOWHERE)
-                push(ct, i, q, w, &x, &y, &z);
-            collide(colliders, &x, &y, &z);
-        }
-        out[i] = x;
-        out[N2 + i] = y;
-        out[2 * N2 + i] = z;
-    }
+    cell_ranges cell = {.ranges = -1};
+    for (int i = row * N; i < row * N + N; ++i)
+        contact_particle(ct, &cell, colliders, i, q, out, w);
 }
+
+/* The pass for the particles of n slots of the sort (slots chunk n .. chunk n + n - 1), so that
+ * the particles of one cell follow each other and share its ranges; chunks 0..n-1 together are
+ * every particle once, each written where contact_row would write it. For a caller that reads
+ * out only after every chunk is done (a barrier), as the Verlet step does. */
+static void contact_chunk(const contact *ct, const real *colliders, int chunk, const real *restrict q,
+                          real *restrict out, const real *restrict w)
+{
+    cell_ranges cell = {.ranges = -1};
+    for (int k = chunk * N; k < chunk * N + N; ++k)
+        contact_particle(ct, &cell, colliders, ct->order[k], q, out, w);
+}
+
+#define SORTED_INTS ((int)(3 * N2 * sizeof(real) / sizeof(int)))
 
 /* The pass's constants and work space from the host's arrays. */
 static contact contact_of(const real *numbers, long long exclude2, int *cells)
@@ -532,19 +637,21 @@ static contact contact_of(const real *numbers, long long exclude2, int *cells)
     ct.relax = numbers[S_RELAX];
     ct.inv_cell = numbers[S_INV_CELL];
     ct.exclude2 = exclude2;
+    ct.exclude2i = exclude2 > 0x7fffffff ? 0x7fffffff : (int)exclude2; /* past 2 (n - 1)^2 all alike */
     for (int r = 0; r < 5; ++r)
         for (int c = 0; c < 5; ++c)
             ct.joined[r][c] = 0;
     for (int o = 0; o < 12; ++o)
         ct.joined[DR[o] + 2][DC[o] + 2] = 1;
-    ct.bucket = cells;
-    ct.order = cells + N2;
-    ct.start = cells + 2 * N2;
+    ct.sorted = (real *)cells; /* first: the host's int array is aligned for a real */
+    ct.bucket = cells + SORTED_INTS;
+    ct.order = ct.bucket + N2;
+    ct.start = ct.order + N2;
     return ct;
 }
 
-/* The ints of work space the host gives cloth_advance: bucket | order | start. */
-int cloth_contact_ints(void) { return 2 * N2 + BUCKETS + 3; }
+/* The ints of work space the host gives cloth_advance: sorted | bucket | order | start. */
+int cloth_contact_ints(void) { return SORTED_INTS + 2 * N2 + BUCKETS + 3; }
 #endif
 
 #ifdef CLOTH_SELF
@@ -561,9 +668,9 @@ static int advance_with_contact(const constants *c, const contact *ct, real *a, 
                 step_row(c, colliders, row, p, q, w);
                 bucket_row(ct, row, q);
             }
-            sort_buckets(ct);
-            for (int row = 0; row < N; ++row)
-                contact_row(ct, colliders, row, q, o, w);
+            sort_buckets(ct, q);
+            for (int chunk = 0; chunk < N; ++chunk)
+                contact_chunk(ct, colliders, chunk, q, o, w);
             real *t = q;
             q = p, p = o, o = t;
         }
@@ -582,11 +689,13 @@ static int advance_with_contact(const constants *c, const contact *ct, real *a, 
                 bucket_row(ct, row, q); /* the row this thread just wrote */
             }
 #pragma omp single
-            sort_buckets(ct);
-            /* each barrier: the pass reads every row's update and the sorted buckets */
-#pragma omp for schedule(static)
-            for (int row = 0; row < N; ++row)
-                contact_row(ct, colliders, row, q, o, w);
+            sort_buckets(ct, q);
+            /* each barrier: the pass reads every row's update and the sorted buckets; its chunks
+             * cost what their pairs and candidates cost (a fold's cells many, a flat sheet's few),
+             * so they are handed out as threads come free: no bit depends on the thread */
+#pragma omp for schedule(guided)
+            for (int chunk = 0; chunk < N; ++chunk)
+                contact_chunk(ct, colliders, chunk, q, o, w);
             real *t = q;
             q = p, p = o, o = t;
         }

@@ -21,10 +21,16 @@
 //                over the interior block, dispatched as a 2-D grid of groups, instead of
 //                LOCAL_SIZE consecutive particles: the kernel shape "wg=WxH"
 //                (clothbench/backends/gl/shapes.py). The operations on a particle are the same.
+//   SELF_COLLISION  (a scene with [self_collision] only) the step leaves the colliders out and
+//                writes x_new; the program with PASS_SELF_COLLISION then reads every particle's
+//                x_new at binding 0 (pos_in), pushes the pairs apart (kernels/self_collision.glsl),
+//                collides, and writes pos_out: the colliders act after the pass, as
+//                docs/semantics.md places them.
 
 #define PASS_ALL 0
 #define PASS_INTERIOR 1
 #define PASS_BORDER 2
+#define PASS_SELF_COLLISION 3
 #if PASS == PASS_INTERIOR
 #define NO_BOUNDS_TESTS
 #endif
@@ -53,6 +59,11 @@ layout(std430, binding = 4) writeonly buffer NormalOut { vec4 normal_out[]; };
 
 // the step (docs/semantics.md), shared with the other kernel; it reads POS(rc) above
 #include "verlet_cloth_step.glsl"
+
+#if PASS == PASS_SELF_COLLISION
+#define SELF_X(j) LOAD(pos_in, j)  // x_new: the step's output, before the pass
+#include <self_collision>  // kernels/self_collision.glsl, where the scene has the table
+#endif
 
 // (row, col) of this invocation's particle, or (-1, -1) past the end of the pass
 ivec2 particle()
@@ -93,6 +104,13 @@ void main()
 #ifdef MOTION
     motion_base = motion_step * MOTION_STRIDE;  // this step's rows (verlet_cloth_step.glsl)
 #endif
+#if PASS == PASS_SELF_COLLISION
+    float w = LOAD(pos_in, i).w;
+    vec3 x = self_push(i, n);
+    if (w != 0.0)
+        x = collide(x);  // then the colliders, as the step would have: free particles only
+    pos_out[i] = vec4(x, w);
+#else
     vec4 self = LOAD(pos_in, i);
     vec3 x = self.xyz;                // step 1
     vec3 xp = LOAD(prev_in, i).xyz;  // step 2
@@ -100,5 +118,6 @@ void main()
     prev_out[i] = self;                                    // step 8: x(t), w unchanged
 #ifdef NORMALS
     normal_out[i] = vec4(normal_at(rc, x), 0.0);
+#endif
 #endif
 }

@@ -10,6 +10,7 @@
 //             dot/length/normalize/cross, whose evaluation order is the driver's.
 //             Without it (fast): built-ins and a reciprocal square root per spring.
 //   NORMALS   also compute the particle's normal (docs/normals.md): normal_at().
+//   SELF_COLLISION  verlet() returns x_new uncollided: the self-collision pass collides it.
 //   GENERIC   constants are uniforms, one program for every scene; otherwise they are exact
 //             literals (*_VALUE: the float32 bit patterns from kernel_source.glsl_float),
 //             folded by the compiler, and N_VALUE bakes the grid size in.
@@ -132,7 +133,11 @@ vec3 verlet(ivec2 rc, vec3 x, vec3 xp, float w)
     }
     P vec3 acc = g + force * w;
     P vec3 x_new = (2.0 * x - xp) + acc * dt2;
+#ifdef SELF_COLLISION
+    return x_new;  // the pass pushes it, then collides (verlet_cloth.comp PASS_SELF_COLLISION)
+#else
     return collide(x_new);
+#endif
 }
 
 #ifdef NORMALS

@@ -33,6 +33,18 @@ def folded(n: int = N, gap: float = 0.5, thickness: float = 0.8, pins=("top-left
     return scene, pos.astype(np.float32)
 
 
+def crumpled(scene, pos: np.ndarray, width: float = 1.5) -> np.ndarray:
+    """`pos` with its free particles crumpled into a ball `width` thicknesses wide: every particle
+    has dozens of pairs, more than a kernel sorts on its stack (the C and OpenCL kernels merge
+    their cells' runs then)."""
+    pos = pos.copy()
+    rng = np.random.default_rng(7)
+    free = np.ones(scene.particles, dtype=bool)
+    free[scene.pinned()] = False
+    pos[free, :3] = 0.5 + width * scene.self_collision.thickness * rng.random((int(free.sum()), 3))
+    return pos
+
+
 def on_bodies(folded_sheet):
     """A folded sheet (scene, pos) lying on a rising floor its pin follows, beside a sphere, a
     box and a mesh: the colliders act after the pass (a particle pushed into the floor comes back

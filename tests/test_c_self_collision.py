@@ -20,7 +20,7 @@ from clothbench.model.scene import Box, Cylinder, Plane, Sphere
 from clothbench.model.solver import Vbd
 
 from conftest import VERLET, assert_bit_exact, require
-from folded_sheet import folded
+from folded_sheet import crumpled, folded
 
 
 def folded_over_colliders():
@@ -91,10 +91,7 @@ def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_on_the_stack
     # more than the kernel's MAX_HITS (32), so it sums them by merging its buckets' runs
     require("c")
     scene, pos = folded()
-    rng = np.random.default_rng(7)
-    free = np.ones(scene.particles, dtype=bool)
-    free[scene.pinned()] = False
-    pos[free, :3] = 0.5 + 1.5 * scene.self_collision.thickness * rng.random((int(free.sum()), 3))
+    pos = crumpled(scene, pos)
     got = run("c", scene, pos, (steps,), BackendOptions(strict=True))
     want = run("numpy", scene, pos, (steps,), BackendOptions())
     assert_bit_exact(got[0], want[0], f"pos, crumpled, {steps} steps")
@@ -150,3 +147,17 @@ def test_a_scene_without_the_table_builds_none_of_the_pass():
     assert hasattr(load_library(flags), "cloth_contact_ints")
     assert not hasattr(load_vbd_library(without), "cloth_contact_ints"), "VBD: the pass was compiled in"
     assert hasattr(load_vbd_library(flags), "cloth_contact_ints")
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_strict_holds_where_the_cell_keys_are_clamped(precision):
+    # 200 km out along every axis the keys pass 2^20 cells and clamp: the whole sheet is in one
+    # cell, whose rows of neighbours along x are that cell's row again; each candidate is met once
+    require("c")
+    scene, pos = folded(thickness=1.5)
+    pos[:, :3] += np.float32(2e5)
+    got = run("c", scene, pos, (5,), BackendOptions(precision=precision, strict=True))
+    want = run("numpy", scene, pos, (5,), BackendOptions(precision=precision))
+    assert_bit_exact(got[0], want[0], f"pos, clamped, {precision}")
+    alone = run("numpy", scene.replace(self_collision=None), pos, (5,), BackendOptions(precision=precision))
+    assert not np.array_equal(want[0], alone[0]), "the pass pushed no pair: the test shows nothing"

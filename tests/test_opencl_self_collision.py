@@ -15,10 +15,11 @@ from clothbench.model.kernel_inputs import SelfCollisionConstants
 from clothbench.backends.opencl import pbd as opencl_pbd
 from clothbench.backends.opencl import verlet as opencl
 from clothbench.harness import position_error
+from clothbench.harness.health import self_contact
 from clothbench.model.scene import SelfCollision
 from clothbench.model.solver import Pbd, Vbd
 from conftest import VERLET, assert_bit_exact, require
-from folded_sheet import folded, on_bodies
+from folded_sheet import crumpled, folded, on_bodies
 from test_opencl_meshes import program_sources
 
 STEPS = 20  # the contract's longer run: every pair of the fold pushed, several times
@@ -29,6 +30,13 @@ THICK = 1.5
 
 def sheet(n: int = 16):
     return folded(n, thickness=THICK)
+
+
+def sheet_with_cell(cell: float):
+    """The sheet with a search cell of `cell` thicknesses."""
+    scene, pos = sheet()
+    t = scene.self_collision.thickness
+    return scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t)), pos
 
 
 @pytest.fixture(autouse=True)
@@ -54,8 +62,10 @@ def run(name: str, scene, pos, steps: int, options: BackendOptions, solver=VERLE
         return b.read()
 
 
-def assert_matches_numpy(scene, pos, options: BackendOptions, what: str, steps: int = STEPS, solver=VERLET):
-    got = run("opencl", scene, pos, steps, options, solver)
+def assert_matches_numpy(
+    scene, pos, options: BackendOptions, what: str, steps: int = STEPS, solver=VERLET, backend: str = "opencl"
+):
+    got = run(backend, scene, pos, steps, options, solver)
     expected = run("numpy", scene, pos, steps, BackendOptions(), solver)
     assert_bit_exact(got[0], expected[0], f"pos, {what}")
     assert_bit_exact(got[1], expected[1], f"prev, {what}")
@@ -83,9 +93,7 @@ def test_strict_matches_numpy_f32_bit_for_bit_in_every_build(n, build):
 def test_strict_matches_numpy_f32_with_cells_larger_than_the_thickness(cell):
     # 2.5 thicknesses: every cell holds several particles of both layers, so the runs merged
     # hold candidates past the thickness that the distance test rejects
-    scene, pos = sheet()
-    t = scene.self_collision.thickness
-    scene = scene.replace(self_collision=SelfCollision(thickness=t, cell=cell * t))
+    scene, pos = sheet_with_cell(cell)
     for solver in (VERLET, PBD["jacobi"]):
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"cell {cell} {solver.name}", solver=solver)
 
@@ -100,12 +108,33 @@ def test_strict_matches_numpy_f32_where_the_cell_keys_are_clamped():
         assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"clamped {solver.name}", solver=solver)
 
 
+@pytest.mark.parametrize("solver", [VERLET, PBD["jacobi"]], ids=lambda s: s.name)
+def test_strict_holds_where_the_sort_spans_several_local_blocks(solver):
+    # 32^2 = 1,024 slots, two blocks of self_sort_local: the stage between them is a global
+    # launch, then a local one merges each block (at 16^2 one local launch sorts everything)
+    scene, pos = sheet(32)
+    with create_backend("opencl", scene, solver, BackendOptions(strict=True)) as b:
+        kinds = [kind for kind, _, _ in b._contact.sort_passes]
+    assert "stage" in kinds and kinds.count("local") > 1, f"the sort is {kinds}: one block, nothing shown"
+    assert_matches_numpy(scene, pos, BackendOptions(strict=True), f"32^2 {solver.name}", steps=5, solver=solver)
+
+
+@pytest.mark.parametrize("generic", [False, True], ids=["specialised", "generic"])
+def test_strict_holds_where_a_particle_has_more_pairs_than_it_sorts_in_private_memory(generic):
+    # every particle has dozens of pairs, more than the kernel's SELF_HITS (32): it merges its
+    # cells' runs by smallest index instead of sorting the pairs it found
+    scene, pos = folded()
+    pos = crumpled(scene, pos)
+    assert self_contact(pos, scene)[0] > 32 * scene.particles / 2, "the merge is not reached"
+    assert_matches_numpy(scene, pos, BackendOptions(strict=True, generic=generic), f"crumpled {generic}", steps=3)
+
+
 @pytest.mark.parametrize("variant", [*(f"pbd-{m}" for m in PBD), *(f"vbd-{v}" for v in VBD)])
 def test_pbd_and_vbd_strict_match_numpy_f32_bit_for_bit_in_every_method(variant):
     solver_name, _, method = variant.partition("-")
     scene, pos = sheet()
     solver = (PBD if solver_name == "pbd" else VBD)[method]
-    for build in ({}, {"local_size": 24}):  # 24 does not divide 256: padded launches, the sort's too
+    for build in ({}, {"local_size": 24}):  # 24 does not divide 256: padded launches, the cell keys too
         options = BackendOptions(strict=True, **build)
         assert_matches_numpy(scene, pos, options, f"{variant} {build}", solver=solver)
 

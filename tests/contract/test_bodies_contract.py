@@ -21,8 +21,9 @@ from clothbench.model.colliders.mesh import Mesh
 from clothbench.model.colliders.motion import Frame, Motion
 from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error, reference, simulate
+from clothbench.harness.plan import without_motion
 from clothbench.model.scene import Scene, load_scene
-from clothbench.model.solver import PBD_METHODS, Pbd, solver_for_spec
+from clothbench.model.solver import PBD_METHODS, Pbd, Vbd, solver_for_spec
 
 from conftest import VERLET, assert_bit_exact
 from registry_variants import backend_params, options, solver_params, usable
@@ -406,24 +407,26 @@ def pbd_end_time(scene_name: str) -> float:
     return PBD_STEPS[scene_name] * solver.substeps * (solver.dt / solver.substeps)
 
 
-def pbd_cases() -> list:
-    """(param, scene, search): every strict PBD backend that takes the scene's bodies, with each
-    mesh search it offers where the scene has a mesh."""
+def pbd_cases(solver: str = "pbd", steps: dict = PBD_STEPS) -> list:
+    """(param, scene, search): every strict backend of `solver` that takes the scene's bodies,
+    with each mesh search it offers where the scene has a mesh."""
     cases = []
-    for scene_name in PBD_STEPS:
+    for scene_name in steps:
         has_mesh = bool(load_scene(scene_name).meshes)
-        for param in backend_params("pbd", needs="strict", takes=FEATURE[scene_name]):
+        for param in backend_params(solver, needs="strict", takes=FEATURE[scene_name]):
             name = param.values[0][0]
-            offered = backend_class(name, "pbd").capabilities.mesh_collisions if availability(name).usable else (None,)
+            offered = backend_class(name, solver).capabilities.mesh_collisions if availability(name).usable else (None,)
             for search in offered if has_mesh else (None,):
                 cases.append(pytest.param(param.values[0], scene_name, search, id=f"{param.id}-{scene_name}-{search}"))
     return cases
 
 
 def assert_pbd_reference_bits(name, scene, solver, steps, search, what):
+    """Strict `name` is NumPy float32 bit for bit in each of its shapes (PBD's or VBD's solver)."""
     ref_pos, ref_prev = reference(scene, solver, steps, "f32")
-    for shape in shapes_of(name, scene, solver):
-        opts = options(name, "pbd", strict=True, mesh_collision=search, shape=shape)
+    cls = backend_class(name, solver.name)
+    for shape in shapes_of(name, scene, solver) if cls.capabilities.shapes else (None,):
+        opts = options(name, solver.name, strict=True, mesh_collision=search, shape=shape)
         pos, prev = simulate(name, scene, solver, steps, opts)
         assert_bit_exact(pos, ref_pos, f"pos, {name} {what} mesh={search} {shape}")
         assert_bit_exact(prev, ref_prev, f"prev, {name} {what} mesh={search} {shape}")
@@ -495,3 +498,31 @@ def test_pbd_attached_pins_sit_exactly_on_their_body(param, method):
     assert_bit_exact(pos[pinned, :3], target, f"{name}: the pinned particles")
     start = scene.initial_state(np.float32)[0][pinned, :3]
     assert np.abs(target - start).max() > 0.05  # the bar has moved: this is not vacuous
+
+
+# --- VBD (docs/vbd.md, "Colliders, pins, and why they enter as projections") ---------------
+
+# PBD's grid and step; 5 substeps: 60 steps are 300 substeps' poses and pin targets, more than
+# one upload of them holds on the device backends (256); the torus is touched from about 0.14 s
+VBD_SUBSTEPS = 5
+VBD_STEPS = {"torus": 30, "sweep": 60, "carried": 60}
+
+
+@pytest.mark.parametrize("param, scene_name, search", pbd_cases("vbd", VBD_STEPS))
+def test_strict_vbd_matches_numpy_f32_bit_for_bit_with_bodies(param, scene_name, search):
+    # the collide stage after the sweeps, at the end of each substep, and attached pins in predict
+    name, _ = usable(param)
+    scene = scene_named(scene_name, PBD_N)
+    solver = Vbd(dt=PBD_DT, substeps=VBD_SUBSTEPS, chebyshev_rho=0.9)
+    assert_pbd_reference_bits(name, scene, solver, VBD_STEPS[scene_name], search, f"{scene_name} vbd")
+
+
+@pytest.mark.parametrize("scene_name", list(VBD_STEPS))
+def test_the_vbd_bodies_change_the_result(scene_name):
+    # not vacuous: without its mesh, or with its motion stopped, the reference ends elsewhere
+    scene = scene_named(scene_name, PBD_N)
+    solver = Vbd(dt=PBD_DT, substeps=VBD_SUBSTEPS, chebyshev_rho=0.9)
+    pos, _ = reference(scene, solver, VBD_STEPS[scene_name], "f32")
+    other = scene.replace(meshes=()) if scene.meshes else without_motion(scene)
+    bare, _ = reference(other, solver, VBD_STEPS[scene_name], "f32")
+    assert np.abs(pos[:, :3] - bare[:, :3]).max() > 1e-2, f"{scene_name}: the bodies never reached the cloth"

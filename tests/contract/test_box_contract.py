@@ -17,7 +17,7 @@ from clothbench.backends.numpy import verlet as numpy_verlet
 from clothbench.harness import reference, simulate
 from clothbench.harness.plan import without_motion
 from clothbench.model.scene import load_setup
-from clothbench.model.solver import Pbd
+from clothbench.model.solver import Pbd, Vbd
 
 from conftest import assert_bit_exact
 from registry_variants import options, usable
@@ -27,6 +27,7 @@ BOX_SCENE = Path(__file__).parent.parent / "data" / "boxes.toml"
 # after about 300; test_the_sheet_reaches_both_boxes_within_the_steps_compared holds it)
 STEPS = 500
 PBD = Pbd(dt=5e-4, iterations=4, substeps=2)
+VBD = Vbd(dt=5e-4, iterations=4, substeps=2)
 
 
 def box_params(solver: str) -> list:
@@ -82,18 +83,20 @@ def test_strict_float64_boxes_match_numpy_f64_bit_for_bit(param):
     assert_bit_exact(prev, ref_prev, f"prev, {name} f64 boxes steps={STEPS}")
 
 
-@pytest.mark.parametrize("param", box_params("pbd"))
-def test_strict_pbd_boxes_match_numpy_f32_bit_for_bit(param):
+@pytest.mark.parametrize(
+    "param, solver", [pytest.param(p.values[0], s, id=p.id) for s in (PBD, VBD) for p in box_params(s.name)]
+)
+def test_strict_pbd_and_vbd_boxes_match_numpy_f32_bit_for_bit(param, solver):
     name, generic = usable(param)
-    scene = box_scene(name, "pbd")
-    pos, prev = simulate(name, scene, PBD, STEPS, options(name, "pbd", strict=True, generic=generic))
-    ref_pos, ref_prev = reference(scene, PBD, STEPS, "f32")
-    assert_bit_exact(pos, ref_pos, f"pos, {name} pbd boxes steps={STEPS}")
-    assert_bit_exact(prev, ref_prev, f"prev, {name} pbd boxes steps={STEPS}")
+    scene = box_scene(name, solver.name)
+    pos, prev = simulate(name, scene, solver, STEPS, options(name, solver.name, strict=True, generic=generic))
+    ref_pos, ref_prev = reference(scene, solver, STEPS, "f32")
+    assert_bit_exact(pos, ref_pos, f"pos, {name} {solver.name} boxes steps={STEPS}")
+    assert_bit_exact(prev, ref_prev, f"prev, {name} {solver.name} boxes steps={STEPS}")
 
 
 @pytest.mark.parametrize("moving", [True, False], ids=["moving", "stopped"])
-@pytest.mark.parametrize("solver", [box_setup().solver, PBD], ids=["verlet", "pbd"])
+@pytest.mark.parametrize("solver", [box_setup().solver, PBD, VBD], ids=["verlet", "pbd", "vbd"])
 def test_the_sheet_reaches_both_boxes_within_the_steps_compared(monkeypatch, solver, moving):
     """Without contact the strict comparison would prove nothing about the box's response:
     both boxes must push some particle in the reference run that is compared against."""

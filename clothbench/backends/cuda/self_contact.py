@@ -4,7 +4,7 @@ numbers as the kernels take them, the sort's buffers, and the launches of one pa
 
 After each verlet_step launch (which then leaves the colliders out), PingPong runs the pass on
 the step's x_new: self_cell_keys over the sort's slots, one self_sort_stage per stage of the
-bitonic sort (the schedule opencl/self_contact.py gives its own kernels), then self_collision,
+bitonic sort (model/colliders/self_contact.py's bitonic_stages), then self_collision,
 which pushes the pairs apart, collides, and writes a spare state buffer; that buffer becomes the
 step's output and x_new's the next spare.
 """
@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from clothbench.model.kernel_inputs import SelfCollisionConstants
-from clothbench.backends.opencl.self_contact import sort_slots, sort_stages
+from clothbench.model.colliders.self_contact import bitonic_stages, sort_slots
 
 KERNELS = ("self_cell_keys", "self_sort_stage", "self_collision")  # in launch order
 
@@ -35,7 +35,7 @@ class SelfContact:
         self.exclude2 = np.int32(min(c.exclude2, np.iinfo(np.int32).max))  # past 2 n^2 all alike
         self.count = np.int32(scene.particles)
         self.slots = np.int32(sort_slots(scene.particles))
-        self.stages = sort_stages(int(self.slots))
+        self.stages = [(np.int32(j), np.int32(k)) for j, k in bitonic_stages(int(self.slots))]
         self.block = block
         alloc = self.keys_kernel.alloc
         self.keys = alloc(np.zeros(self.slots, np.uint64))  # a cell id per slot

@@ -14,6 +14,12 @@ and the MOTION and PIN_ATTACH parts of the step, compiled only for a scene that 
 their storage buffers are gl_context.GLBodies, the per-step rows written for a block of steps
 before the dispatches that read them (uniform motion_step: a step's place in the block).
 
+Self-collision ([self_collision], docs/semantics.md), only where the scene has it: the step
+leaves the colliders out and writes x_new to a buffer of its own; then per step its cells are
+keyed and sorted (gl/self_contact.py, kernels/self_collision.comp) and the PASS_SELF_COLLISION
+program reads x_new, pushes the pairs apart, collides, and writes the output pair's positions.
+Only the default shape runs it (shapes.candidates).
+
 Kernel shapes (gl/shapes.py): the work-group size or 2-D tile of those dispatches, or, on
 small grids, one work group running K steps per dispatch (kernels/verlet_cloth_steps.comp);
 chosen per driver, grid and build by measurement (backends/tuning.py) unless --shape or
@@ -31,9 +37,10 @@ from clothbench.model.scene import Scene
 from clothbench.model.solver import Verlet
 from clothbench.backends.gl import context as gl_context
 from clothbench.backends.gl import shapes
+from clothbench.backends.gl.self_contact import GLSelfContact
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 
-PASS_ALL, PASS_INTERIOR, PASS_BORDER = 0, 1, 2  # as in the kernel
+PASS_ALL, PASS_INTERIOR, PASS_BORDER, PASS_SELF_COLLISION = 0, 1, 2, 3  # as in the kernel
 # Read the input pair through imageBuffer views where the driver allows a view that large:
 # half the step time of SSBO loads on llvmpipe. Tests turn it off to check the SSBO path.
 PREFER_IMAGE_READS = True
@@ -56,6 +63,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         moving_colliders=("verlet",),
         boxes=("verlet",),  # compute_pbd.py declares its own
         mesh_collisions=("accelerated", "naive"),  # the same bits (kernels/collide_mesh.glsl)
+        self_collision=("verlet",),
     )
 
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
@@ -79,6 +87,14 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                 self.views = [tuple(map(self.gl.buffer_texture, pair)) for pair in self.pairs]
         # meshes, per-step rows of moving bodies, attached-pin slots (none without them)
         self.bodies = gl_context.GLBodies(self.gl, scene, solver.dt, self.mesh_collision)
+        # [self_collision]: its defines, sort buffers and search programs, and x_new's buffer
+        # (with its view for the pass's reads); None: no pass, no code
+        self.contact = GLSelfContact.of(self.gl, scene, self.local_size)
+        self.x_new = self.x_new_view = None
+        if self.contact is not None:
+            with self.gl:
+                self.x_new = self.gl.ctx.buffer(reserve=size)
+                self.x_new_view = self.gl.buffer_texture(self.x_new) if self.image_reads else None
         self.current = 0  # index of the pair holding the latest state
         self.has_normals = False
         if options.local_size is not None:  # the 1-D shape of that size, not tuned
@@ -124,7 +140,12 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                     defines.update(TILE_W=w, TILE_H=h)
                     groups = (-(-(n - 4) // w), -(-(n - 4) // h))
                 passes.append((self._program("verlet_cloth.comp", (pass_id, name), defines), groups))
-            return Plan(shape, passes)
+            contact = None
+            if self.contact is not None:
+                defines = dict(LOCAL_SIZE=shape.local, PASS=PASS_SELF_COLLISION)
+                program = self._program("verlet_cloth.comp", (PASS_SELF_COLLISION, name), defines)
+                contact = (program, gl_context.work_groups(n * n, shape.local))
+            return Plan(shape, passes, self_collision=contact)
 
     def _program(self, filename: str, what, extra: dict):
         defines = gl_context.kernel_defines(self.scene, self.solver, self.options)
@@ -132,10 +153,13 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         if self.image_reads and filename == "verlet_cloth.comp":
             defines["IMAGE_READS"] = ""
         defines.update(gl_context.body_defines(self.scene, self.mesh_collision))
+        if self.contact is not None:
+            defines.update(self.contact.defines)
         kinds = gl_context.collider_kinds(self.scene, self.options.generic)
-        source = gl_context.shader_source(
-            filename, 430, defines, kinds, meshes=bool(self.scene.meshes), moving=self.scene.has_motion
+        parts = dict(  # what the includes put in: meshes, motion, the self-collision pass
+            meshes=bool(self.scene.meshes), moving=self.scene.has_motion, self_collision=self.contact is not None
         )
+        source = gl_context.shader_source(filename, 430, defines, kinds, **parts)
         # the source is the specialisation key (see fragment.GLSLBackend._program)
         program = self.gl.program(("comp", source), lambda: self.gl.ctx.compute_shader(source))
         self.sources[what] = source
@@ -160,7 +184,8 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         """Enqueue `steps` steps with `plan`'s dispatches (the chosen one, or one being timed)."""
         with self.gl:
             if self.options.generic:
-                for program, _ in plan.passes:  # programs are shared between backends
+                contact = [plan.self_collision] if plan.self_collision is not None else []
+                for program, _ in plan.passes + contact:  # programs are shared between backends
                     gl_context.set_constant_uniforms(program, self.scene, self.solver)
             if self.normals is not None:
                 self.normals.bind_to_storage_buffer(4)
@@ -176,15 +201,29 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                 else:
                     for step in range(block):
                         self._bind_pairs(image_reads=self.image_reads)
+                        if plan.self_collision is not None:  # the step writes x_new for the pass
+                            self.x_new.bind_to_storage_buffer(2)
                         for program, groups in plan.passes:
                             if moving and "motion_step" in program:
                                 program["motion_step"].value = step  # this step's rows in the block
                             program.run(*groups)
                         self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
+                        if plan.self_collision is not None:
+                            self._self_collision(plan, step)
                         self.current = 1 - self.current  # ping-pong: swap the pairs' roles
                 done += block
                 self.steps_done += block
         self.has_normals = self.options.normals
+
+    def _self_collision(self, plan: "Plan", step: int) -> None:
+        """x_new -> the output pair's positions: keyed, sorted, pushed apart and collided."""
+        for launch in self.contact.search(self.x_new):
+            gl_context.dispatch(self.gl, launch)
+        program, groups = plan.self_collision
+        reads = ((), ((0, self.x_new_view),)) if self.image_reads else (((0, self.x_new),), ())
+        ssbos = (*reads[0], (2, self.pairs[1 - self.current][0]), *self.contact.bindings)
+        uniforms = ((program["motion_step"], step),) if "motion_step" in program else ()
+        gl_context.dispatch(self.gl, (program, groups, ssbos, reads[1], uniforms))
 
     def _bind_pairs(self, image_reads: bool) -> None:
         """The current pair as the input (images 0-1 or SSBOs 0-1), the other as the output."""
@@ -244,6 +283,10 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                     buf.release()
             if self._scratch is not None:
                 self._scratch.release()
+            if self.contact is not None:
+                self.gl.delete_textures([self.x_new_view] if self.x_new_view is not None else [])
+                self.x_new.release()
+                self.contact.release()
         self.bodies.release()
         self.views, self.pairs, self.normals, self._scratch = [], [], None, None
 
@@ -251,8 +294,10 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
 @dataclass(frozen=True)
 class Plan:
     """A shape's dispatches: (program, work groups) per pass of a step, or the one program of
-    the one-group shape and its layout (shapes.StepsLayout)."""
+    the one-group shape and its layout (shapes.StepsLayout); with [self_collision], the pass's
+    (program, work groups), run after the step's passes."""
 
     shape: shapes.ComputeShape
     passes: list
     layout: shapes.StepsLayout | None = None
+    self_collision: tuple | None = None

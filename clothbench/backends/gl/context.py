@@ -435,6 +435,20 @@ def work_groups(items: int, local_size: int) -> tuple[int, int]:
     return x, -(-count // x)
 
 
+def dispatch(device: GLDevice, launch) -> None:
+    """Run one compute launch, (program, work groups, storage-buffer bindings, image bindings,
+    uniform values), then a memory barrier: the next dispatch reads what this one wrote."""
+    program, groups, ssbos, images, uniforms = launch
+    for binding, buf in ssbos:
+        buf.bind_to_storage_buffer(binding)
+    for unit, view in images:
+        device.bind_image_read(unit, view)
+    for uniform, value in uniforms:
+        uniform.value = value
+    program.run(*groups)
+    device.ctx.memory_barrier()
+
+
 def mode_suffix(device: GLDevice, ssbo_reads: bool = False) -> str:
     """What a GL backend's mode says beyond its options: the provider where it is not EGL
     (--gl osmesa, or EGL failed), and the SSBO reads a compute backend fell back to."""
@@ -554,10 +568,12 @@ def shader_source(
     colliders: tuple[str, ...] = (),
     meshes: bool = False,
     moving: bool = False,
+    self_collision: bool = False,
 ) -> str:
     """The kernel file with `#version` and the build switches in front of it, and its includes
     resolved: `#include "file"` is kernels/file, `#include <colliders>` the collider files of
-    `colliders`, and the mesh file where `meshes` (collider_source). GLSL has no #include;
+    `colliders`, and the mesh file where `meshes` (collider_source), `#include <self_collision>`
+    kernels/self_collision.glsl where `self_collision`, else nothing. GLSL has no #include;
     `#line 1 S` at each file start (and after each include) keeps a compiler message's line
     number the line of that file, with S its number in the list on the source's second line
     (Mesa prints every source as 0)."""
@@ -565,7 +581,10 @@ def shader_source(
         filename,
         read_kernel(filename),
         lambda line, number, name: f"#line {line} {number}",
-        {"colliders": lambda: collider_source(colliders, meshes, moving)},
+        {
+            "colliders": lambda: collider_source(colliders, meshes, moving),
+            "self_collision": lambda: '#include "self_collision.glsl"\n' if self_collision else "",
+        },
     )
     lines = [f"#version {version} core", f"// sources: {', '.join(f'{i} {f}' for i, f in enumerate(files))}"]
     lines += [f"#define {k} {v}".rstrip() for k, v in defines.items()]

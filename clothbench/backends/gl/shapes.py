@@ -85,6 +85,11 @@ def candidates(scene: Scene, options: BackendOptions) -> tuple[str, ...]:
     --local-size fixes the shape."""
     if options.local_size is not None:
         return ()
+    if scene.self_collision is not None:
+        # the default only: the pass (its own dispatches after the step's: keys, sort, push)
+        # costs more than the step, so timing the shapes would mostly time the pass; and the
+        # one-group shape has no dispatch between steps for it
+        return (DEFAULT_SHAPE,)
     names = [f"wg={size}" for size in LINEAR_SIZES]
     if scene.grid >= 5:  # there is an interior to tile
         names += [f"wg={w}x{h}" for w, h in TILES]

@@ -243,18 +243,6 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         self.border_particles = np.flatnonzero(~covered).astype(np.int32)
         self.border = self._read_only_buffer(self.border_particles)
 
-    def _substep_plan(self, coloured_sweep: bool = False):
-        """pbd_device's plan; with [self_collision], its pass (and the colliders after it) from
-        the last iterate into the other buffer, which update reads, in place of collide."""
-        plan = super()._substep_plan(coloured_sweep)
-        if self._contact is None:
-            return plan
-        final = plan[-1][1]
-        return [step for step in plan[:-1] if step[0] != "collide"] + [
-            ("self collision", final, 1 - final),
-            ("update", 1 - final),
-        ]
-
     @property
     def vector_width(self) -> int:
         preferred = self._device.preferred_vector_width_float
@@ -445,7 +433,8 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         elif kind == "self collision":
             _, src, dst = step
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
-            kernels = self._contact.row_launches(self._kernel, self.xs[src], self.xs[dst], self.colliders, meshes)
+            sizes = self._launch_size
+            return self._contact.row_launches(self._kernel, sizes, self.xs[src], self.xs[dst], self.colliders, meshes)
         elif kind == "collide":
             meshes = self._body_args(0)[: self._per_step + 2 * bool(self._meshes)]  # no pins: predict's
             k = self._kernel((kind, step[1]), "pbd_collide", [None, None], (self.xs[step[1]], self.colliders), meshes)

@@ -144,8 +144,8 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         final = self.xs  # the iterate the update reads
         if self._contact is not None:  # the pass and then the colliders, from the final iterate into y
             fresh = lambda _key, *rest: self._kernel(*rest)  # noqa: E731 (here every launch has a kernel of its own)
-            for k, items in self._contact.row_launches(fresh, self.xs, self.y, self._colliders, meshes):
-                launch("self collision", k, items)
+            for sized in self._contact.row_launches(fresh, self._launch_size, self.xs, self.y, self._colliders, meshes):
+                plan.append(("self collision", sized))
             final = self.y  # no longer read: the sweeps are done
         elif self.scene.colliders or self.scene.meshes:
             launch("collide", self._kernel("vbd_collide", [None, None], (self.xs, self._colliders), meshes), self.n2)

@@ -185,31 +185,37 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             self._pass = self._self_collision_kernels(self._shape.width if not self.generic else 1)
 
     def _self_collision_kernels(self, vector_width: int):
-        """The pass's kernels (cell keys, a sort stage, the pass), from the program of the
-        step's (its options: no build of its own), their arguments typed."""
+        """The pass's kernels (cell keys, the sort's launches, the pass), from the program of
+        the step's (its options: no build of its own), their arguments typed."""
         i32, f32, float4 = np.int32, np.float32, self._cl.cltypes.float4
         program = build_program(self._context, self._source, self.build_options(vector_width))
-        kernels = [self._cl.Kernel(program, name) for name in ("self_cell_keys", "self_sort_stage", "self_collision")]
+
+        def bound(_key, name, dtypes, args):
+            k = self._cl.Kernel(program, name)
+            k.set_scalar_arg_dtypes(dtypes)
+            k.set_args(*args)
+            return k
+
+        kernels = [self._cl.Kernel(program, name) for name in ("self_cell_keys", "self_collision")]
         for k in kernels:
             self._check_local_size(k, k.function_name)
-        keys, stage, push = kernels
+        keys, push = kernels
         keys.set_scalar_arg_dtypes([None, None, None, f32, i32])
-        stage.set_scalar_arg_dtypes([None, None, i32, i32])
         sort = [None, None, float4, i32, None]  # keys, order, the numbers, exclude2, colliders
         if self.generic:
             counts = [i32] * len(collider_counts(self.scene))
             push.set_scalar_arg_dtypes([None, None, i32, *sort, *counts, *self._body_dtypes()])
         else:
             push.set_scalar_arg_dtypes([None, None, None, *sort, *self._body_dtypes()])
-        return kernels
+        return keys, self._contact.sort_launches(bound), push
 
     def _enqueue_self_collision(self, x_new, out, bodies) -> None:
         """x_new (the step's output) -> out: keyed, sorted, pushed apart and collided."""
-        (keys, stage, push), c, queue, i32 = self._pass, self._contact, self.queue, np.int32
+        (keys, sort_launches, push), c, queue, i32 = self._pass, self._contact, self.queue, np.int32
         slots, particles = self._launch_size(c.slots), self._launch_size(self.n2)
         self._events.append(keys(queue, *slots, x_new, c.keys, c.order, c.inv_cell, c.count))
-        for j, k in c.stages:
-            self._events.append(stage(queue, *slots, c.keys, c.order, j, k))
+        for kernel, global_size, local_size in sort_launches:
+            self._events.append(self._cl.enqueue_nd_range_kernel(queue, kernel, global_size, local_size))
         sort = (c.keys, c.order, c.numbers, c.exclude2, self._colliders)
         if self.generic:
             counts = tuple(i32(count) for _, count in collider_counts(self.scene))

@@ -66,6 +66,21 @@ class SelfCollision:
         return 1.0 / (self.cell * CELL_MARGIN)
 
 
+def sort_slots(particles: int) -> int:
+    """The device passes' sort length (opencl, glsl-compute, cuda: a bitonic sort of (cell,
+    index)): the particle count rounded up to a power of two."""
+    return 1 << max(0, (particles - 1).bit_length())
+
+
+def bitonic_stages(slots: int) -> list[tuple[int, int]]:
+    """(j, k) of each compare-and-exchange stage of a bitonic sort of `slots` (a power of two)
+    entries, in launch order: blocks k = 2, 4, .., slots, each at distances k/2, .., 1 (the
+    schedule glsl-compute and cuda launch a stage at a time; opencl runs the short ones in
+    local memory)."""
+    blocks = [1 << e for e in range(1, slots.bit_length())]
+    return [(k >> s, k) for k in blocks for s in range(1, k.bit_length())]
+
+
 def self_collision_from_toml(table, where: str) -> SelfCollision | None:
     """The [self_collision] table (None when the file has none), every key checked."""
     if table is None:

@@ -1,0 +1,95 @@
+"""The VBD solver (docs/vbd.md) as GL 4.3 compute shaders: kernels/vbd_cloth.comp.
+
+Host code only; the substep plan (pbd_device.VbdDeviceBackend: predict, per iteration one
+sweep dispatch per vertex colour and with Chebyshev an extrapolation, collide, update), the
+state conversion and the profiling are shared with the other device solvers, the context,
+the (x, v) buffers, the moving bodies and the dispatch with glsl-compute's PBD solver
+(compute_pbd.GLComputeSolver). One program per stage (the kernel file's STAGE), the scene's
+constants (model/kernel_inputs.py VbdConstants) compiled in as exact float32 literals; the
+sweep takes its colour's range of the particles sorted by colour as uniforms, the Chebyshev
+stage its weight. One kernel shape: a particle per invocation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from clothbench.kernel_source import glsl_float
+from clothbench.model.scene import Scene
+from clothbench.model.solver import Vbd
+from clothbench.backends.base import BackendOptions
+from clothbench.backends.gl.compute_pbd import GLComputeSolver, GLSLComputePbdBackend
+from clothbench.backends.gl.context import work_groups
+from clothbench.backends.pbd_device import VbdDeviceBackend
+
+KERNEL_FILE = "vbd_cloth.comp"
+STAGES = {"predict": 0, "sweep": 1, "chebyshev": 2, "collide": 3, "update": 4}  # as the kernel's
+
+
+class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
+    # the PBD solver's options and scene features: its collide stage is the same colliders' code
+    capabilities = replace(
+        GLSLComputePbdBackend.capabilities,
+        meshes=(*GLSLComputePbdBackend.capabilities.meshes, "vbd"),
+        moving_colliders=(*GLSLComputePbdBackend.capabilities.moving_colliders, "vbd"),
+        boxes=(*GLSLComputePbdBackend.capabilities.boxes, "vbd"),
+    )
+    kernel_file = KERNEL_FILE
+
+    def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
+        super().__init__(scene, solver, options)
+        with self.gl:
+            self.xs, self.y = self._state_buffer(), self._state_buffer()  # the iterate, the inertial target
+            # Chebyshev: the inputs of the last two sweeps, taking turns
+            self.before = [self._state_buffer() for _ in range(2)] if self.chebyshev else []
+            self.order = self.gl.ctx.buffer(self.colour_order.tobytes())
+            # an imageBuffer view of the iterate (no copy), for the sweep's neighbour reads
+            self.views = [self.gl.buffer_texture(self.xs)] if self.image_reads else []
+            self.launches = self._plan_launches()
+
+    def _program(self, stage: str):
+        if stage in self.programs:
+            return self.programs[stage]
+        c = self.constants
+        defines = self._shared_defines()
+        defines.update(
+            H_VALUE=glsl_float(c.h),
+            GH2_VALUE="vec3({})".format(", ".join(map(glsl_float, c.gh2))),
+            MH2_VALUE=glsl_float(c.mh2),
+            BH_VALUE=glsl_float(c.bh),
+            K_VALUE=glsl_float(c.k),
+            REST_VALUE="float[3]({})".format(", ".join(map(glsl_float, c.rest))),
+            STAGE=STAGES[stage],
+        )
+        if stage == "sweep" and self.image_reads:
+            defines["IMAGE_READS"] = ""
+        return self._compile(stage, stage, defines)
+
+    def _launches_of(self, step) -> list:
+        """[(program, work groups, SSBO bindings, image bindings, uniform values)] of one step
+        of the plan."""
+        kind = step[0]
+        program, items = self._program(kind), self.n2
+        images: tuple = ()
+        uniforms: tuple = ()
+        if kind == "predict":
+            bindings = (self.x, self.v, self.xs, self.y)
+        elif kind == "sweep":
+            colour = step[2]
+            items = int(self.colour_counts[colour])
+            bindings = (self.xs, self.y, self.x, self.order)
+            images = ((0, self.views[0]),) if self.image_reads else ()
+            uniforms = (("first", int(self.colour_starts[colour])), ("count", items))
+        elif kind == "chebyshev":  # extrapolate from sweep it - 1's input (none up to sweep 0), keep sweep it + 1's
+            it = step[1]
+            bindings = (self.xs, self.before[(it + 1) % 2])
+            uniforms = (("omega", float(self.constants.omega[max(it, 0)])), ("apply", int(it > 0)))
+        elif kind == "collide":
+            bindings = (self.xs,)
+        else:
+            bindings = (self.x, self.v, self.xs)
+        uniforms = tuple((program[u], v) for u, v in uniforms)
+        return [(program, work_groups(items, self.local_size), tuple(enumerate(bindings)), images, uniforms)]
+
+    def close(self) -> None:
+        self._release(self.views, (self.xs, self.y, *self.before, self.order))
