@@ -15,10 +15,11 @@
  *       the code of a collider kind compiled in only when the scene has one. Three ways to
  *       split the work (the host's kernel shapes, clothbench/backends/opencl/verlet_shapes.py):
  *       verlet_cloth_interior (all 12 neighbours present: no bounds checks, unrolled) +
- *       verlet_cloth_border (a small bounds-checked frame, one particle per work item);
+ *       verlet_cloth_border (a small bounds-checked frame, one particle per work item), which
+ *       write pos_out and pos_prev_out, the chapter's four buffers;
  *       verlet_cloth_rows (every row in vectors, the edge masked lane by lane, one launch);
  *       verlet_cloth_steps (the rows kernel's work, several steps in one launch, one
- *       work-group).
+ *       work-group); these two write x(t+dt) over x(t-dt) in place, two state buffers.
  * and two arithmetics, for either build:
  *   strict (-DCLOTH_STRICT): every operation in the order docs/semantics.md fixes, sqrt and
  *       '/', damping once per spring, no FMA contraction, no dot()/length(): the result
@@ -509,13 +510,12 @@ INLINE void store_normal(int i, int first_lane, floatv sx, floatv sy, floatv sz,
 #define NORMALS_ARG
 #endif
 
-/* Steps 6-8 for the particles at i, which have `springs` springs each (per lane): integrate
- * unless pinned, collide, write both outputs. */
-INLINE void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv xp, floatv yp,
-                     floatv zp, floatv fx, floatv fy, floatv fz, floatv springs,
-                     __global const float *inv_mass, __global float *pos_out,
-                     __global float *pos_prev_out, __constant float4 *colliders, float b,
-                     float dt, float dt2, float4 g BODY_PARAMS)
+/* Step 6 for the particles at i, which have `springs` springs each (per lane): integrate
+ * unless pinned, collide; x(t+dt) in *nx_out, *ny_out, *nz_out. */
+INLINE void integrate(int i, floatv x, floatv y, floatv z, floatv xp, floatv yp, floatv zp,
+                      floatv fx, floatv fy, floatv fz, floatv springs, __global const float *inv_mass,
+                      __constant float4 *colliders, float b, float dt, float dt2, float4 g,
+                      floatv *nx_out, floatv *ny_out, floatv *nz_out BODY_PARAMS)
 {
     floatv w = LOADV(inv_mass, i);
 #ifdef CLOTH_STRICT
@@ -542,12 +542,30 @@ INLINE void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z,
     collide_meshes_v(&cx, &cy, &cz, w, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints);
 #endif
 #endif
-    store_lanes(SELECT(cx, nx, pinned), pos_out, i, first_lane);
-    store_lanes(SELECT(cy, ny, pinned), pos_out, N2 + i, first_lane);
-    store_lanes(SELECT(cz, nz, pinned), pos_out, 2 * N2 + i, first_lane);
-    store_lanes(x, pos_prev_out, i, first_lane);
-    store_lanes(y, pos_prev_out, N2 + i, first_lane);
-    store_lanes(z, pos_prev_out, 2 * N2 + i, first_lane);
+    *nx_out = SELECT(cx, nx, pinned), *ny_out = SELECT(cy, ny, pinned), *nz_out = SELECT(cz, nz, pinned);
+}
+
+/* The particles at i's lanes first_lane .. V-1 of (x, y, z) into the planes of p. */
+INLINE void store_position(int i, int first_lane, floatv x, floatv y, floatv z, __global float *p)
+{
+    store_lanes(x, p, i, first_lane);
+    store_lanes(y, p, N2 + i, first_lane);
+    store_lanes(z, p, 2 * N2 + i, first_lane);
+}
+
+/* Steps 6-8 for the split kernels, which keep the chapter's four state buffers: x(t+dt) to
+ * pos_out (7.), x(t) to pos_prev_out (8.). */
+INLINE void integrate_store(int i, int first_lane, floatv x, floatv y, floatv z, floatv xp, floatv yp,
+                     floatv zp, floatv fx, floatv fy, floatv fz, floatv springs,
+                     __global const float *inv_mass, __global float *pos_out,
+                     __global float *pos_prev_out, __constant float4 *colliders, float b,
+                     float dt, float dt2, float4 g BODY_PARAMS)
+{
+    floatv nx, ny, nz;
+    integrate(i, x, y, z, xp, yp, zp, fx, fy, fz, springs, inv_mass, colliders, b, dt, dt2, g, &nx,
+              &ny, &nz BODY_PASS);
+    store_position(i, first_lane, nx, ny, nz, pos_out);
+    store_position(i, first_lane, x, y, z, pos_prev_out);
 }
 
 /* The 12 springs of particles whose neighbours all exist, unrolled, in the stencil's order. */
@@ -684,11 +702,14 @@ __kernel void verlet_cloth_border(__global const float *pos, __global const floa
  * by select(), which leaves those lanes' force exactly as it was. So every lane does the
  * operations of docs/semantics.md in their order, and strict stays bit-exact. One launch
  * per step instead of the interior's and the border's; only grids with n >= V have it.
+ * Two state buffers, not four: x(t+dt) is written over x(t-dt) in place and the host swaps
+ * the two (pos <- the written buffer, pos_prev <- the old pos), so a step streams 10 floats a
+ * particle instead of 13, and writes only lines it has just read (docs/bounds.md, "The count").
  *
  * verlet_cloth_steps (the `steps/launch=K` shapes) runs several steps in one launch, with
  * the whole grid in one work-group: each work item takes every local-size-th vector, a
  * barrier separates the steps (valid inside one work-group; the state stays in the global
- * buffers, ping-ponged by swapping pointers as the host does between launches). It pays one
+ * buffers, written in place and swapped by pointer as the host does between launches). It pays one
  * launch per K steps, at the price of one work-group, so one core: for small grids only.
  * With CLOTH_NORMALS it writes the normals at every step; the last step's are left, those of
  * the state it read, as after a one-step launch.
@@ -741,10 +762,30 @@ INLINE void face_add_masked(floatv x, floatv y, floatv z, __global const float *
 }
 #endif
 
-/* One step for the V particles of work item `item` (see above). */
-INLINE void rows_item(int item, __global const float *pos, __global const float *pos_prev,
-               __global const float *inv_mass, __global float *pos_out,
-               __global float *pos_prev_out, float k, float b, float dt, float dt2, float4 g,
+/* Lanes first_lane .. V-1 of p[j..]; the others take `other`. The rows kernels write x(t+dt)
+ * over x(t-dt): the first lanes of a row's last vector are the vector before it's, which another
+ * work item may be writing, so that vector loads only its own lanes of pos_prev. */
+INLINE floatv load_lanes(__global const float *p, int j, int first_lane, floatv other)
+{
+#if V == 1
+    return p[j];
+#else
+    if (first_lane == 0)
+        return LOADV(p, j);
+    float lanes[V];
+    *(floatv_u *)lanes = other;
+    for (int l = first_lane; l < V; ++l)
+        lanes[l] = p[j + l];
+    return *(floatv_u *)lanes;
+#endif
+}
+
+/* One step for the V particles of work item `item` (see above): reads x(t) from pos and its own
+ * particles' x(t-dt) from pos_prev, and writes their x(t+dt) over the latter. In place is safe:
+ * a particle's x(t-dt) is read only by its own work item, the neighbours' positions come from
+ * pos, which no work item writes. */
+INLINE void rows_item(int item, __global const float *pos, __global float *pos_prev,
+               __global const float *inv_mass, float k, float b, float dt, float dt2, float4 g,
                float4 rest, __constant float4 *colliders NORMALS_ARG BODY_PARAMS)
 {
     int row = item / ROW_VECTORS, vector = item % ROW_VECTORS;
@@ -754,7 +795,8 @@ INLINE void rows_item(int item, __global const float *pos, __global const float 
     int i = row * N + c0;
     int inside = row >= 2 && row < N - 2 && c0 >= 2 && c0 + V <= N - 2;
     floatv x = LOADV(pos, i), y = LOADV(pos, N2 + i), z = LOADV(pos, 2 * N2 + i);
-    floatv xp = LOADV(pos_prev, i), yp = LOADV(pos_prev, N2 + i), zp = LOADV(pos_prev, 2 * N2 + i);
+    floatv xp = load_lanes(pos_prev, i, first_lane, x), yp = load_lanes(pos_prev, N2 + i, first_lane, y);
+    floatv zp = load_lanes(pos_prev, 2 * N2 + i, first_lane, z);
     floatv bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
     floatv fx = 0.0f, fy = 0.0f, fz = 0.0f;
     floatv springs = 12.0f;
@@ -775,8 +817,10 @@ INLINE void rows_item(int item, __global const float *pos, __global const float 
             springs = SELECT(springs, springs + 1.0f, valid);
         }
     }
-    integrate_store(i, first_lane, x, y, z, xp, yp, zp, fx, fy, fz, springs, inv_mass, pos_out,
-                    pos_prev_out, colliders, b, dt, dt2, g BODY_PASS);
+    floatv nx, ny, nz;
+    integrate(i, x, y, z, xp, yp, zp, fx, fy, fz, springs, inv_mass, colliders, b, dt, dt2, g, &nx,
+              &ny, &nz BODY_PASS);
+    store_position(i, first_lane, nx, ny, nz, pos_prev); /* 7., over x(t-dt); the host swaps (8.) */
 #ifdef CLOTH_NORMALS
     floatv sx = 0.0f, sy = 0.0f, sz = 0.0f;
     if (inside) {
@@ -803,9 +847,8 @@ INLINE void rows_item(int item, __global const float *pos, __global const float 
 #define NORMALS_PASS
 #endif
 
-__kernel void verlet_cloth_rows(__global const float *pos, __global const float *pos_prev,
-                                __global const float *inv_mass, __global float *pos_out,
-                                __global float *pos_prev_out, const float k, const float b,
+__kernel void verlet_cloth_rows(__global const float *pos, __global float *pos_prev,
+                                __global const float *inv_mass, const float k, const float b,
                                 const float dt, const float dt2, const float4 g,
                                 const float4 rest, __constant float4 *colliders NORMALS_ARG BODY_ARG)
 {
@@ -816,37 +859,36 @@ __kernel void verlet_cloth_rows(__global const float *pos, __global const float 
     colliders += step * TABLE_ROWS; /* this step's poses */
     PIN_STEP_TARGETS(step);
 #endif
-    rows_item(item, pos + PAD, pos_prev + PAD, inv_mass, pos_out + PAD, pos_prev_out + PAD, k, b,
-              dt, dt2, g, rest, colliders NORMALS_PASS BODY_PASS);
+    rows_item(item, pos + PAD, pos_prev + PAD, inv_mass, k, b, dt, dt2, g, rest,
+              colliders NORMALS_PASS BODY_PASS);
 }
 
-/* `steps` steps from (pos, pos_prev); the result is in (pos_out, pos_prev_out) after an odd
- * count, in (pos, pos_prev) after an even one. Launched as one work-group. */
+/* `steps` steps from (pos, pos_prev), each written in place as verlet_cloth_rows does, the two
+ * buffers swapping roles between steps: the result is in (pos_prev, pos) after an odd count, in
+ * (pos, pos_prev) after an even one. Launched as one work-group. */
 __kernel void verlet_cloth_steps(__global float *pos, __global float *pos_prev,
-                                 __global const float *inv_mass, __global float *pos_out,
-                                 __global float *pos_prev_out, const float k, const float b,
+                                 __global const float *inv_mass, const float k, const float b,
                                  const float dt, const float dt2, const float4 g,
                                  const float4 rest, __constant float4 *colliders,
                                  const int steps NORMALS_ARG BODY_ARG)
 {
     int first = get_local_id(0), stride = get_local_size(0);
     __global float *in = pos + PAD, *in_prev = pos_prev + PAD;
-    __global float *out = pos_out + PAD, *out_prev = pos_prev_out + PAD;
 #ifdef CLOTH_PER_STEP
     colliders += step * TABLE_ROWS; /* the launch's first step's poses; one table per step */
     PIN_STEP_TARGETS(step);
 #endif
     for (int s = 0; s < steps; ++s) {
         for (int item = first; item < ROWS_ITEMS; item += stride)
-            rows_item(item, in, in_prev, inv_mass, out, out_prev, k, b, dt, dt2, g, rest,
-                      colliders NORMALS_PASS BODY_PASS);
+            rows_item(item, in, in_prev, inv_mass, k, b, dt, dt2, g, rest, colliders NORMALS_PASS BODY_PASS);
 #ifdef CLOTH_PER_STEP
         colliders += TABLE_ROWS; /* the next step's */
         PIN_STEP_TARGETS(1);
 #endif
-        barrier(CLK_GLOBAL_MEM_FENCE); /* the next step reads what every work item wrote */
-        __global float *t = in, *t_prev = in_prev;
-        in = out, in_prev = out_prev, out = t, out_prev = t_prev;
+        /* the next step reads what every work item wrote, and writes over what they read */
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        __global float *t = in;
+        in = in_prev, in_prev = t;
     }
 }
 #endif

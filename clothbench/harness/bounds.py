@@ -225,7 +225,8 @@ LAYOUT_ELEMENTS = {
     # kernels/verlet_cloth.c: pos and prev read (3 + 3), inverse mass (1), x(t+dt) written
     # over x(t-dt) in place (3): two state buffers, ping-ponged
     "ping-pong": 10,
-    # kernels/verlet_cloth.cl specialised: the same reads, pos_out and pos_prev_out written
+    # kernels/verlet_cloth.cl specialised, its split shape (its rows and steps shapes write in
+    # place: ping-pong): the same reads, pos_out and pos_prev_out written
     "soa": 13,
     # float4 state (the generic kernel, GL textures): pos, prev read, both outputs written
     "float4": 16,

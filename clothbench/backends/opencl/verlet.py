@@ -1,8 +1,11 @@
 """The OpenCL backend: kernels/verlet_cloth.cl through pyopencl (PoCL's CPU device here).
 
-Host code only; the step is in the kernel file and docs/semantics.md. Two pairs of buffers
-(positions, previous positions) are ping-ponged by swapping references, as in the chapter's
-Figure 22.4: the state stays on the device and is read back only by read().
+Host code only; the step is in the kernel file and docs/semantics.md. The state stays on the
+device and is read back only by read(). The generic and split kernels ping-pong two pairs of
+buffers (positions, previous positions) by swapping references, as in the chapter's Figure
+22.4; the rows and multi-step kernels, the ones tuning picks on large grids, write x(t+dt) over
+x(t-dt) in place and swap the pair's roles instead (_step_state), 40 bytes a particle a step
+streamed instead of 52 (docs/bounds.md, "The count").
 
 Transfer modes (options.transfer):
   resident  (default) the state never leaves the device between read() calls.
@@ -19,7 +22,7 @@ an argument):
              split is the kernel shape (verlet_shapes.py: interior + border kernels, whole
              rows, or several steps per launch), chosen per device and scene by measurement
              (backends/tuning.py; the backend times each candidate on itself) unless
-             options.shape names one; it ends the mode. The multi-step kernel ping-pongs the
+             options.shape names one; it ends the mode. The multi-step kernel swaps the two
              buffers inside its launch: advance() swaps the references after an odd count.
              Programs are cached by their build options (`key`), so backends of the same
              shape (a dt or stiffness sweep too) build nothing. `--strict` runs them with
@@ -264,9 +267,11 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
     def _specialised_launches(self, shape: shapes.KernelShape):
         """split: the interior (rows and columns 2..n-3) in vectors of V particles, then
         every other particle through the border kernel. rows: every row in vectors of V, one
-        kernel. steps: the rows kernel's work, several steps per launch (advance())."""
+        kernel. steps: the rows kernel's work, several steps per launch (advance()). rows and
+        steps take (pos, prev, inverse mass) and write in place; split takes pos_out and
+        prev_out too."""
         n, v = self.n, shape.width
-        dtypes = [None] * 5 + self._constant_dtypes + [None]
+        dtypes = [None] * (3 if shape.in_place else 5) + self._constant_dtypes + [None]
         args = (*self._constants, self._colliders)
         if shape.layout == "rows":
             return [(self._kernel("verlet_cloth_rows", dtypes, v), -(-n // v) * n, args)]
@@ -330,41 +335,51 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             self._w_prev = self._w  # prev_out carries pos's inverse mass
             self._normals_of_prev = self.normals
 
+    def _step_state(self) -> tuple[tuple, list]:
+        """The state buffers a step's kernels take, and the state after it: [the buffer holding
+        x(t+dt), the one holding x(t), the two it leaves unused]. The chapter's four buffers
+        (generic, split): x(t+dt) to pos_out, x(t) copied to prev_out, and the references swap.
+        In place (rows, steps): x(t+dt) over x(t-dt) in prev, and pos and prev swap roles."""
+        pos, prev, pos_out, prev_out = self._state
+        if self.generic:
+            return (pos, prev, pos_out, prev_out), [pos_out, prev_out, pos, prev]
+        if self._shape.in_place:
+            return (pos, prev, self._inv_mass), [prev, pos, pos_out, prev_out]
+        return (pos, prev, self._inv_mass, pos_out, prev_out), [pos_out, prev_out, pos, prev]
+
     def _advance_per_step(self, steps: int) -> None:
         """One launch (or the split shape's two) per step; step j reads table j."""
         cl, queue = self._cl, self.queue
         per_step = self.transfer == "per-step"
         for j in range(steps):
-            pos, prev, pos_out, prev_out = self._state
             if per_step:  # the chapter's variant: the host's state goes up at every step
-                cl.enqueue_copy(queue, pos, self._host[0], is_blocking=False)
-                cl.enqueue_copy(queue, prev, self._host[1], is_blocking=False)
-            state = (pos, prev, pos_out, prev_out) if self.generic else (pos, prev, self._inv_mass, pos_out, prev_out)
+                cl.enqueue_copy(queue, self._state[0], self._host[0], is_blocking=False)
+                cl.enqueue_copy(queue, self._state[1], self._host[1], is_blocking=False)
+            state, after = self._step_state()
             bodies = self._body_args(j)
             for kernel, global_size, local_size, args in self._launches:
                 self._events.append(kernel(queue, global_size, local_size, *state, *args, *bodies))
             if self._pass is not None:  # x_new -> pushed apart and collided, in the spare buffer
-                self._enqueue_self_collision(pos_out, self._pushed, bodies)
-                pos_out, self._pushed = self._pushed, pos_out
-            self._state = [pos_out, prev_out, pos, prev]  # ping-pong: swap references, no copy
-            if per_step:  # ... and comes back down, so the host owns the next step's input
-                cl.enqueue_copy(queue, self._host[0], pos_out, is_blocking=False)
-                cl.enqueue_copy(queue, self._host[1], prev_out, is_blocking=False)
+                self._enqueue_self_collision(after[0], self._pushed, bodies)
+                after[0], self._pushed = self._pushed, after[0]
+            self._state = after  # swap references, no copy
+            if per_step:  # ... and both come back down, so the host owns the next step's input
+                cl.enqueue_copy(queue, self._host[0], after[0], is_blocking=False)
+                cl.enqueue_copy(queue, self._host[1], after[1], is_blocking=False)
 
     def _advance_in_launches(self, steps: int) -> None:
         """ceil(steps / K) launches of the multi-step kernel, the last with the remainder.
-        It leaves the result in its output buffers after an odd count, in its input buffers
-        after an even one: the references swap to match."""
+        It writes in place, the two state buffers swapping roles each step: the references
+        swap after an odd count to match."""
         (kernel, global_size, local_size, args), k = self._launches[0], self._shape.steps_per_launch
         constants, normals = args[: len(self._constants) + 1], args[len(self._constants) + 1 :]
         for done in range(0, steps, k):
             count = min(k, steps - done)
-            pos, prev, pos_out, prev_out = self._state
-            state = (pos, prev, self._inv_mass, pos_out, prev_out)
+            state, after = self._step_state()
             call = (*state, *constants, np.int32(count), *normals, *self._body_args(done))
             self._events.append(kernel(self.queue, global_size, local_size, *call))
             if count % 2:
-                self._state = [pos_out, prev_out, pos, prev]
+                self._state = after
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         out = []

@@ -52,6 +52,12 @@ class KernelShape:
         return f"{'rows/' if self.layout == 'rows' else ''}v{self.width}{wg}"
 
     @property
+    def in_place(self) -> bool:
+        """Whether its kernels write x(t+dt) over x(t-dt) (two state buffers) rather than to
+        pos_out and pos_prev_out (four): the rows kernel and the multi-step kernel built on it."""
+        return self.layout != "split"
+
+    @property
     def kernels(self) -> tuple[str, ...]:
         return {
             "split": ("verlet_cloth_interior", "verlet_cloth_border"),
