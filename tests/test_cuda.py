@@ -115,8 +115,8 @@ def nvcc_build(scene: Scene, strict: bool, generic: bool, normals: bool, out: Pa
 
 
 # a module-scoped nvcc fixture builds once per xdist worker that runs one of its tests: the
-# tests that take one carry this mark, so one worker builds it (test_cuda_meshes and
-# test_cuda_multistep take the mark from here)
+# tests that take one carry this mark, so one worker builds it (the other test_cuda_*.py files
+# take the mark from here)
 ONE_NVCC_WORKER = pytest.mark.xdist_group("nvcc")
 
 
