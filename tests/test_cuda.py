@@ -114,6 +114,12 @@ def nvcc_build(scene: Scene, strict: bool, generic: bool, normals: bool, out: Pa
     return done, out.read_text() if out.exists() else ""
 
 
+# a module-scoped nvcc fixture builds once per xdist worker that runs one of its tests: the
+# tests that take one carry this mark, so one worker builds it (the other test_cuda_*.py files
+# take the mark from here)
+ONE_NVCC_WORKER = pytest.mark.xdist_group("nvcc")
+
+
 @pytest.fixture(scope="module")
 def nvcc_ptx(tmp_path_factory):
     """(mode, build, normals) -> (nvcc's process, PTX) for the every-kind scene."""
@@ -137,6 +143,7 @@ def entry_parameters(ptx: str) -> int:
     return head[: head.index(")")].count(".param")
 
 
+@ONE_NVCC_WORKER
 @pytest.mark.parametrize("variant", VARIANTS, ids=variant_id)
 def test_kernel_compiles_for_sm80_without_errors_or_warnings(nvcc_ptx, variant):
     done, ptx = nvcc_ptx[variant]
@@ -150,6 +157,7 @@ def test_kernel_compiles_for_sm80_without_errors_or_warnings(nvcc_ptx, variant):
     assert entry_parameters(ptx) == 4 + normals + scene_parameters
 
 
+@ONE_NVCC_WORKER
 @pytest.mark.parametrize("build", BUILDS)
 @pytest.mark.parametrize("normals", [False, True], ids=["", "normals"])
 def test_strict_ptx_rounds_every_operation_on_its_own(nvcc_ptx, build, normals):
@@ -160,6 +168,7 @@ def test_strict_ptx_rounds_every_operation_on_its_own(nvcc_ptx, build, normals):
     assert "sqrt.rn.f32" in ptx and "div.rn.f32" in ptx
 
 
+@ONE_NVCC_WORKER
 @pytest.mark.parametrize("build", BUILDS)
 def test_fast_ptx_uses_the_approximate_instructions(nvcc_ptx, build):
     # fast mode is a different computation, or the strict/fast comparison measures nothing
@@ -167,6 +176,7 @@ def test_fast_ptx_uses_the_approximate_instructions(nvcc_ptx, build):
     assert "rsqrt.approx" in ptx and "fma.rn" in ptx
 
 
+@ONE_NVCC_WORKER
 def test_specialised_ptx_has_the_scene_baked_in(nvcc_ptx):
     # the only memory a specialised step reads is its own and its 12 neighbours' positions:
     # constants and colliders are immediates, and the grid size is folded into the addressing

@@ -38,7 +38,7 @@ from clothbench.model.scene import Scene, load_scene
 
 from conftest import VERLET, assert_bit_exact, sphere
 from test_cuda import assert_as_accurate_as_float32
-from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
+from test_cuda import ONE_NVCC_WORKER, cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
 
 KERNEL = kernel_path(cuda.KERNEL_FILE)
 N = 32  # the contract's grid: the torus holds particles within 500 steps
@@ -146,6 +146,7 @@ def parameters(ptx: str, entry: str) -> int:
 EXTRA_BUFFERS = {"torus": 2, "sweep": 2 + 1, "carried": 1 + 1}
 
 
+@ONE_NVCC_WORKER
 @pytest.mark.parametrize("variant", NVCC_VARIANTS, ids=nvcc_id)
 def test_mesh_and_moving_kernels_compile_for_sm80_without_warnings(nvcc_ptx, variant):
     done, ptx = nvcc_ptx[variant]

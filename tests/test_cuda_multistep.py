@@ -35,7 +35,7 @@ from clothbench.model.scene import load_scene
 
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, sphere
 from test_cuda import SPHERE_STEPS, assert_as_accurate_as_float32
-from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
+from test_cuda import ONE_NVCC_WORKER, cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
 
 SCENES = {"sphere": sphere, "every-collider": every_collider_scene}
 CHECKPOINTS = (1, 37, 500)  # steps: one, a remainder of both K, the run the brief asks for
@@ -117,6 +117,7 @@ def entry(ptx: str, name: str) -> str:
     return head if following < 0 else head[:following]
 
 
+@ONE_NVCC_WORKER
 @pytest.mark.parametrize("variant", BUILD_VARIANTS, ids=variant_id)
 def test_multistep_kernel_compiles_for_sm80_and_fits_a_block_of_1024(nvcc_builds, variant):
     report, ptx = nvcc_builds[variant]

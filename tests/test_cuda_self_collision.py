@@ -34,7 +34,7 @@ from clothbench.model.scene import SelfCollision
 
 from conftest import VERLET, assert_bit_exact, every_kind
 from folded_sheet import folded, on_bodies
-from test_cuda import BUILDS, MODES, entry_body, nvcc_build
+from test_cuda import BUILDS, MODES, ONE_NVCC_WORKER, entry_body, nvcc_build
 from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
 
 STEPS = 20  # every pair of the fold pushed, several times
@@ -198,6 +198,7 @@ def self_ptx(tmp_path_factory):
     }
 
 
+@ONE_NVCC_WORKER
 def test_the_pass_compiles_for_sm80_without_errors_or_warnings(self_ptx):
     for variant, (done, ptx) in self_ptx.items():
         assert done.returncode == 0 and not (done.stdout + done.stderr).strip(), f"nvcc {variant}: {done.stderr}"
@@ -205,6 +206,7 @@ def test_the_pass_compiles_for_sm80_without_errors_or_warnings(self_ptx):
             assert f".entry {kernel}(" in ptx, f"{variant}: no {kernel}"
 
 
+@ONE_NVCC_WORKER
 def test_strict_ptx_of_the_pass_rounds_every_operation_on_its_own(self_ptx):
     for (name, mode, build, normals), (_, ptx) in self_ptx.items():
         if mode != "strict":
