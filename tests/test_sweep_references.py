@@ -12,7 +12,7 @@ import pytest
 from clothbench.backends import BackendOptions
 from clothbench.cli import main
 from clothbench.harness.simulate import position_error, reference, reference_states, simulate
-from clothbench.harness.sweep import check_errors, measure_row, plan_sweep
+from clothbench.harness.sweep import reference_errors, check_errors, measure_row, plan_sweep
 from clothbench.harness.timing import MIN_BUDGET_CHUNKS
 from tests.conftest import setup
 
@@ -52,12 +52,13 @@ def test_a_budget_cut_rows_error_is_what_its_own_reference_gave(spec):
         ((key, pos),) = unchecked.items()
         assert key == (s.scene, solver, MIN_BUDGET_CHUNKS)
         waiting.append((own, shared, key, pos))
-    references: dict = {}
-    runs = check_errors([(shared, {key: pos}) for _, shared, key, pos in waiting], references, IN_PROCESS)
+    runs = check_errors([(shared, {key: pos}) for _, shared, key, pos in waiting], {}, IN_PROCESS)
     assert runs == 1  # every row of the scene and solver from one run
-    for own, shared, key, pos in waiting:
+    positions = {MIN_BUDGET_CHUNKS: [pos for *_, pos in waiting]}
+    shared_errors = reference_errors(s.scene, solver, positions)[MIN_BUDGET_CHUNKS]
+    for (own, shared, key, pos), error in zip(waiting, shared_errors):
         assert (shared["err_rms_m"], shared["err_max_m"]) == (own["err_rms_m"], own["err_max_m"])
-        assert position_error(pos, references[key]) == position_error(pos, reference(*key)[0])  # float64 ==
+        assert error == position_error(pos, reference(*key)[0])  # the float64 numbers, ==
 
 
 def test_a_budget_cut_sweep_runs_no_reference_beside_the_f64_row(tmp_path, monkeypatch):
@@ -76,3 +77,24 @@ def test_a_budget_cut_sweep_runs_no_reference_beside_the_f64_row(tmp_path, monke
     rows = list(csv.DictReader(out.open()))
     assert len(rows) == 4 and all(r["err_rms_m"] for r in rows)
     assert [r["grid"] for r in rows] == ["8", "8", "10", "10"]  # still in plan order
+
+
+def test_rows_without_the_f64_row_share_one_reference_run_in_a_worker(tmp_path, monkeypatch):
+    """--backends c plans no numpy f64 row: every c row of the grid waits, and one float64 run
+    in a worker (the isolated sweep's way) gives them all their error."""
+    from clothbench.backends import availability
+    from clothbench.harness import sweep
+
+    if not availability("c").usable:
+        pytest.skip(f"c unavailable: {availability('c').reason}")
+    runs = []
+    real = sweep.check_errors
+    monkeypatch.setattr(sweep, "check_errors", lambda *a: runs.append(real(*a)) or runs[-1])
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "--backends", "c", "--grids", "8", "--steps", "3", "--repeat", "2", "--out", str(out)]) == 0
+    import csv
+
+    rows = list(csv.DictReader(out.open()))
+    assert len(rows) >= 2 and not any(r["precision"] == "f64" and r["backend"] == "numpy" for r in rows)
+    assert runs == [1]
+    assert all(r["status"] == "ok" and float(r["err_rms_m"]) < 1e-6 for r in rows), [r["note"] for r in rows]

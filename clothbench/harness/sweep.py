@@ -272,6 +272,7 @@ def measure_row(
 
 
 REFERENCE_FAILED = "no error measured: float64 reference failed"
+REFERENCE_BLEW_UP = "the float64 reference blew up: no error measured"
 
 
 def add_note(out: dict[str, str], note: str) -> None:
@@ -285,7 +286,7 @@ def add_error(out: dict[str, str], pos: np.ndarray, ref: np.ndarray) -> None:
         rms, worst = position_error(pos, ref)
         out.update(err_rms_m=fmt(rms), err_max_m=fmt(worst))
     else:
-        add_note(out, "the float64 reference blew up: no error measured")
+        add_note(out, REFERENCE_BLEW_UP)
 
 
 def self_contact_cells(contact: tuple[int, float] | None) -> dict[str, str]:
@@ -305,11 +306,19 @@ def _measure_in_child(row, setup, steps, repeats, known, on_progress=None, budge
     return out, references if row.variant.is_reference else {}, unchecked or {}
 
 
-def _reference_states_in_child(scene, solver, counts) -> dict:
-    """The float64 reference's final positions after each of `counts` steps, in a worker: the
-    parent never runs a native library's threads (OpenMP does not survive a fork into the next
-    row's worker)."""
-    return {count: pos for count, (pos, _) in reference_states(scene, solver, counts).items()}
+def reference_errors(scene, solver, positions: dict[int, list]) -> dict[int, list]:
+    """position_error of each of `positions` ({steps: [final positions]}) against the float64
+    reference after that many steps, from one reference run, in a worker: the parent never runs
+    a native library's threads (OpenMP does not survive a fork into the next row's worker), and
+    only the numbers come back. None for a reference that blew up."""
+    errors = {}
+
+    def compare(count, ref, _):
+        finite = np.isfinite(ref[:, :3]).all()
+        errors[count] = [position_error(pos, ref) if finite else None for pos in positions[count]]
+
+    reference_states(scene, solver, positions, on_state=compare)
+    return errors
 
 
 def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: bool) -> tuple[dict, dict]:
@@ -332,35 +341,36 @@ def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: boo
 
 
 def check_errors(waiting: list[tuple[dict, dict]], references: dict, settings) -> int:
-    """Fill the error cells of the rows in `waiting` ((row, {key: final state})), running the
-    float64 reference once per scene and solver for every step count they need that
-    `references` lacks (in a worker where settings.isolate). Returns how many reference runs
-    it made."""
-    wanted: dict = {}
-    for _, unchecked in waiting:
-        for scene, solver, steps in unchecked:
-            if (scene, solver, steps) not in references:
-                wanted.setdefault((scene, solver), set()).add(steps)
-    failed = {}
-    for (scene, solver), counts in wanted.items():
-        args = (scene, solver, sorted(counts))
+    """Fill the error cells of the rows in `waiting` ((row, {key: final state})): against
+    `references` where it holds the key, else from one float64 reference run per scene and
+    solver giving every step count the rows need (in a worker where settings.isolate). Returns
+    how many reference runs it made."""
+    wanted: dict = {}  # (scene, solver) -> {steps: [(row, final positions)]}
+    for out, unchecked in waiting:
+        for (scene, solver, steps), pos in unchecked.items():
+            if (scene, solver, steps) in references:
+                add_error(out, pos, references[scene, solver, steps])
+            else:
+                wanted.setdefault((scene, solver), {}).setdefault(steps, []).append((out, pos))
+    for (scene, solver), by_steps in wanted.items():
+        args = (scene, solver, {steps: [pos for _, pos in rows] for steps, rows in by_steps.items()})
+        why = ""
         if settings.isolate:
-            outcome = run_isolated(
-                _reference_states_in_child, args, timeout=settings.row_timeout, method=start_method(False)
-            )
-            found, failed[scene, solver] = (outcome.value, "") if outcome.ok else ({}, one_line(outcome.note))
+            outcome = run_isolated(reference_errors, args, timeout=settings.row_timeout, method=start_method(False))
+            errors, why = (outcome.value, "") if outcome.ok else ({}, one_line(outcome.note))
         else:
             try:
-                found, failed[scene, solver] = _reference_states_in_child(*args), ""
+                errors = reference_errors(*args)
             except Exception as e:
-                found, failed[scene, solver] = {}, one_line(f"{type(e).__name__}: {e}")
-        references.update({(scene, solver, count): pos for count, pos in found.items()})
-    for out, unchecked in waiting:
-        for key, pos in unchecked.items():
-            if key in references:
-                add_error(out, pos, references[key])
-            else:
-                add_note(out, f"{REFERENCE_FAILED}: {failed.get(key[:2]) or 'no state'}")
+                errors, why = {}, one_line(f"{type(e).__name__}: {e}")
+        for steps, rows in by_steps.items():
+            for (out, _), error in zip(rows, errors.get(steps) or [False] * len(rows)):
+                if error is None:
+                    add_note(out, REFERENCE_BLEW_UP)
+                elif error is False:
+                    add_note(out, f"{REFERENCE_FAILED}: {why or 'no state'}")
+                else:
+                    out.update(err_rms_m=fmt(error[0]), err_max_m=fmt(error[1]))
     return len(wanted)
 
 
@@ -609,3 +619,4 @@ def run_sweep(
         if on_step:
             on_step(len(progress.todo) * per_row, "done")
     return progress
+
