@@ -20,9 +20,10 @@ SPECS = ("verlet", "pbd-jacobi", "pbd-coloured", "vbd")
 IN_PROCESS = SimpleNamespace(isolate=False, row_timeout=None)  # check_errors' settings: no worker
 
 
+@pytest.mark.parametrize("scene", ("sphere", "carried"))  # carried: a moving body and pins that follow it
 @pytest.mark.parametrize("spec", SPECS)
-def test_one_reference_run_gives_the_bits_of_a_run_to_each_step_count(spec):
-    s = setup("sphere", 10)
+def test_one_reference_run_gives_the_bits_of_a_run_to_each_step_count(spec, scene):
+    s = setup(scene, 10)
     solver = s.solver_for(spec)
     states = reference_states(s.scene, solver, (7, 2, 5))
     assert sorted(states) == [2, 5, 7]
