@@ -80,9 +80,9 @@ def test_a_budget_cut_sweep_runs_no_reference_beside_the_f64_row(tmp_path, monke
     assert [r["grid"] for r in rows] == ["8", "8", "10", "10"]  # still in plan order
 
 
-def test_rows_without_the_f64_row_share_one_reference_run_in_a_worker(tmp_path, monkeypatch):
-    """--backends c plans no numpy f64 row: every c row of the grid waits, and one float64 run
-    in a worker (the isolated sweep's way) gives them all their error."""
+def test_rows_without_the_f64_row_share_one_reference_run_in_a_worker(tmp_path, monkeypatch, capsys):
+    """--backends c plans no numpy f64 row: one float64 run in a worker (the isolated sweep's
+    way), before the grid's first row, gives every row its error as it comes; none waits."""
     from clothbench.backends import availability
     from clothbench.harness import sweep
 
@@ -97,5 +97,6 @@ def test_rows_without_the_f64_row_share_one_reference_run_in_a_worker(tmp_path, 
 
     rows = list(csv.DictReader(out.open()))
     assert len(rows) >= 2 and not any(r["precision"] == "f64" and r["backend"] == "numpy" for r in rows)
-    assert runs == [1]
+    assert runs == [0]  # nothing left for the end of the grid
+    assert "; 1 float64 reference runs beside the rows" in capsys.readouterr().err
     assert all(r["status"] == "ok" and float(r["err_rms_m"]) < 1e-6 for r in rows), [r["note"] for r in rows]

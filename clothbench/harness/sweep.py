@@ -11,9 +11,10 @@ solver and S*R steps (or of the steps a time budget left). A row that raises is 
 and the sweep goes on.
 
 The float64 references are shared: the numpy f64 row's final state is every other row's of
-its grid and solver; a row whose reference is not known yet (a budget cut it to its own step
-count, or the f64 row did not leave one) waits, and at the end of its grid one float64 run per
-scene and solver gives every step count the waiting rows need (simulate.reference_states).
+its grid and solver (where it did not leave one of S*R steps, one run gives it before the next
+row); a row a budget cut to its own step count waits, with the rows after it, and at the end
+of its grid one float64 run per scene and solver gives every step count the waiting rows
+need (simulate.reference_states).
 """
 
 from __future__ import annotations
@@ -321,6 +322,31 @@ def reference_errors(scene, solver, positions: dict[int, list]) -> dict[int, lis
     return errors
 
 
+def _full_reference(scene, solver, steps: int) -> np.ndarray:
+    """The float64 reference's final positions after `steps` steps (for a worker)."""
+    return reference(scene, solver, steps)[0]
+
+
+def full_reference(row: PlannedRow, settings, references: dict) -> int:
+    """Before a row that is not the reference: the float64 state after S*R steps, where the
+    reference row did not leave it (skipped, or shortened by its budget), so that every row
+    that runs all its steps is checked, and written, as it comes. Returns the runs made (0, 1)."""
+    scene, total = settings.setups[row.setup_key].scene, settings.steps * settings.repeats
+    key = (scene, row.solver, total)
+    if row.variant.is_reference or key in references:
+        return 0
+    if not settings.isolate:
+        try:
+            references[key] = _full_reference(*key)
+        except Exception:  # the row's own check says why
+            pass
+        return 1
+    known = run_isolated(_full_reference, key, timeout=settings.row_timeout, method=start_method(False))
+    if known.ok:
+        references[key] = known.value
+    return 1
+
+
 def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: bool) -> tuple[dict, dict]:
     """The row's CSV row and, where its error waits for a reference, {key: its final state}."""
     setup = settings.setups[row.setup_key]
@@ -604,6 +630,7 @@ def run_sweep(
                     def report(done, before=i * per_row, what=description):
                         on_step(before + done, what)
 
+                progress.reference_runs += full_reference(row, settings, references)
                 result, unchecked = _measure(row, settings, references, report, fork_safe)
                 if unchecked or waiting:
                     waiting.append((row, result, unchecked))
@@ -619,4 +646,3 @@ def run_sweep(
         if on_step:
             on_step(len(progress.todo) * per_row, "done")
     return progress
-
