@@ -16,7 +16,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.harness import bounds
 from clothbench.harness.sweep_csv import fmt
 from clothbench.model.scene import Cylinder, Plane, Sphere
-from clothbench.model.solver import Pbd, Verlet
+from clothbench.model.solver import Pbd, Vbd, Verlet
 from tests.conftest import sphere
 
 pytestmark = pytest.mark.serial  # measures the machine's limits: one xdist worker
@@ -225,10 +225,87 @@ def test_bound_is_the_larger_part_and_names_it(measured):
             assert b["arithmetic_ms"] == max(b["divider_ms"], b["rsqrt_ms"], b["fp_ms"])
 
 
-def test_pbd_has_no_bound():
-    assert bounds.step_bound_ms(sphere(32), "f32", fixed(), solver=Pbd(dt=5e-4)) is None
-    assert set(bounds.bound_columns(sphere(32), "f32", 1.0, solver=Pbd(dt=5e-4)).values()) == {""}
-    assert bounds.step_bound_ms(sphere(32), "f32", fixed(), solver=Verlet(dt=5e-4)) is not None
+def test_pbd_jacobi_count_by_hand():
+    """8 x 8, no collider, 2 iterations, 1 substep, strict f32: 64 particles, 564 directed
+    constraints (282 = 112 structural + 98 shear + 72 bend, each seen from both ends)."""
+    scene, solver = plain(8), Pbd(dt=5e-4, iterations=2)
+    assert (scene.particles, scene.springs, len(scene.pinned())) == (64, 564, 0)
+    got = bounds.iterative_count(scene, solver, "f32", strict=True)
+    # the state once (13 elements of 4 bytes); predict 9 + update 6 fp and 3 div a particle;
+    # per iteration 22 fp, 1 sqrt, 2 div a directed constraint and 6 fp a particle
+    assert got == bounds.Ops(
+        bytes=13 * 4 * 64, fp=15 * 64 + 2 * (22 * 564 + 6 * 64), sqrt=2 * 564, div=3 * 64 + 2 * 2 * 564
+    )
+    # past the caches each iteration streams x 3 + w 1 read, 3 written, and the multipliers
+    # (written both times, read only in the second)
+    past = bounds.iterative_count(scene, solver, "f32", strict=True, cache=1)
+    assert past.bytes - got.bytes == (2 * 7 * 64 + 3 * 564) * 4 and past.fp == got.fp
+    held = (7 * 64 + 564) * 4  # x, w and the next iterate, the multipliers
+    assert bounds.iterative_count(scene, solver, "f32", strict=True, cache=held).bytes == got.bytes
+
+
+def test_pbd_coloured_count_by_hand():
+    scene, solver = plain(8), Pbd(dt=5e-4, method="coloured", iterations=2)
+    got = bounds.iterative_count(scene, solver, "f32", strict=True)
+    # 282 constraints, 28 fp, 1 sqrt, 3 div each (both ends moved); no per-particle pass
+    assert got == bounds.Ops(bytes=13 * 4 * 64, fp=15 * 64 + 2 * 28 * 282, sqrt=2 * 282, div=3 * 64 + 2 * 3 * 282)
+    past = bounds.iterative_count(scene, solver, "f32", strict=True, cache=1)
+    assert past.bytes - got.bytes == (2 * 7 * 64 + 3 * 282) * 4
+    # fast: the divisions are reciprocal estimates, counted on the rsqrt unit
+    fast = bounds.iterative_count(scene, solver, "f32")
+    assert (fast.fp, fast.sqrt, fast.div, fast.rsqrt) == (12 * 64 + 2 * 20 * 282, 0, 0, 2 * 2 * 282)
+
+
+def test_vbd_count_by_hand():
+    """A pinned corner of the 8 x 8 sheet has 4 springs (right, down, diagonal, bend): its 63
+    free neighbours' sweeps evaluate 564 - 4 of them; predict skips it, update does not."""
+    scene, solver = plain(8).replace(pin_indices=(0,)), Vbd(dt=5e-4, iterations=2)
+    assert scene.pinned().tolist() == [0]
+    got = bounds.iterative_count(scene, solver, "f32", strict=True)
+    fp = 9 * 63 + 3 * 64 + 2 * (38 * 63 + 35 * 560)
+    assert got == bounds.Ops(bytes=13 * 4 * 64, fp=fp, sqrt=2 * 560, div=3 * 64 + 2 * (6 * 63 + 2 * 560))
+    past = bounds.iterative_count(scene, solver, "f32", strict=True, cache=1)
+    assert past.bytes - got.bytes == 2 * 13 * 64 * 4  # x, w, y, x0 read and x written, each iteration
+    # float64 counts the strict arithmetic on 8-byte elements
+    f64 = bounds.iterative_count(scene, solver, "f64")
+    assert f64.bytes == 2 * got.bytes and f64.fp == got.fp and f64.div == got.div
+
+
+def test_substeps_and_chebyshev_scale_the_count():
+    scene = plain(8)
+    one = bounds.iterative_count(scene, Pbd(dt=5e-4, iterations=3), "f32")
+    two = bounds.iterative_count(scene, Pbd(dt=5e-4, iterations=3, substeps=2), "f32")
+    assert two.fp == 2 * one.fp and two.bytes == one.bytes  # the state still streamed once a step
+    cheb = bounds.iterative_count(scene, Pbd(dt=5e-4, iterations=3, chebyshev_rho=0.9), "f32")
+    assert cheb.fp - one.fp == 2 * (6 * 64 + 2 * 564)  # the second and third iterations extrapolated
+
+
+def test_every_solver_has_a_bound():
+    for solver in (Verlet(dt=5e-4), Pbd(dt=5e-4), Pbd(dt=5e-4, method="coloured"), Vbd(dt=5e-4)):
+        b = bounds.step_bound_ms(sphere(32), "f32", fixed(), solver=solver)
+        assert b is not None and b["bound_ms"] > 0, solver.spec
+        cells = bounds.bound_columns(sphere(32), "f32", 1.0, solver=solver, bounds=fixed())
+        assert cells["bound_ms"] == fmt(b["bound_ms"]) and cells["bound_kind"] in ("memory", "arithmetic")
+    # the iterations are the work: ten cost more than one
+    ten = bounds.step_bound_ms(sphere(32), "f32", fixed(), solver=Pbd(dt=5e-4))["arithmetic_ms"]
+    one = bounds.step_bound_ms(sphere(32), "f32", fixed(), solver=Pbd(dt=5e-4, iterations=1))["arithmetic_ms"]
+    assert ten > 5 * one
+
+
+def test_cache_size_counts_each_shared_cache_once(tmp_path):
+    """Two CPUs, each with its own L1d and L2, sharing one L3: the instruction caches left out."""
+    caches = [("1", "Data", "48K", "{cpu}"), ("1", "Instruction", "32K", "{cpu}"), ("2", "Unified", "1024K", "{cpu}")]
+    caches.append(("3", "Unified", "32768K", "0-1"))
+    for cpu in (0, 1):
+        for k, (level, kind, size, shared) in enumerate(caches):
+            index = tmp_path / f"cpu{cpu}" / "cache" / f"index{k}"
+            index.mkdir(parents=True)
+            for name, value in (("level", level), ("type", kind), ("size", size), ("shared_cpu_list", shared)):
+                (index / name).write_text(value.format(cpu=cpu) + "\n")
+    assert bounds.cache_bytes([0, 1], root=tmp_path) == 2 * (48 << 10) + 2 * (1 << 20) + (32 << 20)
+    assert bounds.cache_bytes([0], root=tmp_path) == (48 << 10) + (1 << 20) + (32 << 20)
+    assert bounds.cache_bytes([0], root=tmp_path / "none") == 0  # sysfs silent: unknown
+    assert bounds.MachineBounds.from_dict(fixed().to_dict()).cache_bytes == 0  # unknown: every iteration fits
 
 
 def test_csv_cells():

@@ -132,3 +132,31 @@ def test_limits_that_cannot_be_measured_are_tried_once_and_the_rows_say_nothing(
     rows = rows_of(out)
     assert len(rows) == 4 and all(r["bound_ms"] == "" and r["bandwidth_gb_s"] == "" for r in rows)
     assert "no machine bound measured: no C compiler found" in capsys.readouterr().err
+
+
+def test_every_solver_row_has_a_bound(tmp_path):
+    from clothbench.native import compiler
+
+    if compiler() is None:
+        pytest.skip("no C compiler: the bound is not measured (the columns stay empty)")
+    out = tmp_path / "s.csv"
+    solvers = "verlet,pbd-jacobi,pbd-coloured,vbd"
+    args = ["sweep", "--backends", "numpy", "--grids", "16", "--solvers", solvers, *TINY, "--out", str(out)]
+    assert main(args) == 0
+    rows = rows_of(out)
+    specs = {r["solver"] + (f"-{r['pbd_method']}" if r["pbd_method"] else "") for r in rows}
+    assert specs == set(solvers.split(","))
+    for r in rows:
+        assert r["status"] == "ok", r["note"]
+        assert float(r["bound_ms"]) > 0 and r["bound_kind"] in ("memory", "arithmetic"), r["solver"]
+        assert float(r["bound_fraction"]) == pytest.approx(float(r["bound_ms"]) / float(r["ms_median"]), rel=1e-4)
+
+
+def test_the_columns_doc_says_what_the_bound_is_for_each_solver(capsys):
+    from clothbench.model.solver import SOLVER_SPECS
+
+    assert main(["sweep", "--columns"]) == 0
+    bound = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("bound_ms "))
+    for spec in SOLVER_SPECS:
+        if spec != "pbd":  # pbd alone is the scene file's method, one of the two named
+            assert spec in bound, spec

@@ -286,6 +286,7 @@ def cmd_sweep(args) -> int:
     _note(
         f"{len(progress.measured)} rows measured, {total} in {args.out}"
         + (f"; {len(bad)} not ok (see the status and note columns)" if bad else "")
+        + (f"; {progress.reference_runs} float64 reference runs beside the rows" if progress.reference_runs else "")
         + (f"; Google Benchmark JSON in {json_path}" if json_path else "")
     )
     return 0

@@ -26,8 +26,10 @@ import time
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Iterable
 
 from clothbench.model.colliders.kinds import KINDS
+from clothbench.model.scene import OFFSETS
 from clothbench.model.solver import ITERATIVE
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS, fmt
@@ -67,6 +69,9 @@ class MachineBounds:
     array_mib: int  # size of each streamed array
     compiler: str
     seconds: float  # what measuring cost, child process included
+    # data cache the measured threads can hold between them (cache_bytes()); 0: unknown, and
+    # then every iteration's working set is taken to fit (the smaller bound)
+    cache_bytes: int = 0
 
     @property
     def bandwidth_gb_s(self) -> float:
@@ -193,7 +198,34 @@ def measure_here(threads: int, array_mib: int) -> dict:
         array_mib=array_mib,
         compiler=compiler().version,
         seconds=0.0,
+        cache_bytes=cache_bytes(),
     )
+
+
+SYS_CPU = Path("/sys/devices/system/cpu")
+CACHE_UNITS = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}  # sysfs writes sizes as 48K, 32768K
+
+
+def cache_bytes(cpus: Iterable[int] | None = None, root: Path = SYS_CPU) -> int:
+    """The data caches the CPUs this process may use hold between them (every level, each
+    shared cache once), from Linux's sysfs; 0 where it does not say. What a PBD or VBD
+    iteration's working set must exceed before it streams from memory each iteration."""
+    cpus = sorted(os.sched_getaffinity(0)) if cpus is None and hasattr(os, "sched_getaffinity") else cpus or [0]
+    seen, total = set(), 0
+    for cpu in cpus:
+        for index in sorted((root / f"cpu{cpu}" / "cache").glob("index*")):
+            try:
+                kind = (index / "type").read_text().strip()
+                level = (index / "level").read_text().strip()
+                shared = (index / "shared_cpu_list").read_text().strip()
+                size = (index / "size").read_text().strip()
+            except OSError:
+                continue
+            if kind == "Instruction" or (level, shared) in seen:
+                continue
+            seen.add((level, shared))
+            total += int(size[:-1]) * CACHE_UNITS[size[-1]] if size[-1] in CACHE_UNITS else int(size)
+    return total
 
 
 # --- counting --------------------------------------------------------------------------
@@ -288,21 +320,113 @@ def step_count(
     return total
 
 
-def step_bound_ms(
-    scene,
-    precision: str,
-    bounds: MachineBounds | None,
-    *,
-    strict: bool = False,
-    normals: bool = False,
-    solver=None,
-    layout: str = BOUND_LAYOUT,
-) -> dict | None:
-    """The lower bound on one step's wall time on this machine, in ms, with its parts; None
-    without measured bounds, or for the pbd and vbd solvers (docs/bounds.md: not counted)."""
-    if bounds is None or (solver is not None and solver.name in ITERATIVE):
-        return None
-    work = step_count(scene, precision, strict=strict, normals=normals, layout=layout)
+# PBD and VBD (docs/bounds.md, "PBD and VBD"): counted from kernels/pbd_cloth.cl and
+# kernels/vbd_cloth.cl as the Verlet step is, per unit of work. Strict: every operation of
+# the kernel's CLOTH_STRICT lines; fast: its rsqrt lines with mul+add contracted. Work a kernel
+# may hoist out of the iterations (a particle's constraint count and relax / count, VBD's
+# count * bh) and selects and negations are not counted: a floor. A fast division is counted
+# as an rsqrt, at that unit's rate: fast math may take it as a reciprocal estimate and a Newton
+# step, as it takes 1 / sqrt, off the divider.
+ITERATIVE_COUNTS = {
+    True: dict(
+        predict=Ops(fp=9),  # pbd: v + g h 3, x + v h 6; vbd: (x + v h) + g h^2 9
+        pbd_update=Ops(fp=6, div=3),  # (xs - x) / h 3 sub 3 div, * damp 3
+        vbd_update=Ops(fp=3, div=3),  # (xs - x) / h
+        # per directed constraint: d 3, L2 5, denom 2, L - rest 1, at*lam 1, - 1, / denom,
+        # w*dl 1, / L, corr += d*s 6, lam + dl*scale 2
+        jacobi=Ops(fp=22, sqrt=1, div=2),
+        jacobi_particle=Ops(fp=6),  # x + corr * scale
+        # per constraint, both ends moved: d 3, L2 5, denom 2, L - rest 1, at*lam 1, - 1,
+        # / denom, w_i*dlam 1, / L, x_i + d*s 6, w_j*dlam 1, / L, x_j - d*s 6, lam + dlam 1
+        coloured=Ops(fp=28, sqrt=1, div=3),
+        # per directed spring of a free particle: d 3, L2 5, rest / sqrt, 1 - 1, k* 1, f + d*s 6,
+        # k - a 1, / L2, b*d 3, diagonal a + b*d 9, off-diagonal 6
+        vbd_spring=Ops(fp=35, sqrt=1, div=2),
+        # per free particle: f = (x - y) mh2 + (x - x0) cb 15; LDL^T 20 fp and 6 div; x - p 3
+        vbd_particle=Ops(fp=38, div=6),
+        chebyshev_particle=Ops(fp=9),  # omega (x - before) + before
+        chebyshev_lambda=Ops(fp=3),  # jacobi: the same for each directed multiplier
+    ),
+    False: dict(
+        predict=Ops(fp=6),  # the multiply-adds contracted
+        pbd_update=Ops(fp=6),  # (xs - x) * (damp / h): / h by a uniform, folded
+        vbd_update=Ops(fp=6),
+        # d 3, L2 3, denom 2, rest - L2*inv_L - at*lam 2, / denom, w*dl*inv_L 2, corr 3 FMA, lam 1
+        jacobi=Ops(fp=16, rsqrt=2),
+        jacobi_particle=Ops(fp=3),
+        # d 3, L2 3, denom 2, numerator 2, / denom, dlam*inv_L 1, two ends (w*s 1, 3 FMA) 8, lam 1
+        coloured=Ops(fp=20, rsqrt=2),
+        # d 3, L2 3, k (1 - rest*rsqrt) 2, f 3 FMA, k - a 1, / L2, b*d 3, diagonal 6, off 3
+        vbd_spring=Ops(fp=24, rsqrt=2),
+        vbd_particle=Ops(fp=25, rsqrt=6),  # f 12, LDL^T 10 (a - b*c: one FMA), x - p 3
+        chebyshev_particle=Ops(fp=6),
+        chebyshev_lambda=Ops(fp=2),
+    ),
+}
+# What an iteration holds and streams once that no longer fits the caches
+# (MachineBounds.cache_bytes), the least any kernel moves, in elements: (held a particle,
+# streamed a particle); every method also holds its multipliers, read and written once an
+# iteration (not read in the first: they start at 0). Jacobi reads the iterate (x 3, w 1) and
+# writes the next (3) beside it, one multiplier per directed constraint updated in place;
+# coloured reads and writes the positions once (its batches in turn touch every particle; the
+# rows a batch reaches are cache hits), one multiplier per constraint; VBD reads x 3 + w 1, the
+# inertial target y 3 and the substep's start x0 3, and writes x 3 in place. Neither a
+# constraint's index pair nor a colour's particle list is counted: a kernel can compute them
+# from the grid, as the vector kernels do.
+ITERATION_ELEMENTS = {"jacobi": (7, 7), "coloured": (4, 7), "vbd": (10, 13)}
+STEP_ELEMENTS = 13  # the step's state read (x 3, v 3, w 1) and written (x 3, v 3) once
+
+
+def _free_springs(scene) -> int:
+    """Directed springs from free particles: what a VBD sweep evaluates."""
+    n, degree = scene.grid, 0
+    for i in scene.pinned():
+        r, c = divmod(int(i), n)
+        degree += sum(0 <= r + dr < n and 0 <= c + dc < n for dr, dc in OFFSETS)
+    return scene.springs - degree
+
+
+def iterative_count(scene, solver, precision: str = "f32", *, strict: bool = False, cache: int = 0) -> Ops:
+    """Bytes streamed and operations done by one PBD (Jacobi or coloured) or VBD step of
+    `scene`: solver.substeps substeps of predict, solver.iterations iterations, colliders and
+    update. An iteration's arrays count as streamed only where they exceed `cache` bytes (0:
+    unknown, taken to fit); the step's state is streamed once."""
+    if precision not in PRECISION_BYTES:
+        raise ClothbenchError(f"precision must be one of {', '.join(PRECISION_BYTES)}, got {precision!r}")
+    c = ITERATIVE_COUNTS[strict or precision == "f64"]
+    colliders = COUNTS[strict or precision == "f64"]
+    per_particle = sum((colliders[kind.name] * len(getattr(scene, kind.plural)) for kind in KINDS), Ops())
+    particles, size = scene.particles, PRECISION_BYTES[precision]
+    free = particles - len(scene.pinned())
+    iterations, chebyshev = solver.iterations, solver.chebyshev_rho > 0
+    extrapolated = iterations - 1 if chebyshev else 0  # Chebyshev from the second iteration on
+    if solver.name == "vbd":
+        method, multipliers = "vbd", 0
+        iteration = c["vbd_particle"] * free + c["vbd_spring"] * _free_springs(scene)
+        substep = c["predict"] * free + c["vbd_update"] * particles + per_particle * particles
+        substep = substep + c["chebyshev_particle"] * (free * extrapolated)
+    else:
+        method = solver.method
+        if method == "jacobi":
+            multipliers = scene.springs  # one per directed constraint: each end keeps its own
+            iteration = c["jacobi"] * scene.springs + c["jacobi_particle"] * particles
+            cheb = c["chebyshev_particle"] * particles + c["chebyshev_lambda"] * scene.springs
+        else:
+            multipliers = scene.springs // 2
+            iteration = c["coloured"] * multipliers
+            cheb = Ops()  # the coloured sweep has no extrapolation
+        substep = c["predict"] * free + c["pbd_update"] * particles + per_particle * particles
+        substep = substep + cheb * extrapolated
+    held_elements, streamed_elements = ITERATION_ELEMENTS[method]
+    iterations_bytes = 0.0
+    if cache and (held_elements * particles + multipliers) * size > cache:  # streamed each iteration
+        iterations_bytes = (streamed_elements * particles * iterations + multipliers * (2 * iterations - 1)) * size
+    per_substep = substep + iteration * iterations + Ops(bytes=iterations_bytes)
+    return Ops(bytes=STEP_ELEMENTS * size * particles) + per_substep * solver.substeps
+
+
+def _bound(work: Ops, precision: str, bounds: MachineBounds) -> dict:
+    """bound_ms and its parts for `work` on `bounds`' machine (docs/bounds.md: the formula)."""
     r = bounds.rates(precision)
     memory_ms = work.bytes / (bounds.bandwidth_gb_s * 1e9) * 1e3
     # sqrt and division may share one unit (measured pairs show it): whatever they share, the
@@ -327,6 +451,28 @@ def step_bound_ms(
     )
 
 
+def step_bound_ms(
+    scene,
+    precision: str,
+    bounds: MachineBounds | None,
+    *,
+    strict: bool = False,
+    normals: bool = False,
+    solver=None,
+    layout: str = BOUND_LAYOUT,
+) -> dict | None:
+    """The lower bound on one step's wall time on this machine, in ms, with its parts; None
+    without measured bounds. A pbd or vbd `solver` is counted by iterative_count, a Verlet
+    one (or none) by step_count."""
+    if bounds is None:
+        return None
+    if solver is not None and solver.name in ITERATIVE:
+        return _bound(
+            iterative_count(scene, solver, precision, strict=strict, cache=bounds.cache_bytes), precision, bounds
+        )
+    return _bound(step_count(scene, precision, strict=strict, normals=normals, layout=layout), precision, bounds)
+
+
 # --- CSV cells -------------------------------------------------------------------------
 
 
@@ -346,7 +492,7 @@ def bound_columns(
     for either mode); `layout` the bytes of one kernel's state rather than the least any
     moves (LAYOUT_ELEMENTS). `bounds` defaults to this process's measure_machine() (measured on
     first use)."""
-    if bounds is None and (solver is None or solver.name == "verlet"):
+    if bounds is None:
         bounds = machine_or_reason()[0]
     result = step_bound_ms(scene, precision, bounds, strict=strict, normals=normals, solver=solver, layout=layout)
     if result is None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Callable
 
 import numpy as np
 
@@ -16,11 +17,9 @@ def simulate(
     backend: str, scene: Scene, solver: Solver, steps: int, options: BackendOptions | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(pos, prev) after `steps` steps of `scene` stepped by `solver` from its start on `backend`."""
-    options = options or BackendOptions()
-    with create_backend(backend, scene, solver, options) as b:
-        b.upload(*b.initial_state())
-        b.advance(steps)
-        return b.read()
+    found = []
+    _states(backend, scene, solver, [steps], options or BackendOptions(), lambda _, *state: found.append(state))
+    return found[0]
 
 
 @lru_cache(maxsize=32)
@@ -31,16 +30,45 @@ def reference(scene: Scene, solver: Solver, steps: int, precision: str = "f64") 
     run: the same operations in the same order, so NumPy float64's bits (tests/test_c_backend.py
     holds it to that), at a fraction of NumPy's time on large grids (docs/c.md). Float32
     references stay NumPy's own: they are what every strict backend is compared against."""
+    return reference_states(scene, solver, (steps,), precision)[steps]
+
+
+def reference_states(
+    scene: Scene, solver: Solver, counts, precision: str = "f64", on_state: Callable | None = None
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """reference()'s (pos, prev) after each of `counts` steps, from one run: the backend
+    advances from one count to the next, which gives the bits of a separate run to each
+    (tests/test_sweep_references.py holds it to that), for the cost of the largest alone. With
+    `on_state`, each state goes to on_state(count, pos, prev) as it is reached instead, and
+    none is kept (a 2048^2 float64 state is 128 MiB)."""
+    counts = sorted(set(counts))
+    keep: dict = {}
+    if on_state is None:
+
+        def on_state(count, pos, prev):
+            pos.setflags(write=False)
+            prev.setflags(write=False)
+            keep[count] = (pos, prev)
+
     if precision == "f64" and solver.name == "verlet" and availability("c").usable and c_takes(scene):
         try:
-            pos, prev = simulate("c", scene, solver, steps, BackendOptions(precision="f64", strict=True))
+            _states("c", scene, solver, counts, BackendOptions(precision="f64", strict=True), on_state)
+            return keep
         except ClothbenchError:  # a compiler that cannot build it: NumPy gives the same bits
-            pos, prev = simulate("numpy", scene, solver, steps, BackendOptions(precision=precision))
-    else:
-        pos, prev = simulate("numpy", scene, solver, steps, BackendOptions(precision=precision))
-    pos.setflags(write=False)
-    prev.setflags(write=False)
-    return pos, prev
+            pass
+    _states("numpy", scene, solver, counts, BackendOptions(precision=precision), on_state)
+    return keep
+
+
+def _states(backend: str, scene: Scene, solver: Solver, counts, options: BackendOptions, on_state) -> None:
+    with create_backend(backend, scene, solver, options) as b:
+        b.upload(*b.initial_state())
+        done = 0
+        for count in counts:
+            b.advance(count - done)
+            done = count
+            pos, prev = b.read()
+            on_state(count, pos.copy(), prev.copy())  # a backend may hand out views of its state
 
 
 def c_takes(scene: Scene) -> bool:

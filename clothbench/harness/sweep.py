@@ -6,8 +6,15 @@ A row is timed by the shared harness (harness/timing.py): build and warm up, the
 of S steps from the solver's start, each between two synchronisations; uploads and
 readbacks are outside the clock except in a per-step transfer mode, whose point is their
 cost. The final state is then compared with the NumPy float64 run of the same scene,
-solver and S*R steps. A row that raises is written as `failed` and one that blows up as
-`unstable`, with the reason and empty measurement columns, and the sweep goes on.
+solver and S*R steps (or of the steps a time budget left). A row that raises is written as
+`failed` and one that blows up as `unstable`, with the reason and empty measurement columns,
+and the sweep goes on.
+
+The float64 references are shared: the numpy f64 row's final state is every other row's of
+its grid and solver (where it did not leave one of S*R steps, one run gives it before the next
+row); a row a budget cut to its own step count waits, with the rows after it, and at the end
+of its grid one float64 run per scene and solver gives every step count the waiting rows
+need (simulate.reference_states).
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.harness import faults, noise
 from clothbench.harness.executor import Outcome, fork_safe, run_isolated, start_method
 from clothbench.harness.plan import SceneVariant, Variant, plan_variants
-from clothbench.harness.simulate import position_error, reference
+from clothbench.harness.simulate import position_error, reference, reference_states
 from clothbench.harness.sweep_csv import (
     BUDGET_NOTE,
     COLUMNS,
@@ -171,11 +178,15 @@ def measure_row(
     references: dict | None = None,
     on_progress: Callable[[int], None] | None = None,
     budget_s: float | None = None,
+    unchecked: dict | None = None,
 ) -> dict[str, str]:
     """Time `row` (R chunks of S steps after warm-up) and compare its final state with the
     float64 reference. Never raises for a backend's failure: that becomes the row's status.
     `setup` is the row's scene at its grid; the row's own solver steps it. `references` maps a
-    (scene, solver) to a reference final state already known (the numpy f64 row's)."""
+    (scene, solver, steps) to a reference final state already known (the numpy f64 row's, which
+    this row adds when it is that row). Where none is known for the steps that ran, the row runs
+    the reference itself, or with `unchecked` leaves its error to the caller: its final state
+    goes into `unchecked` under that key and the err cells stay empty (check_errors fills them)."""
     references = {} if references is None else references
     scene, solver = setup.scene, row.solver
     total = steps * repeats
@@ -241,18 +252,17 @@ def measure_row(
         max_penetration_m=fmt(result.max_penetration),
         **self_contact_cells(result.self_contact),
     )
-    if row.variant.is_reference and not result.budget_cut:  # a shortened run is not the others' reference
-        references[(scene, solver)] = result.pos
-    try:
-        ref = None if result.budget_cut else references.get((scene, solver))  # those are of S*R steps
-        ref = ref if ref is not None else reference(scene, solver, total)[0]
-        if np.isfinite(ref[:, :3]).all():
-            rms, worst = position_error(result.pos, ref)
-            out.update(err_rms_m=fmt(rms), err_max_m=fmt(worst))
-        else:
-            out["note"] = "the float64 reference blew up: no error measured"
-    except Exception as e:
-        out["note"] = one_line(f"no error measured: float64 reference failed: {type(e).__name__}: {e}")
+    key = (scene, solver, total)
+    if row.variant.is_reference:  # the float64 run of the steps that ran, shortened or not
+        references[key] = result.pos
+    if key in references or unchecked is None:
+        try:
+            ref = references[key] if key in references else reference(scene, solver, total)[0]
+            add_error(out, result.pos, ref)
+        except Exception as e:
+            add_note(out, one_line(f"{REFERENCE_FAILED}: {type(e).__name__}: {e}"))
+    else:
+        unchecked[key] = result.pos
     out.update(busy="" if load.busy is None else fmt(load.busy), load=f"{load.why}; {machine_load.cpu_context()}")
     # a figure measured on a busy machine, or from chunks spread wide, says so (harness/noise.py)
     doubt = "; ".join(noise.doubts(load.busy, load.why, result.chunk_ms_per_step))
@@ -262,6 +272,24 @@ def measure_row(
     return out
 
 
+REFERENCE_FAILED = "no error measured: float64 reference failed"
+REFERENCE_BLEW_UP = "the float64 reference blew up: no error measured"
+
+
+def add_note(out: dict[str, str], note: str) -> None:
+    out["note"] = "; ".join(n for n in (out.get("note", ""), note) if n)
+
+
+def add_error(out: dict[str, str], pos: np.ndarray, ref: np.ndarray) -> None:
+    """The row's err_rms_m and err_max_m against the float64 reference's final positions `ref`
+    (or the note that it blew up)."""
+    if np.isfinite(ref[:, :3]).all():
+        rms, worst = position_error(pos, ref)
+        out.update(err_rms_m=fmt(rms), err_max_m=fmt(worst))
+    else:
+        add_note(out, REFERENCE_BLEW_UP)
+
+
 def self_contact_cells(contact: tuple[int, float] | None) -> dict[str, str]:
     """The row's self_pairs and self_min_distance_m: empty for a scene without [self_collision]."""
     if contact is None:
@@ -269,41 +297,68 @@ def self_contact_cells(contact: tuple[int, float] | None) -> dict[str, str]:
     return {"self_pairs": fmt(contact[0]), "self_min_distance_m": fmt(contact[1])}
 
 
-def _measure_in_child(row, setup, steps, repeats, known, on_progress=None, budget_s=None):
-    """measure_row in a worker process: the row, and the reference state it found (if it is one)."""
-    references = {} if known is None else {(setup.scene, row.solver): known}
-    out = measure_row(row, setup, steps, repeats, references, on_progress=on_progress, budget_s=budget_s)
-    return out, references.get((setup.scene, row.solver)) if row.variant.is_reference else None
+def _measure_in_child(row, setup, steps, repeats, known, on_progress=None, budget_s=None, defer=False):
+    """measure_row in a worker process: the row, the reference state it found (if it is the
+    reference row) and, with `defer`, its final state where its error is left to the parent."""
+    key = (setup.scene, row.solver, steps * repeats)
+    references = {} if known is None else {key: known}
+    unchecked = {} if defer else None
+    out = measure_row(row, setup, steps, repeats, references, on_progress, budget_s, unchecked)
+    return out, references if row.variant.is_reference else {}, unchecked or {}
 
 
-def _reference_in_child(scene, solver, steps: int) -> np.ndarray:
-    """The float64 reference's final positions, in a worker: the parent never runs a native
-    library's threads (OpenMP does not survive a fork into the next row's worker)."""
+def reference_errors(scene, solver, positions: dict[int, list]) -> dict[int, list]:
+    """position_error of each of `positions` ({steps: [final positions]}) against the float64
+    reference after that many steps, from one reference run, in a worker: the parent never runs
+    a native library's threads (OpenMP does not survive a fork into the next row's worker), and
+    only the numbers come back. None for a reference that blew up."""
+    errors = {}
+
+    def compare(count, ref, _):
+        finite = np.isfinite(ref[:, :3]).all()
+        errors[count] = [position_error(pos, ref) if finite else None for pos in positions[count]]
+
+    reference_states(scene, solver, positions, on_state=compare)
+    return errors
+
+
+def _full_reference(scene, solver, steps: int) -> np.ndarray:
+    """The float64 reference's final positions after `steps` steps (for a worker)."""
     return reference(scene, solver, steps)[0]
 
 
-def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: bool) -> dict[str, str]:
+def full_reference(row: PlannedRow, settings, references: dict) -> int:
+    """Before a row that is not the reference: the float64 state after S*R steps, where the
+    reference row did not leave it (skipped, or shortened by its budget), so that every row
+    that runs all its steps is checked, and written, as it comes. Returns the runs made (0, 1)."""
+    scene, total = settings.setups[row.setup_key].scene, settings.steps * settings.repeats
+    key = (scene, row.solver, total)
+    if row.variant.is_reference or key in references:
+        return 0
+    if not settings.isolate:
+        try:
+            references[key] = _full_reference(*key)
+        except Exception:  # the row's own check says why
+            pass
+        return 1
+    known = run_isolated(_full_reference, key, timeout=settings.row_timeout, method=start_method(False))
+    if known.ok:
+        references[key] = known.value
+    return 1
+
+
+def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: bool) -> tuple[dict, dict]:
+    """The row's CSV row and, where its error waits for a reference, {key: its final state}."""
     setup = settings.setups[row.setup_key]
     if not settings.isolate:
-        return measure_row(
-            row, setup, settings.steps, settings.repeats, references, on_progress=report, budget_s=settings.row_budget
-        )
-    key = (setup.scene, row.solver)
-    if key not in references and not row.variant.is_reference:
-        # once per grid and solver, where the reference row did not leave it (skipped, or
-        # shortened by its budget): each row's worker would otherwise run it again
-        known = run_isolated(
-            _reference_in_child,
-            (setup.scene, row.solver, settings.steps * settings.repeats),
-            timeout=settings.row_timeout,
-            method=start_method(False),
-        )
-        if known.ok:
-            references[key] = known.value
+        unchecked: dict = {}
+        args = (row, setup, settings.steps, settings.repeats, references, report, settings.row_budget, unchecked)
+        return measure_row(*args), unchecked
+    known = references.get((setup.scene, row.solver, settings.steps * settings.repeats))
     outcome = run_isolated(
         _measure_in_child,
-        (row, setup, settings.steps, settings.repeats, references.get(key)),
-        kwargs={"budget_s": settings.row_budget},
+        (row, setup, settings.steps, settings.repeats, known),
+        kwargs={"budget_s": settings.row_budget, "defer": True},
         timeout=settings.row_timeout,
         on_progress=report or (lambda done: None),
         method=start_method(fork_safe),
@@ -311,19 +366,53 @@ def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: boo
     return _row_of(outcome, row, settings, references)
 
 
-def _row_of(outcome: Outcome, row: PlannedRow, settings, references: dict) -> dict[str, str]:
-    """The CSV row of a worker's outcome: its measurement, or crashed / timeout and why."""
+def check_errors(waiting: list[tuple[dict, dict]], references: dict, settings) -> int:
+    """Fill the error cells of the rows in `waiting` ((row, {key: final state})): against
+    `references` where it holds the key, else from one float64 reference run per scene and
+    solver giving every step count the rows need (in a worker where settings.isolate). Returns
+    how many reference runs it made."""
+    wanted: dict = {}  # (scene, solver) -> {steps: [(row, final positions)]}
+    for out, unchecked in waiting:
+        for (scene, solver, steps), pos in unchecked.items():
+            if (scene, solver, steps) in references:
+                add_error(out, pos, references[scene, solver, steps])
+            else:
+                wanted.setdefault((scene, solver), {}).setdefault(steps, []).append((out, pos))
+    for (scene, solver), by_steps in wanted.items():
+        args = (scene, solver, {steps: [pos for _, pos in rows] for steps, rows in by_steps.items()})
+        why = ""
+        if settings.isolate:
+            outcome = run_isolated(reference_errors, args, timeout=settings.row_timeout, method=start_method(False))
+            errors, why = (outcome.value, "") if outcome.ok else ({}, one_line(outcome.note))
+        else:
+            try:
+                errors = reference_errors(*args)
+            except Exception as e:
+                errors, why = {}, one_line(f"{type(e).__name__}: {e}")
+        for steps, rows in by_steps.items():
+            for (out, _), error in zip(rows, errors.get(steps) or [False] * len(rows)):
+                if error is None:
+                    add_note(out, REFERENCE_BLEW_UP)
+                elif error is False:
+                    add_note(out, f"{REFERENCE_FAILED}: {why or 'no state'}")
+                else:
+                    out.update(err_rms_m=fmt(error[0]), err_max_m=fmt(error[1]))
+    return len(wanted)
+
+
+def _row_of(outcome: Outcome, row: PlannedRow, settings, references: dict) -> tuple[dict[str, str], dict]:
+    """The CSV row of a worker's outcome: its measurement, or crashed / timeout and why; and
+    {key: final state} where its error waits for a reference."""
     setup = settings.setups[row.setup_key]
     if not outcome.ok:
         out = base_row(row, setup, settings.steps, settings.repeats)
         out.update(status=outcome.status, note=one_line(outcome.note), **environment.collect())
         if outcome.host:
             out["host"] = outcome.host
-        return out
-    result, pos = outcome.value
-    if pos is not None:
-        references[(setup.scene, row.solver)] = pos
-    return result
+        return out, {}
+    result, found, unchecked = outcome.value
+    references.update(found)
+    return result, unchecked
 
 
 def _run_distributed(todo, settings, executor, keep, have, name, on_step, per_row) -> None:
@@ -343,7 +432,7 @@ def _run_distributed(todo, settings, executor, keep, have, name, on_step, per_ro
             outcome = future.result()
         except Exception as e:  # the scheduler gave up on it (e.g. KilledWorker: it killed every worker it ran on)
             outcome = Outcome("crashed", note=f"{type(e).__name__}: {e}")
-        result = _row_of(outcome, row, settings, {})
+        result, _ = _row_of(outcome, row, settings, {})  # a remote row ran its own reference
         if row_key(result) in written:
             continue
         written.add(row_key(result))
@@ -374,6 +463,7 @@ class SweepProgress:
     # `clothbench machine`'s verdict before the first row (machine_fitness.Fitness), where rows run
     # here; every row of the run records it (machine_state)
     fitness: object = None
+    reference_runs: int = 0  # float64 reference runs the sweep made beside its rows (check_errors)
 
     @property
     def already(self) -> int:
@@ -512,19 +602,47 @@ def run_sweep(
         if executor is not None and getattr(executor, "where", "local") != "local":
             _run_distributed(todo, settings, executor, keep, have, name, on_step, per_row)
             todo = []
-        for i, row in enumerate(todo):
-            size = f" local {row.options.local_size}" if row.options.local_size else ""
-            solver = f" {row.solver.spec}" if row.solver.name != "verlet" else ""
-            shape = f" {row.scene_variant.label}" if row.scene_variant.label else ""
-            description = f"{row.backend}{solver} {row.variant.label}{size}{shape} n={row.grid} ({i + 1}/{len(todo)})"
-            report = None
-            if on_step:
-                on_step(i * per_row, description)
+        # rows in plan order from the first whose error waits for a reference (check_errors, at
+        # the end of its grid and scene variant), so that each row is written in order
+        waiting: list[tuple[PlannedRow, dict, dict]] = []
 
-                def report(done, before=i * per_row, what=description):
-                    on_step(before + done, what)
+        def release() -> None:
+            progress.reference_runs += check_errors([(r, u) for _, r, u in waiting], references, settings)
+            for planned, result, _ in waiting:
+                keep(planned, result)
+            waiting.clear()
+            references.clear()  # keyed by scene: a grid's references serve no other grid
 
-            keep(row, _measure(row, settings, references, report, fork_safe))
+        try:
+            for i, row in enumerate(todo):
+                if i and row.setup_key != todo[i - 1].setup_key:
+                    release()
+                size = f" local {row.options.local_size}" if row.options.local_size else ""
+                solver = f" {row.solver.spec}" if row.solver.name != "verlet" else ""
+                shape = f" {row.scene_variant.label}" if row.scene_variant.label else ""
+                description = (
+                    f"{row.backend}{solver} {row.variant.label}{size}{shape} n={row.grid} ({i + 1}/{len(todo)})"
+                )
+                report = None
+                if on_step:
+                    on_step(i * per_row, description)
+
+                    def report(done, before=i * per_row, what=description):
+                        on_step(before + done, what)
+
+                progress.reference_runs += full_reference(row, settings, references)
+                result, unchecked = _measure(row, settings, references, report, fork_safe)
+                if unchecked or waiting:
+                    waiting.append((row, result, unchecked))
+                else:
+                    keep(row, result)
+            release()
+        except BaseException:  # interrupted: the rows measured are kept, without the error they waited for
+            for planned, result, unchecked in waiting:
+                if unchecked:
+                    add_note(result, "no error measured: the sweep stopped before its float64 reference ran")
+                keep(planned, result)
+            raise
         if on_step:
             on_step(len(progress.todo) * per_row, "done")
     return progress

@@ -24,8 +24,11 @@ BUDGET_NOTE = "time budget"  # how the note of a row its per-row time budget sho
 
 # The columns of the machine's limits (harness/bounds.py), with what each means.
 BOUND_COLUMN_DOCS = {
-    "bound_ms": "the machine's lower bound on ms per step for this scene and precision: max(memory, arithmetic), "
-    "measured in this run (docs/bounds.md); empty where there is none (no C compiler, pbd, vbd)",
+    "bound_ms": "the machine's lower bound on ms per step for this scene, solver and precision: max(memory, "
+    "arithmetic), measured in this run (docs/bounds.md); verlet: the step's state streamed once and its springs, "
+    "particles and colliders' operations; pbd-jacobi, pbd-coloured, vbd: the state streamed once a step, each "
+    "substep's iterations (per directed constraint, per constraint, per free particle and its springs) with their "
+    "arrays streamed again each iteration only where they exceed the caches; empty where there is no C compiler",
     "bound_kind": "which limit sets bound_ms: memory (bytes at the streaming rate) or arithmetic (the busiest unit)",
     "bound_fraction": "bound_ms / ms_median: the fraction of the machine's bound achieved (1 = at the bound)",
 }

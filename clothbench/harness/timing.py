@@ -8,8 +8,14 @@ transfer mode uploads every step (the chapter's OpenCL variant) does that inside
 subnormal floats has a NumPy float32 run stepped beside it, outside the timed region too
 (strict_watch.py).
 
-Warm-up: the backend is built (kernel compiled) and advanced a few steps on a throwaway
-run before the timed run restarts from the initial state.
+Warm-up: the backend is built (kernel compiled) and advanced WARMUP_STEPS steps on a
+throwaway run before the timed run restarts from the initial state. What it is for is
+everything a backend does once, on its first step, and must not be timed: a kernel compiled
+or a program linked at its first launch, a JIT's first call, a thread pool started, the first
+touch of every buffer (the upload writes one state buffer, the step the other), the first
+readback's staging memory. One step does all of that; more would only take time (at 2048^2 a
+float64 NumPy step takes seconds). A per-row time budget then times one more synchronised step
+(_one_step_s), past all of it, to size the run.
 
 Beside the wall clock, each chunk also takes the device's own time of the same advance()
 where the backend has a device clock it trusts (backend.device_elapsed_ms): CUDA events, GL
@@ -34,7 +40,7 @@ from clothbench.harness.energy import fast_impact_warning
 from clothbench.harness.health import max_penetration, self_contact, state_problem
 from clothbench.harness.strict_watch import StrictWatch, needs_watch
 
-WARMUP_STEPS = 3
+WARMUP_STEPS = 1  # the module's doc: what a warm-up is for, and why one step does it
 
 # What a row says of a backend that reports device times without naming its clock
 # (Backend.device_elapsed_ms's contract: the device's own profiling events).
