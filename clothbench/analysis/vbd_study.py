@@ -94,7 +94,9 @@ def equal_cost_table(rows: list[dict]) -> str:
         "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in (r for r in ok if r["solver"] == "vbd"):
-        pbd = [p for p in ok if p["pbd_method"] == "coloured" and p["backend"] == r["backend"] and p["grid"] == r["grid"]]
+        pbd = [
+            p for p in ok if p["pbd_method"] == "coloured" and p["backend"] == r["backend"] and p["grid"] == r["grid"]
+        ]
         lines_by_mode = {}
         for p in pbd:
             lines_by_mode.setdefault((p["mode"].split("/pbd")[0], p["iterations"]), []).append(p)

@@ -329,7 +329,10 @@ def vbd_iterations_chart(result) -> Chart | None:
         "dashed, same colour: against Verlet's converged answer (that, plus implicit Euler's own damping)"
     ]
     fig, body, axes = _accuracy_figure(
-        f"VBD against its sweeps: {r0.scene} {r0.grid}×{r0.grid}, t = {r0.time_s:.3g} s", 1, False, _footer(notes, drawn)
+        f"VBD against its sweeps: {r0.scene} {r0.grid}×{r0.grid}, t = {r0.time_s:.3g} s",
+        1,
+        False,
+        _footer(notes, drawn),
     )
     ax = axes[0]
     body.supxlabel("sweeps over the 4 colours per substep (iterations)", fontsize=9)
