@@ -165,7 +165,7 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 def cmd_accuracy(args) -> int:
     from clothbench.analysis.convergence import dt_levels, run_accuracy, steps_for
     from clothbench.variant_names import model_name
-    from clothbench.reports.accuracy_plots import plot_convergence, plot_speed_vs_error
+    from clothbench.reports.accuracy_plots import plot_convergence, plot_speed_vs_error, plot_vbd_iterations
     from clothbench.progress import LazyProgress
     from clothbench.harness.executor import executor_for
     from clothbench.harness.preflight import check_memory, check_writable
@@ -198,6 +198,8 @@ def cmd_accuracy(args) -> int:
             check_float32_step(scene, solver.replace(dt=dt))
     out = Path(args.out or f"results/accuracy-{scene.name}.csv")
     outputs = [out, out.with_name(out.stem + "-speed.png"), out.with_name(out.stem + "-convergence.png")]
+    if any(s.name == "vbd" for s in solvers):
+        outputs.append(out.with_name(out.stem + "-vbd-iterations.png"))
     for path in outputs + ([out.with_name(out.stem + "-artefacts.csv")] if args.artefacts else []):
         check_writable(path, make_folders=args.out is None)  # before the run, not after it; results/ made
     check_memory([scene.grid], ("f64",), jobs=args.jobs)
@@ -239,8 +241,11 @@ def cmd_accuracy(args) -> int:
     speed_png, conv_png = outputs[1], outputs[2]
     plot_speed_vs_error(result, speed_png)
     plot_convergence(result, conv_png)
+    written = [out, speed_png, conv_png]
+    if len(outputs) > 3 and plot_vbd_iterations(result, outputs[3]):  # VBD with two or more sweep counts
+        written.append(outputs[3])
     _print_accuracy(result, scene, base.start, time_s)
-    print(f"wrote {out}, {speed_png}, {conv_png}")
+    print(f"wrote {', '.join(map(str, written))}")
     if args.artefacts:
         methods = tuple(dict.fromkeys(s.method for s in solvers if s.name == "pbd"))
         if not methods:

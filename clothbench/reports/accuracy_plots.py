@@ -9,7 +9,11 @@ MAX_SERIES series, peers dashed and hollow, the Pareto front, PNG and SVG).
    front drawn thin in each to read the distance from it.
 2. convergence: error against dt, a panel per platform, with the fitted order in each label
    and slopes 1 and 2 to read by.
-3. stability_map: the largest stable dt against k, a panel per scene (flat, stretched,
+3. vbd_iterations: VBD's convergence against its sweeps: the error against the exact
+   implicit-Euler step at the same dt (what the sweeps have not converged) against the sweep
+   count, a line per backend mode and dt; dashed, the same runs against Verlet's converged
+   answer (that plus implicit Euler's own damping).
+4. stability_map: the largest stable dt against k, a panel per scene (flat, stretched,
    crumpled): the linearised bound, Verlet's measured limit per platform, PBD's per method.
 
 Verlet lines are solid, PBD dash-dotted with square (Jacobi) or diamond (coloured) markers,
@@ -307,6 +311,55 @@ def plot_convergence(result, path: Path) -> None:
     save_figure(convergence_chart(result).figure, path, dpi=DPI)
 
 
+def vbd_iterations_chart(result) -> Chart | None:
+    """VBD's error against its sweep count, a line per backend mode and dt: solid against the
+    exact implicit-Euler step at the same dt (harness/implicit.py), dashed against Verlet's
+    converged answer; None unless some VBD line has two or more sweep counts."""
+    rows = [r for r in result.rows if r.solver == "vbd" and r.status == "ok" and r.vs_exact_rms > 0]
+    lines: dict[tuple, list] = {}
+    for r in rows:
+        lines.setdefault((r.backend, r.mode, r.substeps, r.dt), []).append(r)
+    lines = {key: sorted(rs, key=lambda r: r.iterations) for key, rs in lines.items() if len(rs) > 1}
+    if not lines:
+        return None
+    r0 = rows[0]
+    drawn = [r for rs in lines.values() for r in rs]
+    notes = [
+        "solid: RMS against the exact implicit-Euler step at the same dt (what the sweeps have not converged); "
+        "dashed, same colour: against Verlet's converged answer (that, plus implicit Euler's own damping)"
+    ]
+    fig, body, axes = _accuracy_figure(
+        f"VBD against its sweeps: {r0.scene} {r0.grid}×{r0.grid}, t = {r0.time_s:.3g} s",
+        1,
+        False,
+        _footer(notes, drawn),
+    )
+    ax = axes[0]
+    body.supxlabel("sweeps over the 4 colours per substep (iterations)", fontsize=9)
+    body.supylabel(f"RMS position error at t = {r0.time_s:.3g} s (m)", fontsize=9)
+    chart = Chart(fig)
+    labels = []
+    for i, ((backend, mode, substeps, dt), rs) in enumerate(lines.items()):
+        style = series_style(i, peer=is_peer(backend))
+        label = f"{backend} {mode}, dt = 1/{1 / dt:.4g} s" + (f" x {substeps} substeps" if substeps > 1 else "")
+        ax.plot([r.iterations for r in rs], [r.vs_exact_rms for r in rs], label=label, **style)
+        style.update(linestyle=":" if is_peer(backend) else "--", alpha=0.6)
+        ax.plot([r.iterations for r in rs], [r.vs_verlet_rms for r in rs], **style)
+        labels.append(label)
+    chart.panels["every run"] = labels
+    panel_legend(ax, ncol=1)
+    return chart
+
+
+def plot_vbd_iterations(result, path: Path) -> bool:
+    """Write vbd_iterations_chart at `path` (PNG, SVG beside it); False where it has nothing to draw."""
+    chart = vbd_iterations_chart(result)
+    if chart is None:
+        return False
+    save_figure(chart.figure, path, dpi=DPI)
+    return True
+
+
 def stability_map_chart(rows) -> Chart:
     """Largest stable dt against k, a panel per scene: the bound that applies (and the
     Gershgorin one), Verlet measured per platform (a platform's modes side by side), PBD per
@@ -444,7 +497,9 @@ __all__ = [
     "plot_speed_vs_error",
     "plot_convergence",
     "plot_stability_map",
+    "plot_vbd_iterations",
     "speed_vs_error_chart",
     "convergence_chart",
+    "vbd_iterations_chart",
     "stability_map_chart",
 ]
