@@ -9,7 +9,9 @@
 // substep, with a memory barrier after every dispatch (the next one reads its writes):
 //   STAGE_PREDICT    x, v -> y, xs
 //   iterations x (STAGE_SWEEP once per vertex colour, then with Chebyshev STAGE_CHEBYSHEV)
-//   STAGE_COLLIDE    xs in place (only when the scene has colliders or meshes)
+//   STAGE_COLLIDE    xs in place (only when the scene has colliders or meshes); or, with
+//   STAGE_SELF_COLLISION  ([self_collision] only, after the host's keys and sort,
+//                    kernels/self_collision.comp) xs -> y: pushed apart, then collided
 //   STAGE_UPDATE     x, xs -> v, x
 // A sweep dispatch updates the particles of one colour (docs/vbd.md, "Vertex colours"): no two
 // share a spring, so each reads only neighbours no other invocation of the dispatch writes,
@@ -40,6 +42,7 @@
 #define STAGE_CHEBYSHEV 2
 #define STAGE_COLLIDE 3
 #define STAGE_UPDATE 4
+#define STAGE_SELF_COLLISION 5
 
 layout(local_size_x = LOCAL_SIZE) in;
 
@@ -230,14 +233,24 @@ void main()
     before[i] = p;
 }
 
-#elif STAGE == STAGE_COLLIDE
+#elif STAGE == STAGE_COLLIDE || STAGE == STAGE_SELF_COLLISION
+#if STAGE == STAGE_COLLIDE
 layout(std430, binding = 0) buffer Iterate { vec4 xs[]; };
+#else
+// the final iterate, read by every particle's pass (kernels/self_collision.glsl), and the
+// pushed one, into y (no longer read: the sweeps are done), which update reads
+layout(std430, binding = 0) readonly buffer From { vec4 X[]; };
+layout(std430, binding = 1) writeonly buffer To { vec4 Y[]; };
+#define SELF_X(j) X[j]
+#include <self_collision>  // kernels/self_collision.glsl, where the scene has the table
+#endif
 
 // `vec3 collide(vec3 x)`: the scene's colliders in the fixed order (spheres, cylinders,
 // boxes, planes, meshes), from kernels/collide_KIND.glsl and collide_mesh.glsl (the host puts
 // them here; with MOTION they read this substep's rows)
 #include <colliders>
 
+#if STAGE == STAGE_COLLIDE
 // collisions as position projections on the final iterate, free particles only
 void main()
 {
@@ -249,6 +262,20 @@ void main()
         return;  // pinned particles are never collided
     xs[i] = vec4(collide(p.xyz), p.w);
 }
+#else
+// the pass (docs/semantics.md, "Self-collision"), then the colliders, free particles only
+void main()
+{
+    int i = item();
+    if (i >= n2)
+        return;
+    float w = X[i].w;
+    vec3 x = self_push(i, n);
+    if (w != 0.0)
+        x = collide(x);
+    Y[i] = vec4(x, w);
+}
+#endif
 
 #elif STAGE == STAGE_UPDATE
 layout(std430, binding = 0) buffer Pos { vec4 x[]; };

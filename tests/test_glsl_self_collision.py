@@ -1,8 +1,9 @@
-"""[self_collision] on glsl-compute's Verlet and PBD solvers (kernels/self_collision.glsl and
+"""[self_collision] on glsl-compute's Verlet, PBD and VBD solvers (kernels/self_collision.glsl and
 self_collision.comp, docs/semantics.md "Self-collision"), beyond the contract's default build
 (tests/contract/test_self_collision_contract.py): the sort itself against NumPy's; strict is the
 NumPy float32 reference bit for bit with several pairs per particle (so the sum's order shows) in
-the generic build, with normals, a padded dispatch and SSBO reads, in every PBD method, with
+the generic build, with normals, a padded dispatch and SSBO reads, in every PBD method, with VBD's
+substeps and Chebyshev, with
 cells of 1 and 2.5 thicknesses and clamped keys, and with colliders, a mesh, motion and attached
 pins acting after the pass; fast stays within float32's own error; a scene without the table
 compiles none of it; only the default kernel shape is offered with it."""
@@ -19,7 +20,7 @@ from clothbench.harness import position_error
 from clothbench.model.colliders.self_contact import KEY_LIMIT, cell_keys
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 from conftest import VERLET, require
-from test_opencl_self_collision import PBD, STEPS, assert_matches_numpy, bodies_scene, run, sheet, sheet_with_cell
+from test_opencl_self_collision import PBD, STEPS, VBD, assert_matches_numpy, bodies_scene, run, sheet, sheet_with_cell
 
 pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
 NAME = "glsl-compute"
@@ -105,6 +106,18 @@ def test_pbd_strict_matches_numpy_f32_bit_for_bit_in_every_method(method):
         assert_exact(scene, pos, f"pbd {method} {build}", solver=PBD[method], **build)
 
 
+@pytest.mark.parametrize("variant", VBD)
+def test_vbd_strict_matches_numpy_f32_bit_for_bit_with_substeps_and_chebyshev(variant):
+    scene, pos = sheet()
+    for build in ({}, {"local_size": 24}):  # a padded dispatch, the sort's too
+        assert_exact(scene, pos, f"vbd {variant} {build}", solver=VBD[variant], **build)
+
+
+def test_vbd_colliders_meshes_motion_and_attached_pins_act_after_the_pass_bit_for_bit():
+    scene, pos = bodies_scene()
+    assert_exact(scene, pos, "vbd bodies", steps=40, solver=VBD["chebyshev"])
+
+
 @pytest.mark.parametrize("build", [{}, {"generic": True}, {"mesh_collision": "naive"}], ids=str)
 def test_colliders_meshes_motion_and_attached_pins_act_after_the_pass_bit_for_bit(build):
     scene, pos = bodies_scene()
@@ -139,7 +152,9 @@ def compiled(scene, solver=VERLET, **build) -> tuple[str, set[str], int]:
         return "\n".join(b.sources.values()), switches, 0 if b.contact is None else len(b.contact.programs)
 
 
-@pytest.mark.parametrize("solver, generic", [(VERLET, False), (VERLET, True), (PBD["jacobi"], False)], ids=str)
+@pytest.mark.parametrize(
+    "solver, generic", [(VERLET, False), (VERLET, True), (PBD["jacobi"], False), (VBD["chebyshev"], False)], ids=str
+)
 def test_a_scene_without_self_collision_compiles_none_of_it(solver, generic):
     scene, _ = sheet()
     source, switches, search = compiled(scene, solver, generic=generic)

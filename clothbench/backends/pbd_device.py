@@ -6,7 +6,7 @@ PbdDeviceBackend (docs/pbd.md: opencl/pbd.py, gl/compute_pbd.py) and VbdDeviceBa
 One substep is a fixed list of launches, each seeing the previous one's writes. PBD's:
 predict, then `iterations` Jacobi passes ping-ponging two buffers (or 12 coloured batches per
 iteration), collide (or the self-collision pass, which collides after it), update. VBD's: predict, then per iteration one sweep launch per vertex
-colour (and with Chebyshev an extrapolation), collide, update. This module plans that list,
+colour (and with Chebyshev an extrapolation), collide (or the self-collision pass), update. This module plans that list,
 converts the state to and from velocity, advances and profiles by stage; a subclass makes
 each launch for its device.
 """
@@ -223,7 +223,9 @@ class VbdDeviceBackend(DeviceSolverBackend):
     def _substep_plan(self) -> list[tuple]:
         """One substep as ("predict",), ("sweep", iteration, colour), ("chebyshev", iteration)
         for the extrapolation after sweep `iteration` (iteration -1: the predicted iterate,
-        kept as the first sweep's input), ("collide",), ("update",), in launch order."""
+        kept as the first sweep's input), ("collide",), ("update",), in launch order. With
+        [self_collision], ("self collision",) takes collide's place: the pass (and the colliders
+        after it) from the final iterate into y (no longer read), which update then reads."""
         plan: list[tuple] = [("predict",)]
         if self.chebyshev:
             plan.append(("chebyshev", -1))
@@ -231,6 +233,8 @@ class VbdDeviceBackend(DeviceSolverBackend):
             plan += [("sweep", it, colour) for colour in range(VERTEX_COLOURS) if self.colour_counts[colour]]
             if self.chebyshev:
                 plan.append(("chebyshev", it))
+        if self.scene.self_collision is not None:
+            return plan + [("self collision",), ("update",)]
         if self.scene.colliders or self.scene.meshes:
             plan.append(("collide",))
         plan.append(("update",))

@@ -8,6 +8,11 @@ the (x, v) buffers, the moving bodies and the dispatch with glsl-compute's PBD s
 constants (model/kernel_inputs.py VbdConstants) compiled in as exact float32 literals; the
 sweep takes its colour's range of the particles sorted by colour as uniforms, the Chebyshev
 stage its weight. One kernel shape: a particle per invocation.
+
+Self-collision ([self_collision], docs/vbd.md), only where the scene has it: per substep after
+the last sweep (and Chebyshev), in collide's place, the final iterate is keyed and sorted
+(gl/self_contact.py, as the PBD solver's), then STAGE_SELF_COLLISION pushes it apart and
+collides it into y, which update reads (pbd_device's plan).
 """
 
 from __future__ import annotations
@@ -20,10 +25,11 @@ from clothbench.model.solver import Vbd
 from clothbench.backends.base import BackendOptions
 from clothbench.backends.gl.compute_pbd import GLComputeSolver, GLSLComputePbdBackend
 from clothbench.backends.gl.context import work_groups
+from clothbench.backends.gl.self_contact import GLSelfContact
 from clothbench.backends.pbd_device import VbdDeviceBackend
 
 KERNEL_FILE = "vbd_cloth.comp"
-STAGES = {"predict": 0, "sweep": 1, "chebyshev": 2, "collide": 3, "update": 4}  # as the kernel's
+STAGES = {"predict": 0, "sweep": 1, "chebyshev": 2, "collide": 3, "update": 4, "self collision": 5}  # as the kernel's
 
 
 class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
@@ -33,11 +39,14 @@ class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
         meshes=(*GLSLComputePbdBackend.capabilities.meshes, "vbd"),
         moving_colliders=(*GLSLComputePbdBackend.capabilities.moving_colliders, "vbd"),
         boxes=(*GLSLComputePbdBackend.capabilities.boxes, "vbd"),
+        self_collision=(*GLSLComputePbdBackend.capabilities.self_collision, "vbd"),  # docs/vbd.md
     )
     kernel_file = KERNEL_FILE
 
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
         super().__init__(scene, solver, options)
+        # [self_collision]: its defines, sort buffers and search programs; None: no pass, no code
+        self.contact = GLSelfContact.of(self.gl, scene, self.local_size)
         with self.gl:
             self.xs, self.y = self._state_buffer(), self._state_buffer()  # the iterate, the inertial target
             # Chebyshev: the inputs of the last two sweeps, taking turns
@@ -63,7 +72,9 @@ class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
         )
         if stage == "sweep" and self.image_reads:
             defines["IMAGE_READS"] = ""
-        return self._compile(stage, stage, defines)
+        if self.contact is not None:
+            defines.update(self.contact.defines)
+        return self._compile(stage, stage, defines, self_collision=self.contact is not None)
 
     def _launches_of(self, step) -> list:
         """[(program, work groups, SSBO bindings, image bindings, uniform values)] of one step
@@ -86,10 +97,14 @@ class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
             uniforms = (("omega", float(self.constants.omega[max(it, 0)])), ("apply", int(it > 0)))
         elif kind == "collide":
             bindings = (self.xs,)
-        else:
-            bindings = (self.x, self.v, self.xs)
+        elif kind == "self collision":
+            ssbos = ((0, self.xs), (1, self.y), *self.contact.bindings)
+            push = (program, work_groups(items, self.local_size), ssbos, (), ())
+            return [*self.contact.search(self.xs), push]
+        else:  # update: from y where the self-collision pass wrote it
+            bindings = (self.x, self.v, self.y if self.contact is not None else self.xs)
         uniforms = tuple((program[u], v) for u, v in uniforms)
         return [(program, work_groups(items, self.local_size), tuple(enumerate(bindings)), images, uniforms)]
 
     def close(self) -> None:
-        self._release(self.views, (self.xs, self.y, *self.before, self.order))
+        self._release(self.views, (self.xs, self.y, *self.before, self.order), (self.contact,))

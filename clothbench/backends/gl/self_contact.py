@@ -1,8 +1,8 @@
-"""What both glsl-compute solvers (compute.py, compute_pbd.py) do the same way for [self_collision]
+"""What the glsl-compute solvers (compute.py, compute_pbd.py, compute_vbd.py) do the same way for [self_collision]
 (docs/semantics.md, "Self-collision"): the pass's defines, the search's buffers and programs
 (kernels/self_collision.comp: the cell keys, then one dispatch per stage of a bitonic sort), and
 the bindings the solver's pass program reads them at (kernels/self_collision.glsl, included by
-verlet_cloth.comp and pbd_cloth.comp only where the scene has the table).
+verlet_cloth.comp, pbd_cloth.comp and vbd_cloth.comp only where the scene has the table).
 """
 
 from __future__ import annotations
