@@ -11,6 +11,9 @@
  *   iterations x (vbd_sweep x 4 colours, then with Chebyshev vbd_chebyshev)
  *   vbd_collide                      xs, in place (only when the scene has colliders or meshes)
  *   vbd_update                       x, xs -> v, x
+ * With [self_collision] (-DCLOTH_SELF_COLLISION: self_collision.cuh, the Verlet kernel's pass)
+ * the pass and then the colliders take vbd_collide's place, from xs into y (no longer read),
+ * and vbd_update reads y (docs/vbd.md, "Self-collision"). Without it there is no pass code.
  * A sweep launch updates the particles of one colour (docs/vbd.md, "Vertex colours"): no two
  * share a spring, so each reads only neighbours no other thread of the launch writes, and the
  * order of the threads within a colour changes no bit.
@@ -170,3 +173,7 @@ extern "C" __global__ void vbd_update(float4* __restrict__ x, float4* __restrict
     v[i] = make_float4((p.x - q.x) / h, (p.y - q.y) / h, (p.z - q.z) / h, 0.0f);
     x[i] = p;
 }
+
+#ifdef CLOTH_SELF_COLLISION
+#include "self_collision.cuh"
+#endif

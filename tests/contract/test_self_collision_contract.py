@@ -66,14 +66,14 @@ def assert_matches_numpy(got, scene, solver, pos, steps: int, what: str) -> None
 
 
 @pytest.mark.parametrize("steps", [1, 20])
-def test_cuda_strict_self_collision_on_its_cpu_build_matches_numpy_f32_bit_for_bit(cuda_on_cpu, steps):  # noqa: F811
+@pytest.mark.parametrize("solver_name", ["verlet", "vbd"])  # the CUDA classes that declare it
+def test_cuda_strict_self_collision_on_its_cpu_build_matches_numpy_f32_bit_for_bit(cuda_on_cpu, solver_name, steps):  # noqa: F811
+    cuda_on_cpu.install()
+    solver = SOLVERS[solver_name]
+    assert solver_name in backend_class("cuda", solver_name).capabilities.self_collision
     scene, pos = sheet()
-    backend, _ = cuda_on_cpu(scene, strict=True)
-    with backend:
-        backend.upload(pos, pos)
-        backend.advance(steps)
-        got = backend.read()[0]
-    assert_matches_numpy(got, scene, VERLET, pos, steps, "cuda (CPU build) verlet")
+    got = run("cuda", scene, solver, pos, steps, strict=True)
+    assert_matches_numpy(got, scene, solver, pos, steps, f"cuda (CPU build) {solver_name}")
 
 
 @pytest.mark.parametrize("param, solver_name", params())

@@ -39,6 +39,7 @@ from clothbench.backends.cuda.launch import (
     motion_table,
     pin_slots,
 )
+from clothbench.backends.cuda.self_contact import KERNELS as SELF_KERNELS, SelfContact, self_collision_defines
 from clothbench.backends.cuda.verlet import CudaBackend, CudaDevice, CupyRuntime, scene_defines
 
 KERNEL_FILE = "vbd_cloth.cu"
@@ -46,16 +47,22 @@ PREDICT, SWEEP, CHEBYSHEV, COLLIDE, UPDATE = "vbd_predict", "vbd_sweep", "vbd_ch
 KERNELS = (PREDICT, SWEEP, CHEBYSHEV, COLLIDE, UPDATE)
 
 
+def kernels_of(scene: Scene) -> tuple[str, ...]:
+    """The kernels a build for this scene has: KERNELS, and with [self_collision] the pass's."""
+    return (*KERNELS, *(SELF_KERNELS if scene.self_collision is not None else ()))
+
+
 def vbd_defines(scene: Scene, mesh_collision: str | None = None) -> tuple[str, ...]:
     """The -D switches that build vbd_cloth.cu for this scene: the grid side and the scene's
-    colliders, meshes and motion as collide.cuh takes them (the Verlet kernel's)."""
-    return (f"-DCLOTH_N={scene.grid}", *scene_defines(scene, mesh_collision))
+    colliders, meshes and motion as collide.cuh takes them (the Verlet kernel's), and the
+    self-collision pass where the scene has it."""
+    return (f"-DCLOTH_N={scene.grid}", *self_collision_defines(scene), *scene_defines(scene, mesh_collision))
 
 
 class VbdLaunches:
     """The device state of docs/vbd.md's step and the launches of one substep.
 
-    `runtimes[name]` runs kernel `name` (KERNELS) and allocates and moves buffers (any of them
+    `runtimes[name]` runs kernel `name` (kernels_of(scene)) and allocates and moves buffers (any of them
     does), as PingPong's runtime: CuPy's on a device, the CPU build's in the tests. The
     kernels must be built with vbd_defines(scene, ...)."""
 
@@ -99,9 +106,15 @@ class VbdLaunches:
             if self.chebyshev:  # extrapolate from sweep it - 1's input (none after sweep 0), keep sweep it + 1's
                 args = (self.xs, self.before[(it + 1) % 2], c.omega[it], i32(it > 0))
                 plan.append((CHEBYSHEV, self.n2, args, False, ()))
-        if scene.colliders or scene.meshes:
+        final = self.xs  # the positions the update reads
+        if scene.self_collision is not None:  # the pass and then the colliders, from the iterate into y
+            contact = SelfContact(scene, [runtimes[name] for name in SELF_KERNELS], block, spare=False)
+            for kernel, threads, args in contact.launches(self.xs, self.y, mesh):
+                plan.append((kernel, threads, args, kernel == SELF_KERNELS[-1] and self.motion is not None, ()))
+            final = self.y
+        elif scene.colliders or scene.meshes:
             plan.append((COLLIDE, self.n2, (self.xs, *mesh), self.motion is not None, ()))
-        plan.append((UPDATE, self.n2, (self.x, self.v, self.xs, c.h), False, ()))
+        plan.append((UPDATE, self.n2, (self.x, self.v, final, c.h), False, ()))
         self.plan = plan
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
@@ -143,6 +156,7 @@ class CudaVbdBackend(CudaDevice):
         meshes=("vbd",),
         moving_colliders=("vbd",),
         boxes=("vbd",),
+        self_collision=("vbd",),  # self_contact.py's pass, after the sweeps, before the colliders
         mesh_collisions=CudaBackend.capabilities.mesh_collisions,
         sweep_variants=({"strict": True}, {"strict": False}),
     )
@@ -150,7 +164,7 @@ class CudaVbdBackend(CudaDevice):
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
         super().__init__(scene, solver, options)
         module = self._open_device(options, vbd_defines(scene, self.mesh_collision))
-        kernels = {name: module.get_function(name) for name in KERNELS}
+        kernels = {name: module.get_function(name) for name in kernels_of(scene)}
         for kernel in kernels.values():
             self._check_local_size(kernel)
         self.effective_local_size = options.local_size or AUTO_BLOCK

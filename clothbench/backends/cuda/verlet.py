@@ -72,7 +72,7 @@ from clothbench.backends.cuda.launch import (
     kernel_constants,
     motion_rows,
 )
-from clothbench.backends.cuda.self_contact import KERNELS as SELF_KERNELS
+from clothbench.backends.cuda.self_contact import KERNELS as SELF_KERNELS, self_collision_defines
 from clothbench.model.kernel_inputs import collider_rows
 
 __all__ = ["AUTO_BLOCK", "TRANSFERS", "PingPong", "CudaBackend", "kernel_constants", "kernel_defines"]
@@ -111,7 +111,7 @@ def kernel_defines(
     kernel arguments).
     """
     defines = ["-DCLOTH_NORMALS"] if normals else []
-    defines += ["-DCLOTH_SELF_COLLISION"] if scene.self_collision is not None else []
+    defines += self_collision_defines(scene)
     if generic:
         return (*defines, "-DCLOTH_GENERIC", *scene_defines(scene, mesh_collision, generic=True))
     for name, value in kernel_constants(scene, solver).items():

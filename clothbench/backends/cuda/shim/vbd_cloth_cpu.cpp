@@ -9,3 +9,8 @@ CUDA_SHIM_EXPORT(vbd_sweep)
 CUDA_SHIM_EXPORT(vbd_chebyshev)
 CUDA_SHIM_EXPORT(vbd_collide)
 CUDA_SHIM_EXPORT(vbd_update)
+#ifdef CLOTH_SELF_COLLISION
+CUDA_SHIM_EXPORT(self_cell_keys)
+CUDA_SHIM_EXPORT(self_sort_stage)
+CUDA_SHIM_EXPORT(self_collision)
+#endif
