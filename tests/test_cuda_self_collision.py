@@ -3,7 +3,7 @@
 
 1. nvcc -ptx compiles the pass into the module, strict and fast, specialised and generic, with
    normals, meshes and motion, without a warning; strict PTX has no FMA and no approximation;
-   a scene without the table compiles none of it.
+   a scene without the table compiles none of it. The same of the VBD kernel (vbd_cloth.cu).
 2. The CPU build (shim/) run by PingPong: strict is the NumPy float32 reference bit for bit
    where each particle has several pairs (so the order of its sum shows), in both builds, both
    transfers, with normals, a block that divides neither the grid nor the sort, pad slots,
@@ -22,6 +22,7 @@ import pytest
 
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.cuda import cpu, launch
+from clothbench.backends.cuda import vbd
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.cpu import ShimRuntime
 from clothbench.backends.cuda.launch import PingPong
@@ -36,6 +37,7 @@ from conftest import VERLET, assert_bit_exact, every_kind
 from folded_sheet import folded, on_bodies
 from test_cuda import BUILDS, MODES, ONE_NVCC_WORKER, entry_body, nvcc_build
 from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
+from test_cuda_vbd import nvcc_ptx as vbd_ptx
 
 STEPS = 20  # every pair of the fold pushed, several times
 # 1.5 spacings, the fold's layers 0.5 apart: each particle has several pairs across the fold, so
@@ -180,6 +182,17 @@ def test_a_scene_without_self_collision_compiles_none_of_it(generic):
     assert hasattr(with_pass, "self_collision_launch") and not hasattr(without, "self_collision_launch")
 
 
+def test_a_vbd_scene_without_self_collision_compiles_none_of_it():
+    # the -D switches are the key of the build: without the table they are those of before the pass
+    scene, _ = sheet()
+    plain = scene.replace(self_collision=None)
+    assert vbd.vbd_defines(scene) == (vbd.vbd_defines(plain)[0], "-DCLOTH_SELF_COLLISION", *vbd.vbd_defines(plain)[1:])
+    assert vbd.kernels_of(plain) == vbd.KERNELS
+    with_pass = cpu.build(True, vbd.vbd_defines(scene), vbd.KERNEL_FILE)
+    without = cpu.build(True, vbd.vbd_defines(plain), vbd.KERNEL_FILE)
+    assert hasattr(with_pass, "self_collision_launch") and not hasattr(without, "self_collision_launch")
+
+
 NVCC_SCENES = {"fold": lambda: sheet()[0], "bodies": lambda: bodies_scene()[0]}
 
 
@@ -214,6 +227,19 @@ def test_strict_ptx_of_the_pass_rounds_every_operation_on_its_own(self_ptx):
         body = entry_body(ptx, "self_collision")
         assert "fma." not in ptx and ".approx" not in ptx and ".ftz" not in ptx, (name, build, normals)
         assert "sqrt.rn.f32" in body and "div.rn.f32" in body, (name, build, normals)
+
+
+@ONE_NVCC_WORKER
+@pytest.mark.parametrize("scene_name", NVCC_SCENES)
+@pytest.mark.parametrize("mode", MODES)
+def test_the_pass_compiles_into_the_vbd_kernel_strict_rounding_every_operation(tmp_path, mode, scene_name):
+    ptx = vbd_ptx(NVCC_SCENES[scene_name](), MODES[mode], "sm_80", tmp_path)  # no warning, or it fails
+    for kernel in (*vbd.KERNELS, *KERNELS):
+        assert f".entry {kernel}(" in ptx, f"vbd {mode} {scene_name}: no {kernel}"
+    if MODES[mode]:
+        assert "fma." not in ptx and ".approx" not in ptx and ".ftz" not in ptx, scene_name
+        body = entry_body(ptx, "self_collision")
+        assert "sqrt.rn.f32" in body and "div.rn.f32" in body, scene_name
 
 
 # --- 3. CudaBackend over the stand-in cupy -----------------------------------------------
