@@ -3,7 +3,9 @@
 Host code only; the step is the kernel file's and docs/vbd.md's. One kernel shape: a substep
 is a fixed list of launches on one stream (each sees the one before): predict, then per
 iteration one launch per vertex colour (and with Chebyshev one extrapolation), collide,
-update, each in blocks of --local-size threads (256 by default). `VbdLaunches` holds that
+update, each in blocks of --local-size threads (256 by default); with [self_collision],
+self_contact.py's pass (keys, sort stages, the pass and the colliders) from xs into y in place
+of collide, and update reads y (docs/vbd.md, "Self-collision"). `VbdLaunches` holds that
 list once, written against PingPong's small runtime (alloc, upload, download, launch), one
 runtime per kernel: CudaVbdBackend's are CuPy's, cpu.py's ShimRuntime runs the CPU build of
 the same kernels (the tests). The numbers are VbdConstants' (model/kernel_inputs.py).
