@@ -32,11 +32,13 @@ from clothbench.errors import ClothbenchError
 from clothbench.harness import position_error
 from clothbench.model.kernel_inputs import SelfCollisionConstants
 from clothbench.model.scene import SelfCollision
+from clothbench.model.solver import solver_for_spec
 
 from conftest import VERLET, assert_bit_exact, every_kind
 from folded_sheet import folded, on_bodies
 from test_cuda import BUILDS, MODES, ONE_NVCC_WORKER, entry_body, nvcc_build
 from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
+from test_cuda_vbd import launches_on_cpu
 from test_cuda_vbd import nvcc_ptx as vbd_ptx
 
 STEPS = 20  # every pair of the fold pushed, several times
@@ -133,6 +135,23 @@ def bodies_scene():
 def test_colliders_meshes_motion_and_attached_pins_act_after_the_pass_bit_for_bit(build):
     scene, pos = bodies_scene()
     assert_matches_numpy(scene, pos, f"bodies {build}", steps=40, **build)
+
+
+def test_vbd_colliders_meshes_motion_and_attached_pins_act_after_the_pass_bit_for_bit():
+    # VbdLaunches on the CPU build: the pass's rows are the substep's, as vbd_collide's were
+    scene, pos = bodies_scene()
+    solver = solver_for_spec("vbd", VERLET)
+    state = launches_on_cpu(scene, solver)
+    state.upload(pos, pos)
+    state.advance(STEPS)
+    expected = {}
+    for table in (scene.self_collision, None):
+        with create_backend("numpy", scene.replace(self_collision=table), solver, BackendOptions()) as b:
+            b.upload(pos, pos)
+            b.advance(STEPS)
+            expected[table] = b.read()[0]
+    assert_bit_exact(state.read()[0], expected[scene.self_collision], f"vbd bodies, {STEPS} steps")
+    assert not np.array_equal(expected[scene.self_collision], expected[None]), "the pass pushed no pair"
 
 
 def test_fixed_colliders_act_after_the_pass_bit_for_bit():

@@ -60,7 +60,7 @@ def all_kinds(n: int = N):
 def launches_on_cpu(scene, solver, strict=True, mesh_collision=None, block=launch.AUTO_BLOCK):
     """VbdLaunches on the CPU build of vbd_cloth.cu for exactly this scene."""
     lib = cpu.build(strict, vbd.vbd_defines(scene, mesh_collision), vbd.KERNEL_FILE)
-    return vbd.VbdLaunches({k: cpu.ShimRuntime(lib, k) for k in vbd.KERNELS}, scene, solver, block)
+    return vbd.VbdLaunches({k: cpu.ShimRuntime(lib, k) for k in vbd.kernels_of(scene)}, scene, solver, block)
 
 
 def run_on_cpu(scene, solver, steps, **options):
