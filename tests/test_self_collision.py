@@ -6,6 +6,8 @@ close pairs."""
 
 from __future__ import annotations
 
+import csv
+
 import numpy as np
 import pytest
 
@@ -22,7 +24,7 @@ from clothbench.cli import main
 from clothbench.errors import ClothbenchError, SceneError
 from clothbench.harness.plan import scene_variants
 from clothbench.harness import reference
-from clothbench.harness.health import self_contact
+from clothbench.harness.health import self_contact, state_problem
 from clothbench.model.scene import OFFSETS, SelfCollision, load_setup, setup_from_dict
 from clothbench.model.solver import Pbd, Vbd
 
@@ -248,3 +250,27 @@ def test_a_backend_without_the_pass_refuses_a_self_colliding_scene_on_the_comman
     code = main(["run", "--backend", name, "--scene", "fold", "--grid", "8", "--steps", "2"])
     err = capsys.readouterr().err.strip()
     assert code != 0 and "[self_collision]" in err and "(numpy" in err and "\n" not in err
+
+
+def test_a_sweep_off_row_is_measured_with_the_files_table_and_a_wrung_sheet_is_not_a_blow_up(tmp_path):
+    # twist at 20^2 for 1.5 s: the pins' work raises the energy past the bound of a free cloth
+    # (the energy check once called it unstable), and without the pass pairs come within the
+    # 2 cm thickness, which the `off` row counts by the file's table
+    out = tmp_path / "twist.csv"
+    args = ["sweep", "--scene", "twist", "--backends", "numpy", "--grids", "20", "--steps", "300", "--repeat", "10"]
+    assert main([*args, "--row-budget", "600", "--self-collision", "on,off", "--out", str(out)]) == 0
+    rows = {(r["mode"], r["self_collision"]): r for r in csv.DictReader(out.open())}
+    assert {r["status"] for r in rows.values()} == {"ok"}
+    off = rows[("f32", "off")]
+    assert int(off["self_pairs"]) > 0 and float(off["self_min_distance_m"]) < 0.02
+
+
+def test_pins_that_follow_a_body_leave_only_a_non_finite_state_a_blow_up():
+    scene = load_setup("twist").scene.replace(grid=8)
+    pos, prev = VERLET.initial_state(scene, np.float32)
+    fast = pos.copy()
+    fast[:, 1] += 1.0  # a metre a step: far past any free cloth's energy bound
+    assert state_problem(fast, prev, scene, VERLET, 1) is None
+    assert "energy" in state_problem(fast, prev, scene.replace(pin_attach=None, pin_groups=()), VERLET, 1)
+    fast[3, 0] = np.nan
+    assert "not finite" in state_problem(fast, prev, scene, VERLET, 1)

@@ -5,13 +5,13 @@ variants from plan_variants, so the skip rules and the names are the same everyw
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Iterable
 
 from clothbench.backends import BACKENDS, BackendOptions, availability, backend_class
 from clothbench.model.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
-from clothbench.model.scene import Scene
+from clothbench.model.scene import Scene, SelfCollision
 from clothbench.model.solver import Solver, Verlet
 from clothbench.variant_names import mesh_word, variant_label, variant_name
 
@@ -202,11 +202,15 @@ def mesh_triangles(scene: Scene) -> int | None:
 @dataclass(frozen=True)
 class SceneVariant:
     """How a row's scene differs from the sweep's scene file: its meshes' triangle count (None:
-    no meshes), its motion and its self-collision pass ('on', 'off'; '' for a scene that has none)."""
+    no meshes), its motion and its self-collision pass ('on', 'off'; '' for a scene that has none).
+    `measured_with` is, for an 'off' row, the file's [self_collision] table its scene lacks: the
+    end-of-run measure reads it, so that the row says how close the sheet came without the pass
+    (not part of the key: the 'off' is)."""
 
     mesh_triangles: int | None = None
     motion: str = ""
     self_collision: str = ""
+    measured_with: SelfCollision | None = field(default=None, compare=False)
 
     @property
     def label(self) -> str:
@@ -249,7 +253,8 @@ def scene_variants(
             moving = "on" if s.has_motion else ""
             for p in passes or [""]:
                 contact = "on" if s.self_collision is not None else ""
-                key = SceneVariant(mesh_triangles(s), m or moving, p or contact)
+                measured_with = s.self_collision if p == "off" else None
+                key = SceneVariant(mesh_triangles(s), m or moving, p or contact, measured_with)
                 run = without_motion(s) if m == "off" else s
                 out.setdefault(key, (without_self_collision(run) if p == "off" else run, notes))
     return [(k, s, notes) for k, (s, notes) in out.items()]

@@ -33,6 +33,7 @@ from clothbench import environment, machine_fitness, machine_load
 from clothbench.backends import BackendOptions, availability, create_backend, tuning
 from clothbench.errors import ClothbenchError
 from clothbench.harness import faults, noise
+from clothbench.harness.health import self_contact
 from clothbench.harness.executor import Outcome, fork_safe, run_isolated, start_method
 from clothbench.harness.plan import SceneVariant, Variant, plan_variants
 from clothbench.harness.simulate import position_error, reference, reference_states
@@ -250,7 +251,7 @@ def measure_row(
         warmup_s=fmt(result.warmup_s),
         finite=fmt(result.finite),
         max_penetration_m=fmt(result.max_penetration),
-        **self_contact_cells(result.self_contact),
+        **self_contact_cells(end_contact(row, result)),
     )
     key = (scene, solver, total)
     if row.variant.is_reference:  # the float64 run of the steps that ran, shortened or not
@@ -288,6 +289,15 @@ def add_error(out: dict[str, str], pos: np.ndarray, ref: np.ndarray) -> None:
         out.update(err_rms_m=fmt(rms), err_max_m=fmt(worst))
     else:
         add_note(out, REFERENCE_BLEW_UP)
+
+
+def end_contact(row: PlannedRow, result) -> tuple[int, float] | None:
+    """The run's close pairs at the end: by its scene's [self_collision] table, or, for an
+    `--self-collision off` row, by the file's table its scene was run without."""
+    table = row.scene_variant.measured_with
+    if table is None:
+        return result.self_contact
+    return self_contact(result.pos, result.scene.replace(self_collision=table))
 
 
 def self_contact_cells(contact: tuple[int, float] | None) -> dict[str, str]:
