@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import time
 
 import numpy as np
@@ -18,6 +19,12 @@ os.environ["CLOTHBENCH_TUNING"] = "off"
 # (tests/test_gpu_peers.py checks the refusal in a process of its own, XLA_FLAGS set empty: a
 # value given in the environment, even an empty one, is left as it is).
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_max_isa=AVX")
+# A shell's background job starts with SIGINT ignored, and every child inherits that: a test
+# that stops a child with SIGINT (tests/test_interrupts.py, tests/test_view.py's Ctrl-C) would
+# wait on a child that never hears it. Each test process takes Python's own handler back, so its
+# children start with the default disposition (a terminal's, or CI's)
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 from clothbench.backends import availability
 from clothbench.model.scene import Cylinder, Plane, Scene, Setup, Sphere, load_scene, load_setup

@@ -26,6 +26,7 @@ TABLES = {  # the README's tables: the CSV each is made from, and how
     "accuracy-64-opencl.csv": vbd_study.equal_cost_table,
     "accuracy-256-opencl.csv": vbd_study.equal_cost_table,
     "cpu-vbd-busy.csv": vbd_study.cpu_table,
+    "cpu-vbd.csv": vbd_study.cpu_table,
 }
 
 
@@ -55,6 +56,18 @@ def test_vbd_f64_reaches_the_exact_implicit_step_within_a_micrometre_after_20_st
     )
     assert [e for _, e in f64] == sorted((e for _, e in f64), reverse=True)
     assert (STUDY / "accuracy-16-iterations-vbd-iterations.png").exists()
+
+
+def test_the_quiet_cpu_sweep_meets_5x_newtons_vbd_at_every_grid_at_smaller_error():
+    # issue 33 (d), the README's verdict: the quiet file's fastest clothbench VBD row per grid
+    rows = committed("cpu-vbd.csv")
+    assert all(r["busy"] != "true" for r in rows), "the verdict needs the quiet figures"
+    for grid in ("64", "128", "256"):
+        ours = [r for r in rows if r["grid"] == grid and r["backend"] != "newton" and r["status"] == "ok"]
+        (newton,) = [r for r in rows if r["grid"] == grid and r["backend"] == "newton"]
+        fastest = min(ours, key=lambda r: float(r["ms_median"]))
+        assert float(newton["ms_median"]) >= 5 * float(fastest["ms_median"]), grid
+        assert float(fastest["err_rms_m"]) <= float(newton["err_rms_m"]), grid
 
 
 def test_vbd_holds_60hz_at_k_1e5_on_every_backend_where_verlet_needs_a_step_below_it():

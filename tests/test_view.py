@@ -363,10 +363,6 @@ def test_a_real_window_under_xvfb_driven_by_keys(tmp_path):
     assert cloth.mean() > 0.2, f"only {cloth.mean():.1%} of the middle is the cloth's colour"
 
 
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)  # a shell's background job passes SIGINT on ignored
-
-
 def _x_server(tmp_path) -> tuple[subprocess.Popen, str]:
     """Xvfb on a display it picks, leading a process group of its own as a terminal's foreground
     group would; (the server, its DISPLAY) once it takes connections."""
@@ -377,7 +373,6 @@ def _x_server(tmp_path) -> tuple[subprocess.Popen, str]:
         ["Xvfb", "-displayfd", str(ready_w), "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
         pass_fds=[ready_w],
         process_group=0,
-        preexec_fn=_default_sigint,
         stderr=open(tmp_path / "xvfb.err", "w"),
     )
     os.close(ready_w)
@@ -407,7 +402,6 @@ def test_a_signal_stops_a_window_with_one_line_and_exit_130(tmp_path, sig, to_gr
             [sys.executable, "-c", RUN, *argv],
             env=dict(os.environ, DISPLAY=display),
             process_group=server.pid,
-            preexec_fn=_default_sigint,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
