@@ -131,10 +131,6 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("serial") is not None:
             item.add_marker(pytest.mark.xdist_group("serial"))
-        elif item.path.parent.name == "contract" and item.get_closest_marker("xdist_group") is None:
-            # a contract module's tests compare with the same NumPy references (harness.reference,
-            # cached in each process): its tests in one worker make each reference once, not twice
-            item.add_marker(pytest.mark.xdist_group(item.path.stem))
         if "opencl" in item.nodeid:  # its file, its name or its registry parameter: CI reruns these per runtime
             item.add_marker(pytest.mark.opencl)
     if config.getoption("--full"):
