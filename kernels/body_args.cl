@@ -1,5 +1,5 @@
 /* body_args.cl: the extra kernel arguments of a scene with meshes, motion or attached pins,
- * for verlet_cloth.cl and pbd_cloth.cl (the host resolves the #include:
+ * for verlet_cloth.cl, pbd_cloth.cl and vbd_cloth.cl (the host resolves the #include:
  * clothbench/kernel_source.py resolve_includes). STEP_ARG, MESH_ARG and PIN_ARG go in a
  * kernel's parameters, MESH_PASS and PIN_PASS through the helpers that take them. */
 #ifndef CLOTH_MESHES

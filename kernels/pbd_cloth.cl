@@ -60,18 +60,7 @@
 #ifndef CLOTH_N
 #error "build with -DCLOTH_N=<grid side>"
 #endif
-#ifndef CLOTH_SPHERES
-#define CLOTH_SPHERES 0
-#endif
-#ifndef CLOTH_CYLINDERS
-#define CLOTH_CYLINDERS 0
-#endif
-#ifndef CLOTH_BOXES
-#define CLOTH_BOXES 0
-#endif
-#ifndef CLOTH_PLANES
-#define CLOTH_PLANES 0
-#endif
+#include "collider_counts.cl"
 #define N CLOTH_N
 #define N2 (CLOTH_N * CLOTH_N)
 /* the stride of a grid's planes and of the multipliers' planes: N2 in the float4 program; in
@@ -91,7 +80,6 @@
 /* The extra arguments of a scene with meshes, motion or attached pins: STEP_ARG, MESH_ARG,
  * PIN_ARG in a kernel's parameters, *_PASS through the helpers. */
 #include "body_args.cl"
-#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 4 * CLOTH_BOXES + 2 * CLOTH_PLANES)
 #define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a substep's collider table */
 
 /* The 12-spring stencil (d_row, d_col) in the order docs/semantics.md fixes; offsets 0-3 are

@@ -36,24 +36,12 @@
 #ifndef CLOTH_N
 #error "build with -DCLOTH_N=<grid side>"
 #endif
-#ifndef CLOTH_SPHERES
-#define CLOTH_SPHERES 0
-#endif
-#ifndef CLOTH_CYLINDERS
-#define CLOTH_CYLINDERS 0
-#endif
-#ifndef CLOTH_BOXES
-#define CLOTH_BOXES 0
-#endif
-#ifndef CLOTH_PLANES
-#define CLOTH_PLANES 0
-#endif
+#include "collider_counts.cl"
 #define N CLOTH_N
 #define N2 (CLOTH_N * CLOTH_N)
 #define INLINE __attribute__((always_inline))
 
 #include "body_args.cl"
-#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 4 * CLOTH_BOXES + 2 * CLOTH_PLANES)
 #define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a substep's collider table */
 
 /* The 12-spring stencil (d_row, d_col) in the order docs/semantics.md fixes; offsets 0-3 are

@@ -236,18 +236,7 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
 #ifndef CLOTH_N
 #error "build with -DCLOTH_N=<grid side> (or -DCLOTH_GENERIC)"
 #endif
-#ifndef CLOTH_SPHERES
-#define CLOTH_SPHERES 0
-#endif
-#ifndef CLOTH_CYLINDERS
-#define CLOTH_CYLINDERS 0
-#endif
-#ifndef CLOTH_BOXES
-#define CLOTH_BOXES 0
-#endif
-#ifndef CLOTH_PLANES
-#define CLOTH_PLANES 0
-#endif
+#include "collider_counts.cl"
 #define N CLOTH_N
 #define N2 (CLOTH_N * CLOTH_N)
 /* Floats before and after the x, y, z planes in each state buffer (CLOTH_PAD, set by the
@@ -419,7 +408,6 @@ INLINE void collide_v(floatv *x, floatv *y, floatv *z, __constant float4 *collid
 #endif
 }
 
-#define ANALYTIC_ROWS (CLOTH_SPHERES + 3 * CLOTH_CYLINDERS + 4 * CLOTH_BOXES + 2 * CLOTH_PLANES)
 #define TABLE_ROWS (ANALYTIC_ROWS + MESH_ROWS * CLOTH_MESHES) /* a step's collider table */
 
 #if CLOTH_MESHES > 0 || defined(CLOTH_SELF_COLLISION)
