@@ -253,6 +253,38 @@ def test_render_into_a_new_frames_folder_of_an_existing_one_is_checked_and_not_l
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("new_folder", [False, True], ids=["file", "frames-folder"])
+def test_a_signal_during_the_writable_probe_leaves_no_probe_behind(tmp_path, monkeypatch, new_folder):
+    # the SIGTERM run's save test caught an empty --save file left behind: the signal came between
+    # the probe's create and its unlink. Here it comes at exactly that point, sent by the probe's
+    # own close, so the handler (KeyboardInterrupt, as cli/args.sigterm_interrupts installs) must
+    # wait for the probe to be removed
+    import os
+    import signal
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    closed = []
+    real_close = os.close
+
+    def close_then_signal(fd):
+        real_close(fd)
+        closed.append(fd)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    path = tmp_path / "frames" / "x.png" if new_folder else tmp_path / "x.npz"
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    monkeypatch.setattr(preflight.os, "close", close_then_signal)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            preflight.check_writable(path, new_folder=new_folder)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert closed, "the probe never ran"
+    assert not list(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize(
     "line, words",
     [("height = 1e4", ["height 10000 is too far from 0 for float32", "np.spacing", "never moves"]),

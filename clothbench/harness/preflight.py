@@ -4,7 +4,10 @@ machine has available."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import threading
 from pathlib import Path
 from typing import Iterable
 
@@ -44,20 +47,44 @@ def check_writable(
     elif not base.is_dir():
         raise ClothbenchError(f"cannot write {what} {path}: there is no folder {base} (make it first)")
     made = new_folder and not folder.exists()
-    try:
-        if made:
-            folder.mkdir()
-        existed = path.exists()
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        os.close(fd)
-        if not existed:
-            path.unlink()
-    except OSError as e:
-        raise ClothbenchError(f"cannot write {what} {path}: {e.strerror}") from None
-    finally:
-        if made and folder.is_dir() and not any(folder.iterdir()):
-            folder.rmdir()
+    # a Ctrl-C or SIGTERM between creating the probe and removing it would leave an empty file
+    # (or folder) behind an interrupted command: both wait until the probe is gone
+    with signals_held():
+        try:
+            if made:
+                folder.mkdir()
+            existed = path.exists()
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            os.close(fd)
+            if not existed:
+                path.unlink()
+        except OSError as e:
+            raise ClothbenchError(f"cannot write {what} {path}: {e.strerror}") from None
+        finally:
+            if made and folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
     return path
+
+
+@contextlib.contextmanager
+def signals_held(signals=(signal.SIGINT, signal.SIGTERM)):
+    """SIGINT and SIGTERM held back inside the block and raised again as it ends, so their
+    handlers (KeyboardInterrupt) run after it, never half way through it. Held by a handler that
+    only notes the signal, not by the thread's signal mask: numpy's BLAS threads do not block
+    it, and the kernel hands a process its signal through any thread that does not. Only the
+    main thread runs Python's signal handlers; elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    before = {sig: signal.signal(sig, lambda signum, frame: received.append(signum)) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(received):
+            signal.raise_signal(sig)
 
 
 def check_float32_motion(scene, solver) -> None:
