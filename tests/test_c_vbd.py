@@ -6,6 +6,8 @@ Verlet library compiles none of it."""
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 
@@ -35,6 +37,24 @@ def test_strict_f64_vbd_matches_numpy_f64_bit_for_bit(scene_name):
     assert got[0].dtype == np.float64
     assert_bit_exact(got[0], want[0], f"pos, c strict f64 vbd {scene_name}")
     assert_bit_exact(got[1], want[1], f"prev, c strict f64 vbd {scene_name}")
+
+
+def test_the_f64_vbd_reference_is_stepped_by_c_and_is_numpy_f64_bit_for_bit(monkeypatch):
+    # reference(.., "f64") steps c's VBD where it takes the scene (the accuracy study's converged
+    # references were hours of NumPy's colour loop); the switch must change no bit
+    require("c")
+    scene, solver = scene_named("all-kinds", 12), Vbd(dt=AT_60HZ, iterations=6, substeps=2, chebyshev_rho=0.9)
+    runs = importlib.import_module("clothbench.harness.simulate")  # the module, not its function
+    stepped_by = []
+    states = runs._states
+    monkeypatch.setattr(runs, "_states", lambda backend, *a: (stepped_by.append(backend), states(backend, *a)))
+    runs.reference.cache_clear()
+    ref = runs.reference(scene, solver, 40, "f64")
+    runs.reference.cache_clear()
+    assert stepped_by == ["c"]
+    want = simulate("numpy", scene, solver, 40, BackendOptions(precision="f64"))
+    assert_bit_exact(ref[0], want[0], "reference pos, vbd")
+    assert_bit_exact(ref[1], want[1], "reference prev, vbd")
 
 
 def test_fast_f64_vbd_is_within_float64_error_of_numpy_f64():

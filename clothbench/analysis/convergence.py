@@ -28,7 +28,7 @@ from clothbench.harness.energy import total_energy
 from clothbench.harness import faults
 from clothbench.harness.executor import fork_safe, runner
 from clothbench.harness.plan import Variant
-from clothbench.harness.simulate import position_error, reference, simulate
+from clothbench.harness.simulate import float64_state, position_error, reference
 from clothbench.harness.implicit import exact_implicit
 from clothbench.harness.timing import run_timed
 from clothbench.model.scene import Scene
@@ -89,7 +89,8 @@ def converged_reference(
     """The float64 state of `scene` stepped by `solver` at `time_s`, refined until it stops
     changing.
 
-    Runs the NumPy float64 step at dt_finest/2, /4, ... and extrapolates each pair (Richardson,
+    Runs the float64 reference step (harness/simulate.py: NumPy's bits, stepped by c where it
+    can) at dt_finest/2, /4, ... and extrapolates each pair (Richardson,
     with the order the last three runs show, clamped to [0.5, 4]). It is converged when two
     successive extrapolations differ (max norm) by less than `rtol` times the smallest error it
     will be compared with: the float64 error of the finest measured dt. Not converged after
@@ -113,7 +114,7 @@ def converged_reference(
         dt = dt_finest / 2**level
         if on_level:
             on_level(level, dt)
-        pos, prev = runs_at.get(level) or simulate("numpy", scene, solver.replace(dt=dt), steps_for(time_s, dt), F64)
+        pos, prev = runs_at.get(level) or float64_state(scene, solver.replace(dt=dt), steps_for(time_s, dt))
         runs.append(pos)
         step = pos - prev
         if len(runs) < 3:
@@ -420,7 +421,7 @@ def run_accuracy(
     if executor is not None:  # the levels every reference runs, side by side (the finest first)
         for key, (solver, finest) in models.items():
             early[key] = {
-                lvl: run(simulate, "numpy", scene, solver.replace(dt=dt), steps_for(time_s, dt), F64)
+                lvl: run(float64_state, scene, solver.replace(dt=dt), steps_for(time_s, dt))
                 for lvl, dt in ((lvl, finest / 2**lvl) for lvl in range(EARLY_LEVELS - 1, -1, -1))
             }
     else:

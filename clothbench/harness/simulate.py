@@ -12,6 +12,9 @@ from clothbench.errors import ClothbenchError
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Solver
 
+# the solvers whose c strict float64 is NumPy float64 bit for bit (PBD has no c class)
+C_REFERENCE_SOLVERS = ("verlet", "vbd")
+
 
 def simulate(
     backend: str, scene: Scene, solver: Solver, steps: int, options: BackendOptions | None = None
@@ -26,11 +29,18 @@ def simulate(
 def reference(scene: Scene, solver: Solver, steps: int, precision: str = "f64") -> tuple[np.ndarray, np.ndarray]:
     """The NumPy reference state, cached: many comparisons share one reference run.
 
-    A float64 Verlet reference is stepped by the `c` backend in strict float64 where it can
-    run: the same operations in the same order, so NumPy float64's bits (tests/test_c_backend.py
-    holds it to that), at a fraction of NumPy's time on large grids (docs/c.md). Float32
-    references stay NumPy's own: they are what every strict backend is compared against."""
+    A float64 Verlet or VBD reference is stepped by the `c` backend in strict float64 where it
+    takes the scene: the same operations in the same order, so NumPy float64's bits
+    (tests/test_c_backend.py and tests/test_c_vbd.py hold it to that), at a fraction of NumPy's
+    time (docs/c.md; NumPy's VBD is a Python loop over colours and sweeps). Float32 references
+    stay NumPy's own: they are what every strict backend is compared against."""
     return reference_states(scene, solver, (steps,), precision)[steps]
+
+
+def float64_state(scene: Scene, solver: Solver, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """reference()'s float64 (pos, prev) after `steps`, not cached: a converged reference's
+    levels are each run once (and a 2048^2 state is 128 MiB)."""
+    return reference_states(scene, solver, (steps,))[steps]
 
 
 def reference_states(
@@ -50,7 +60,12 @@ def reference_states(
             prev.setflags(write=False)
             keep[count] = (pos, prev)
 
-    if precision == "f64" and solver.name == "verlet" and availability("c").usable and c_takes(scene):
+    if (
+        precision == "f64"
+        and solver.name in C_REFERENCE_SOLVERS
+        and availability("c").usable
+        and c_takes(scene, solver)
+    ):
         try:
             _states("c", scene, solver, counts, BackendOptions(precision="f64", strict=True), on_state)
             return keep
@@ -71,9 +86,10 @@ def _states(backend: str, scene: Scene, solver: Solver, counts, options: Backend
             on_state(count, pos.copy(), prev.copy())  # a backend may hand out views of its state
 
 
-def c_takes(scene: Scene) -> bool:
-    """Whether the c backend's Verlet takes `scene` (not one it refuses, as [self_collision] today)."""
-    return backend_class("c").capabilities.scene_refusal("c", scene) is None
+def c_takes(scene: Scene, solver: Solver) -> bool:
+    """Whether the c backend's class for `solver` takes `scene` (not one it refuses, as a mesh today)."""
+    name = solver.name
+    return backend_class("c", name).capabilities.scene_refusal("c", scene, name) is None
 
 
 def position_error(pos: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
