@@ -146,6 +146,7 @@ def parameters(ptx: str, entry: str) -> int:
 EXTRA_BUFFERS = {"torus": 2, "sweep": 2 + 1, "carried": 1 + 1}
 
 
+@pytest.mark.full  # nvcc builds: test_cuda.py's PTX tests are the quick tier's; these in --full and CI
 @ONE_NVCC_WORKER
 @pytest.mark.parametrize("variant", NVCC_VARIANTS, ids=nvcc_id)
 def test_mesh_and_moving_kernels_compile_for_sm80_without_warnings(nvcc_ptx, variant):

@@ -117,6 +117,7 @@ def entry(ptx: str, name: str) -> str:
     return head if following < 0 else head[:following]
 
 
+@pytest.mark.full  # nvcc builds: test_cuda.py's PTX tests are the quick tier's; these in --full and CI
 @ONE_NVCC_WORKER
 @pytest.mark.parametrize("variant", BUILD_VARIANTS, ids=variant_id)
 def test_multistep_kernel_compiles_for_sm80_and_fits_a_block_of_1024(nvcc_builds, variant):

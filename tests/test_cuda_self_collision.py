@@ -230,6 +230,7 @@ def self_ptx(tmp_path_factory):
     }
 
 
+@pytest.mark.full  # nvcc builds: test_cuda.py's PTX tests are the quick tier's; these in --full and CI
 @ONE_NVCC_WORKER
 def test_the_pass_compiles_for_sm80_without_errors_or_warnings(self_ptx):
     for variant, (done, ptx) in self_ptx.items():
@@ -238,6 +239,7 @@ def test_the_pass_compiles_for_sm80_without_errors_or_warnings(self_ptx):
             assert f".entry {kernel}(" in ptx, f"{variant}: no {kernel}"
 
 
+@pytest.mark.full  # nvcc builds: test_cuda.py's PTX tests are the quick tier's; these in --full and CI
 @ONE_NVCC_WORKER
 def test_strict_ptx_of_the_pass_rounds_every_operation_on_its_own(self_ptx):
     for (name, mode, build, normals), (_, ptx) in self_ptx.items():
@@ -248,6 +250,7 @@ def test_strict_ptx_of_the_pass_rounds_every_operation_on_its_own(self_ptx):
         assert "sqrt.rn.f32" in body and "div.rn.f32" in body, (name, build, normals)
 
 
+@pytest.mark.full  # nvcc builds: test_cuda.py's PTX tests are the quick tier's; these in --full and CI
 @ONE_NVCC_WORKER
 @pytest.mark.parametrize("scene_name", NVCC_SCENES)
 @pytest.mark.parametrize("mode", MODES)

@@ -195,6 +195,22 @@ def test_bad_export_options_are_one_line_before_any_work(tmp_path, capsys, args,
     assert out == "" and not any(tmp_path.iterdir()), "refused before the run, nothing written"
 
 
+def test_a_folder_holding_an_earlier_exports_frames_is_refused_before_the_run(tmp_path, capsys):
+    # a shorter export over a longer one would leave the old last frames beside the new ones
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "frame_0007.ply").write_text("an earlier run's frame")
+    (frames / "notes.txt").write_text("not a frame: no reason to refuse")
+    assert cli.main(["run", "--grid", "8", "--steps", "5", "--export", f"{frames}/"]) == 2
+    out, err = capsys.readouterr()
+    assert "already holds 1 frame file (frame_0007.ply ...) from an earlier export" in err and "remove them" in err, err
+    assert len(err.strip().splitlines()) == 1 and out == ""
+    assert sorted(p.name for p in frames.iterdir()) == ["frame_0007.ply", "notes.txt"], "nothing removed"
+    (frames / "frame_0007.ply").unlink()
+    assert cli.main(["run", "--grid", "8", "--steps", "5", "--export", f"{frames}/", "--export-every", "5"]) == 0
+    assert sorted(p.name for p in frames.glob("frame_*")) == ["frame_0000.obj", "frame_0001.obj"]
+
+
 def test_without_usd_core_a_usd_export_names_the_package_before_the_run(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "pxr.UsdGeom", None)  # as if it were not installed: import fails
     assert cli.main(["run", "--grid", "8", "--steps", "5", "--export", str(tmp_path / "a.usd")]) == 2

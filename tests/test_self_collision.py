@@ -252,6 +252,7 @@ def test_a_backend_without_the_pass_refuses_a_self_colliding_scene_on_the_comman
     assert code != 0 and "[self_collision]" in err and "(numpy" in err and "\n" not in err
 
 
+@pytest.mark.full  # 1.5 s of the twist, twice; the blow-up rule itself is the next test's, quick
 def test_a_sweep_off_row_is_measured_with_the_files_table_and_a_wrung_sheet_is_not_a_blow_up(tmp_path):
     # twist at 20^2 for 1.5 s: the pins' work raises the energy past the bound of a free cloth
     # (the energy check once called it unstable), and without the pass pairs come within the

@@ -1,1 +1,2 @@
-"""What people read: terminal tables, progress bars, and (later) plots."""
+"""What people read: terminal tables and progress, README's tables, the sweep's and studies'
+figures, the HTML report, renders and exports of the cloth."""

@@ -66,6 +66,14 @@ def export_target(out: str | None, every: int | None, frame_format: str | None) 
         )
     if folder or not suffix:
         kind = frame_format or FRAME_FORMATS[0]
+        # a longer earlier export's last frames would stay beside this one's and read as its own
+        old = sorted(p.name for f in FRAME_FORMATS for p in path.glob(f"frame_*.{f}")) if path.is_dir() else []
+        if old:
+            raise ClothbenchError(
+                f"--export {out!r} already holds {len(old)} frame file{'s' * (len(old) != 1)} ({old[0]} ...) from an "
+                "earlier export: "
+                "remove them or name another folder"
+            )
         check_writable(path / f"frame_0000.{kind}", "--export", new_folder=True)
         return ExportTarget(path, kind)
     if suffix not in USD_SUFFIXES:
