@@ -80,7 +80,9 @@ def test_the_pass_costs_more_than_twice_the_verlet_step_at_256_on_c_and_opencl()
     at_256 = {k: v for k, v in ratios.items() if k[2] == "256"}
     assert {k[0] for k in at_256} == {"c", "opencl"}
     assert all(v > 2 for v in at_256.values()), at_256
-    assert (
-        min(v for k, v in at_256.items() if k[0] == "opencl")
-        > 10 * max(v for k, v in at_256.items() if k[0] == "c") / 2
-    )
+    # and OpenCL's pass is the dearer by about ten at 256² (docs/opencl.md: it gathers by index)
+    with_pass = {
+        b: [float(r["ms_median"]) for r in rows if (r["backend"], r["grid"], r["self_collision"]) == (b, "256", "on")]
+        for b in ("c", "opencl")
+    }
+    assert min(with_pass["opencl"]) >= 10 * max(with_pass["c"])
