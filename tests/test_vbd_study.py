@@ -161,3 +161,21 @@ def test_accuracy_with_two_vbd_sweep_counts_writes_the_figure(tmp_path, capsys):
     assert main(argv) == 0
     assert "acc-vbd-iterations.png" in capsys.readouterr().out
     assert (tmp_path / "acc-vbd-iterations.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_no_exact_leaves_the_exact_step_out_of_vbd_rows_and_is_refused_without_vbd(tmp_path, capsys):
+    # the 256² study's rows spent their time in the exact step's sparse solves, which goal (c)
+    # does not use: --no-exact leaves vs_exact empty, and the other columns as they were
+    argv = ["accuracy", "--backends", "numpy", "--grid", "4", "--dts", "0.01", "--time", "0.05", "--levels", "2"]
+    for flags, name in (([], "with.csv"), (["--no-exact"], "without.csv")):
+        assert main([*argv, "--solvers", "vbd", *flags, "--out", str(tmp_path / name)]) == 0
+    capsys.readouterr()
+    with_exact, without = (list(csv.DictReader((tmp_path / n).open())) for n in ("with.csv", "without.csv"))
+    assert len(with_exact) == len(without) > 0
+    assert all(float(r["vs_exact_rms"]) < 1 for r in with_exact)
+    assert all(r["vs_exact_rms"] in ("", "nan") for r in without), [r["vs_exact_rms"] for r in without]
+    assert [r["vs_verlet_rms"] for r in without] == [r["vs_verlet_rms"] for r in with_exact]
+    assert main([*argv, "--solvers", "verlet", "--no-exact", "--out", str(tmp_path / "v.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "--no-exact" in err and "add vbd to --solvers" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "v.csv").exists()

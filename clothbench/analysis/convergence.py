@@ -308,7 +308,7 @@ def _measure(
     return _against(*_run_row(v, scene, solver, time_s), scene, solver, ref, verlet_ref)
 
 
-def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float):
+def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float, exact: bool = True):
     """The part of a row that needs no converged reference (so it can run beside them):
     `v` stepped to `time_s`, timed, against float64 at the same dt. (row, pos, prev)."""
     steps = steps_for(time_s, solver.dt)
@@ -327,7 +327,7 @@ def _run_row(v: Variant, scene: Scene, solver: Solver, time_s: float):
         row.status = f"unstable at step {result.blowup.step}: {result.blowup.what}"
         return row, None, None
     row.impl_rms, row.impl_max = position_error(result.pos, reference(scene, solver, steps)[0])
-    if solver.name == "vbd":
+    if solver.name == "vbd" and exact:
         row.vs_exact_rms, row.vs_exact_max = position_error(result.pos, exact_implicit(scene, solver, steps)[0])
     return row, result.pos, result.prev
 
@@ -385,6 +385,7 @@ def run_accuracy(
     executor=None,
     skip: Callable[[Variant, Solver], bool] | None = None,
     on_row: Callable[[AccuracyRow], None] | None = None,
+    exact: bool = True,
 ) -> AccuracyResult:
     """Every variant at every dt to `time_s`: cost, implementation and discretisation error.
 
@@ -397,7 +398,8 @@ def run_accuracy(
     in `differences`. With an `executor` (harness/executor.py) the references, then the
     rows, run as its tasks (in parallel over its jobs; every one in a worker process): a
     row whose worker crashed or ran past the limit says so in its status. Rows `skip` names
-    are not run (--resume: the file has them); `on_row` gets each row as it is measured."""
+    are not run (--resume: the file has them); `on_row` gets each row as it is measured.
+    `exact`: VBD rows are also compared with the exact implicit-Euler step (vs_exact_*)."""
     note = on_progress or (lambda what: None)
     dts = sorted(dts, reverse=True)
     pbd_dts = sorted(pbd_dts or dts, reverse=True)
@@ -447,7 +449,7 @@ def run_accuracy(
             if skip is not None and skip(v, solver):
                 continue
             safe = fork_safe(v.backend, v.solver.name)
-            planned.append((v, solver, run(_run_row, v, scene, solver, time_s, fork_safe=safe)))
+            planned.append((v, solver, run(_run_row, v, scene, solver, time_s, exact, fork_safe=safe)))
     for key, got in pending.items():
         status, value = got()
         if status != "ok":

@@ -56,6 +56,13 @@ def register(subparsers) -> None:
         help=f"PBD's and VBD's time steps (default 1/{PBD_DT0_HZ:g} s halved --levels - 1 times: where they are used)",
     )
     acc.add_argument(
+        "--no-exact",
+        action="store_true",
+        help="VBD rows without vs_exact_rms/max (left empty): the exact implicit step they compare with "
+        "is a sparse direct solve at every Newton iteration of every step, minutes a step from about "
+        "128² (results/vbd-study/README.md, (c))",
+    )
+    acc.add_argument(
         "--artefacts",
         action="store_true",
         help="with pbd: also measure PBD's softness (strain at rest) and damping (energy lost "
@@ -187,6 +194,8 @@ def cmd_accuracy(args) -> int:
     if args.levels < 2:
         raise ClothbenchError(f"--levels must be >= 2 to fit an order, got {args.levels}")
     solvers = solvers_from_args(args, base, pbd, setup.vbd.replace(**start))
+    if args.no_exact and not any(s.name == "vbd" for s in solvers):
+        raise ClothbenchError("--no-exact leaves out VBD rows' distance to the exact step: add vbd to --solvers")
     # one level coarser than the scene's dt: float32 rounding swamps the error below ~dt/2
     dts = floats(args.dts, "--dts") if args.dts else dt_levels(2 * base.dt, args.levels)
     pbd_dts = floats(args.pbd_dts, "--pbd-dts") if args.pbd_dts else dt_levels(1 / PBD_DT0_HZ, args.levels)
@@ -232,6 +241,7 @@ def cmd_accuracy(args) -> int:
                         executor=executor,
                         skip=lambda v, s: accuracy_key(v, s) in have,
                         on_row=lambda row: f.append(early_cells(row)),
+                        exact=not args.no_exact,
                     )
         except KeyboardInterrupt:
             say_interrupted(f)
