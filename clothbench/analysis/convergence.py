@@ -28,7 +28,7 @@ from clothbench.harness.energy import total_energy
 from clothbench.harness import faults
 from clothbench.harness.executor import fork_safe, runner
 from clothbench.harness.plan import Variant
-from clothbench.harness.simulate import float64_state, position_error, reference
+from clothbench.harness.simulate import C_REFERENCE_SOLVERS, float64_state, position_error, reference
 from clothbench.harness.implicit import exact_implicit
 from clothbench.harness.timing import run_timed
 from clothbench.model.scene import Scene
@@ -422,8 +422,10 @@ def run_accuracy(
     pending, early = {}, {}
     if executor is not None:  # the levels every reference runs, side by side (the finest first)
         for key, (solver, finest) in models.items():
+            # c's OpenMP may step a level (float64_state), and c is not fork-safe: a clean process
+            safe = fork_safe("c") or solver.name not in C_REFERENCE_SOLVERS
             early[key] = {
-                lvl: run(float64_state, scene, solver.replace(dt=dt), steps_for(time_s, dt))
+                lvl: run(float64_state, scene, solver.replace(dt=dt), steps_for(time_s, dt), fork_safe=safe)
                 for lvl, dt in ((lvl, finest / 2**lvl) for lvl in range(EARLY_LEVELS - 1, -1, -1))
             }
     else:
