@@ -2,8 +2,12 @@
 
 The main run covers this machine's default device; the pip-only leg (Debian's PoCL hidden by the
 empty OCL_ICD_VENDORS folder given as argv[1]) covers the default among what pip installs. This
-prints, as PYOPENCL_CTX values of the unchanged environment, every compiling device whose runtime
-neither default is, so that every runtime that compiles here runs the OpenCL tests once.
+prints two lines: first `all` where the pip-only default is another runtime than the main run's
+(the leg runs every OpenCL test), else `choice` (the main run has already run them on that
+runtime: the leg runs only the device choice's tests, tests/test_opencl_devices.py, as a pip-only
+machine chooses); then, as PYOPENCL_CTX values of the unchanged environment, every compiling
+device whose runtime neither default is, so that every runtime that compiles here runs the
+OpenCL tests once.
 """
 
 import json
@@ -19,5 +23,7 @@ def devices(env: dict) -> list[dict]:
 
 here = devices(dict(os.environ))
 pip_only = devices(dict(os.environ, OCL_ICD_VENDORS=sys.argv[1]))
-covered = {d["runtime"] for d in here + pip_only if d["default"]}
-print(" ".join(d["device"] for d in here if d["compiles"] and d["runtime"] not in covered))
+main_default = {d["runtime"] for d in here if d["default"]}
+pip_default = {d["runtime"] for d in pip_only if d["default"]}
+print("choice" if pip_default and pip_default == main_default else "all")
+print(" ".join(d["device"] for d in here if d["compiles"] and d["runtime"] not in main_default | pip_default))
