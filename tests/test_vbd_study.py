@@ -26,6 +26,7 @@ TABLES = {  # the README's tables: the CSV each is made from, and how
     "accuracy-64-opencl.csv": vbd_study.equal_cost_table,
     "accuracy-256-opencl.csv": vbd_study.equal_cost_table,
     "accuracy-64-opencl-quiet.csv": vbd_study.equal_cost_table,
+    "accuracy-256-opencl-quiet.csv": vbd_study.equal_cost_table,
     "cpu-vbd-busy.csv": vbd_study.cpu_table,
     "cpu-vbd.csv": vbd_study.cpu_table,
 }
@@ -79,6 +80,12 @@ def test_at_ten_sweeps_vbd_is_closer_than_xpbd_at_equal_cost_and_more_sweeps_buy
     verdicts = [line.split("|")[3:9:5] for line in vbd_study.equal_cost_table(rows).splitlines()[2:]]
     ten = [closer.strip() for sweeps, closer in verdicts if sweeps.strip() == "10"]
     assert ten.count("VBD") >= 4 and ten.count("XPBD") <= 1, ten
+    # and at 256², every verdict (both at 1/60 s) is VBD's
+    at_256 = [
+        line.split("|")[8].strip()
+        for line in vbd_study.equal_cost_table(committed("accuracy-256-opencl-quiet.csv")).splitlines()[2:]
+    ]
+    assert at_256.count("VBD") == 2 and "XPBD" not in at_256, at_256
     vbd = {(r["mode"], r["dt"], r["iterations"]): r for r in rows if r["solver"] == "vbd" and r["status"] == "ok"}
     for (mode, dt, sweeps), r in vbd.items():
         if sweeps == "30":
