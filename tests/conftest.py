@@ -142,6 +142,21 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture
+def reference_steppers(monkeypatch) -> list[str]:
+    """The backend each float64 or float32 reference run is stepped by, in order, as
+    harness/simulate.py's runs are made (its reference cache cleared before and after)."""
+    import importlib
+
+    runs = importlib.import_module("clothbench.harness.simulate")  # the module, not its function
+    stepped_by: list[str] = []
+    states = runs._states
+    monkeypatch.setattr(runs, "_states", lambda backend, *a: (stepped_by.append(backend), states(backend, *a)))
+    runs.reference.cache_clear()
+    yield stepped_by
+    runs.reference.cache_clear()
+
+
+@pytest.fixture
 def sphere_scene():
     return load_scene("sphere")
 

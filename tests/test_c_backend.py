@@ -80,7 +80,7 @@ def test_the_f64_reference_is_numpy_f64_bit_for_bit():
     assert_bit_exact(ref[1], want[1], "reference prev")
 
 
-def test_a_converged_references_levels_are_stepped_by_c_with_numpys_bits(monkeypatch):
+def test_a_converged_references_levels_are_stepped_by_c_with_numpys_bits(monkeypatch, reference_steppers):
     # accuracy's converged float64 references (dt halved level by level) go through reference_states,
     # so c steps them where it takes the scene: the same extrapolation from the same bits as NumPy's
     import importlib
@@ -88,22 +88,17 @@ def test_a_converged_references_levels_are_stepped_by_c_with_numpys_bits(monkeyp
     from clothbench.analysis.convergence import converged_reference
 
     require("c")
-    runs = importlib.import_module("clothbench.harness.simulate")  # the module, not its function
-    stepped_by = []
-    states = runs._states
-    monkeypatch.setattr(runs, "_states", lambda backend, *a: (stepped_by.append(backend), states(backend, *a)))
     scene, solver = every_collider_scene(12), VERLET.replace(dt=4e-4)
-    runs.reference.cache_clear()
     by_c = converged_reference(scene, solver, 0.02, 4e-4, max_levels=3)
-    assert set(stepped_by) == {"c"} and len(stepped_by) == 4  # dt_finest and three halvings
+    assert set(reference_steppers) == {"c"} and len(reference_steppers) == 4  # dt_finest and three halvings
+    runs = importlib.import_module("clothbench.harness.simulate")  # the module, not its function
     monkeypatch.setattr(runs, "C_REFERENCE_SOLVERS", ())
-    runs.reference.cache_clear()
+    reference.cache_clear()
     by_numpy = converged_reference(scene, solver, 0.02, 4e-4, max_levels=3)
-    assert stepped_by[4:] == ["numpy"] * 4
+    assert reference_steppers[4:] == ["numpy"] * 4
     assert_bit_exact(by_c.pos, by_numpy.pos, "converged reference pos, c against numpy")
     same = ("levels", "converged", "uncertainty")
     assert [getattr(by_c, f) for f in same] == [getattr(by_numpy, f) for f in same]
-    runs.reference.cache_clear()
 
 
 def test_the_f64_reference_falls_back_to_numpy_without_a_compiler(no_compiler):

@@ -6,15 +6,13 @@ Verlet library compiles none of it."""
 
 from __future__ import annotations
 
-import importlib
-
 import numpy as np
 import pytest
 
 from clothbench import native
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.c.verlet import CBackend, build_flags
-from clothbench.harness import simulate
+from clothbench.harness import reference, simulate
 from clothbench.kernel_source import kernel_path, read_kernel, resolve_includes
 from clothbench.model.scene import load_scene
 from clothbench.model.solver import Vbd
@@ -39,19 +37,13 @@ def test_strict_f64_vbd_matches_numpy_f64_bit_for_bit(scene_name):
     assert_bit_exact(got[1], want[1], f"prev, c strict f64 vbd {scene_name}")
 
 
-def test_the_f64_vbd_reference_is_stepped_by_c_and_is_numpy_f64_bit_for_bit(monkeypatch):
+def test_the_f64_vbd_reference_is_stepped_by_c_and_is_numpy_f64_bit_for_bit(reference_steppers):
     # reference(.., "f64") steps c's VBD where it takes the scene (the accuracy study's converged
     # references were hours of NumPy's colour loop); the switch must change no bit
     require("c")
     scene, solver = scene_named("all-kinds", 12), Vbd(dt=AT_60HZ, iterations=6, substeps=2, chebyshev_rho=0.9)
-    runs = importlib.import_module("clothbench.harness.simulate")  # the module, not its function
-    stepped_by = []
-    states = runs._states
-    monkeypatch.setattr(runs, "_states", lambda backend, *a: (stepped_by.append(backend), states(backend, *a)))
-    runs.reference.cache_clear()
-    ref = runs.reference(scene, solver, 40, "f64")
-    runs.reference.cache_clear()
-    assert stepped_by == ["c"]
+    ref = reference(scene, solver, 40, "f64")
+    assert reference_steppers == ["c"]
     want = simulate("numpy", scene, solver, 40, BackendOptions(precision="f64"))
     assert_bit_exact(ref[0], want[0], "reference pos, vbd")
     assert_bit_exact(ref[1], want[1], "reference prev, vbd")

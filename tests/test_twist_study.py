@@ -64,25 +64,14 @@ def test_the_pass_costs_more_than_twice_the_verlet_step_at_256_on_c_and_opencl()
     # docs/c.md ("What the pass costs") and the closing note argue the 2x goal is below what a
     # grid search of a 5-spacing thickness can do; this holds the figures they quote to the file
     rows = [r for r in csv.DictReader(PASS_COST.open()) if r["status"] == "ok"]
-    assert {r["note"] for r in rows if r["busy"] == "true"} == set(), "the figures are the quiet ones"
-    ratios = {}
-    for on in (r for r in rows if r["self_collision"] == "on"):
-        (off,) = [
-            r
-            for r in rows
-            if r["self_collision"] == "off"
-            and (r["backend"], r["grid"]) == (on["backend"], on["grid"])
-            and r["mode"].split("/")[:2] == on["mode"].split("/")[:2]
-        ]
-        ratios[on["backend"], on["mode"].split("/")[0] + "/" + on["mode"].split("/")[1], on["grid"]] = float(
-            on["ms_median"]
-        ) / float(off["ms_median"])
+    assert not any(r["busy"] == "true" for r in rows), "the figures are the quiet ones"
+    ms = {}  # (backend, the mode's first two words: precision/strictness or strictness/transfer, grid, on|off)
+    for r in rows:
+        ms[r["backend"], "/".join(r["mode"].split("/")[:2]), r["grid"], r["self_collision"]] = float(r["ms_median"])
+    ratios = {key[:3]: ms[key] / ms[(*key[:3], "off")] for key in ms if key[3] == "on"}
     at_256 = {k: v for k, v in ratios.items() if k[2] == "256"}
     assert {k[0] for k in at_256} == {"c", "opencl"}
     assert all(v > 2 for v in at_256.values()), at_256
     # and OpenCL's pass is the dearer by about ten at 256² (docs/opencl.md: it gathers by index)
-    with_pass = {
-        b: [float(r["ms_median"]) for r in rows if (r["backend"], r["grid"], r["self_collision"]) == (b, "256", "on")]
-        for b in ("c", "opencl")
-    }
+    with_pass = {b: [v for k, v in ms.items() if (k[0], k[2], k[3]) == (b, "256", "on")] for b in ("c", "opencl")}
     assert min(with_pass["opencl"]) >= 10 * max(with_pass["c"])

@@ -28,7 +28,7 @@ from clothbench.harness.energy import total_energy
 from clothbench.harness import faults
 from clothbench.harness.executor import fork_safe, runner
 from clothbench.harness.plan import Variant
-from clothbench.harness.simulate import C_REFERENCE_SOLVERS, float64_state, position_error, reference
+from clothbench.harness.simulate import float64_state, float64_state_fork_safe, position_error, reference
 from clothbench.harness.implicit import exact_implicit
 from clothbench.harness.timing import run_timed
 from clothbench.model.scene import Scene
@@ -90,8 +90,8 @@ def converged_reference(
     changing.
 
     Runs the float64 reference step (harness/simulate.py: NumPy's bits, stepped by c where it
-    can) at dt_finest/2, /4, ... and extrapolates each pair (Richardson,
-    with the order the last three runs show, clamped to [0.5, 4]). It is converged when two
+    can) at dt_finest/2, /4, ... and extrapolates each pair (Richardson, with the order the
+    last three runs show, clamped to [0.5, 4]). It is converged when two
     successive extrapolations differ (max norm) by less than `rtol` times the smallest error it
     will be compared with: the float64 error of the finest measured dt. Not converged after
     `max_levels` halvings: the last extrapolation is returned with converged=False, and the
@@ -422,8 +422,7 @@ def run_accuracy(
     pending, early = {}, {}
     if executor is not None:  # the levels every reference runs, side by side (the finest first)
         for key, (solver, finest) in models.items():
-            # c's OpenMP may step a level (float64_state), and c is not fork-safe: a clean process
-            safe = fork_safe("c") or solver.name not in C_REFERENCE_SOLVERS
+            safe = float64_state_fork_safe(solver)
             early[key] = {
                 lvl: run(float64_state, scene, solver.replace(dt=dt), steps_for(time_s, dt), fork_safe=safe)
                 for lvl, dt in ((lvl, finest / 2**lvl) for lvl in range(EARLY_LEVELS - 1, -1, -1))

@@ -7,7 +7,7 @@ from typing import Callable
 
 import numpy as np
 
-from clothbench.backends import BackendOptions, availability, backend_class, create_backend
+from clothbench.backends import BackendOptions, availability, backend_class, check_name, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Solver
@@ -41,6 +41,12 @@ def float64_state(scene: Scene, solver: Solver, steps: int) -> tuple[np.ndarray,
     """reference()'s float64 (pos, prev) after `steps`, not cached: a converged reference's
     levels are each run once (and a 2048^2 state is 128 MiB)."""
     return reference_states(scene, solver, (steps,))[steps]
+
+
+def float64_state_fork_safe(solver: Solver) -> bool:
+    """Whether a forked child may run float64_state for `solver`: c may step it (its OpenMP is
+    not fork-safe, by its registry entry), NumPy always is."""
+    return solver.name not in C_REFERENCE_SOLVERS or check_name("c").fork_safe
 
 
 def reference_states(

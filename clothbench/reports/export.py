@@ -70,9 +70,8 @@ def export_target(out: str | None, every: int | None, frame_format: str | None) 
         old = sorted(p.name for f in FRAME_FORMATS for p in path.glob(f"frame_*.{f}")) if path.is_dir() else []
         if old:
             raise ClothbenchError(
-                f"--export {out!r} already holds {len(old)} frame file{'s' * (len(old) != 1)} ({old[0]} ...) from an "
-                "earlier export: "
-                "remove them or name another folder"
+                f"--export {out!r} already holds {len(old)} frame file{'s' * (len(old) != 1)} ({old[0]} ...) "
+                "from an earlier export: remove them or name another folder"
             )
         check_writable(path / f"frame_0000.{kind}", "--export", new_folder=True)
         return ExportTarget(path, kind)
