@@ -1,7 +1,7 @@
 /* body_args.cl: the extra kernel arguments of a scene with meshes, motion or attached pins,
  * for verlet_cloth.cl, pbd_cloth.cl and vbd_cloth.cl (the host resolves the #include:
  * clothbench/kernel_source.py resolve_includes). STEP_ARG, MESH_ARG and PIN_ARG go in a
- * kernel's parameters, MESH_PASS and PIN_PASS through the helpers that take them. */
+ * kernel's parameters, STEP_PASS, MESH_PASS and PIN_PASS through the helpers that take them. */
 #ifndef CLOTH_MESHES
 #define CLOTH_MESHES 0
 #endif
@@ -24,6 +24,8 @@
 #endif
 #ifdef CLOTH_PER_STEP /* the step (or substep) index of a launch that does one */
 #define STEP_ARG , const int step
+#define STEP_PASS , step
 #else
 #define STEP_ARG
+#define STEP_PASS
 #endif

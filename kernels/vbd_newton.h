@@ -1,8 +1,13 @@
 /* vbd_newton.h: the arithmetic of one particle's Newton step (docs/vbd.md, "One particle's
  * step") that the VBD kernels share: kernels/vbd_cloth.c, vbd_cloth.cl and vbd_cloth.cu. The
- * includer defines VBD_REAL (its working type) and VBD_FN (its inline function qualifier);
- * every operation here is one rounding, in the doc's order, and the includer's strict build
- * contracts none of them. */
+ * includer defines VBD_REAL (its working type) and VBD_FN (its inline function qualifier),
+ * and may define VBD_MASK (what the solve's "every pivot > 0" is: int unless defined, an int
+ * vector where VBD_REAL is a float vector, as vbd_cloth.cl's vector sweep includes it a second
+ * time under other names); every operation here is one rounding, in the doc's order, and the
+ * includer's strict build contracts none of them. No include guard: that second inclusion. */
+#ifndef VBD_MASK
+#define VBD_MASK int
+#endif
 
 /* One spring's share of the gradient f and the Hessian h (xx, yy, zz, xy, xz, yz): d = xi - xj,
  * L2 = |d|^2 > 0, s = k (1 - rest / L). The clamp is a select, not max(): k max(1 - rest/L, 0). */
@@ -25,7 +30,7 @@ VBD_FN void vbd_add_spring(VBD_REAL dx, VBD_REAL dy, VBD_REAL dz, VBD_REAL L2, V
 
 /* H p = f by LDL^T without pivoting, in docs/vbd.md's order: (px, py, pz), and whether every
  * pivot is > 0 (always, for the positive definite H of a finite state). */
-VBD_FN int vbd_ldlt_solve(VBD_REAL hxx, VBD_REAL hyy, VBD_REAL hzz, VBD_REAL hxy, VBD_REAL hxz, VBD_REAL hyz,
+VBD_FN VBD_MASK vbd_ldlt_solve(VBD_REAL hxx, VBD_REAL hyy, VBD_REAL hzz, VBD_REAL hxy, VBD_REAL hxz, VBD_REAL hyz,
                           VBD_REAL fx, VBD_REAL fy, VBD_REAL fz, VBD_REAL *px, VBD_REAL *py, VBD_REAL *pz)
 {
     const VBD_REAL l10 = hxy / hxx, l20 = hxz / hxx;

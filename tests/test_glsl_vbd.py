@@ -1,16 +1,21 @@
 """glsl-compute's VBD solver beyond the contract (tests/contract/test_vbd_contract.py): the SSBO
-read path a driver without large buffer textures takes is as exact as the image reads, and a
-scene compiles only the parts it has, a PBD run none of VBD's."""
+read path a driver without large buffer textures takes is as exact as the image reads, a
+scene compiles only the parts it has, a PBD run none of VBD's, and a kernel shape is chosen
+for VBD's own key."""
 
 from __future__ import annotations
+
+import json
 
 import pytest
 
 from clothbench.backends import BackendOptions, create_backend
-from clothbench.backends.gl import compute_pbd
+from clothbench.backends.gl import compute_pbd, shapes
+from clothbench.backends.tuning import TUNING_ROUNDS
+from clothbench.errors import ClothbenchError
 from clothbench.harness import reference, simulate
 from clothbench.model.scene import load_scene
-from clothbench.model.solver import Pbd, Vbd
+from clothbench.model.solver import Pbd, Vbd, Verlet
 from conftest import assert_bit_exact, every_collider_scene, require
 
 STRICT = BackendOptions(strict=True)
@@ -68,3 +73,35 @@ def test_a_scene_compiles_only_the_parts_it_has(name, solver, present, absent):
         collide = {"collide"} if scene.colliders or scene.meshes else set()
         chebyshev = {"chebyshev"} if solver.chebyshev_rho > 0 else set()
         assert set(sources) == {"predict", "sweep", "update"} | collide | chebyshev
+
+
+def test_a_verlet_shape_choice_never_answers_a_vbd_question(monkeypatch, tmp_path):
+    # both solvers' choices are kept in glsl-compute's one tuning file: VBD's key names the
+    # solver and the settings that change its dispatches, so each is measured for itself
+    monkeypatch.setenv("CLOTHBENCH_TUNING", "on")
+    monkeypatch.setenv("CLOTHBENCH_CACHE", str(tmp_path))
+    timed: list[str] = []
+
+    def fake(backend, name, steps=shapes.TUNING_STEPS):  # wg=256 fastest, for every solver
+        timed.append(backend.solver.name)
+        return 1e-4 if name == "wg=256" else 2e-4
+
+    monkeypatch.setattr(shapes, "time_shape", fake)
+    scene = load_scene("drape").replace(grid=8)
+    solvers = [Verlet(), Vbd(), Vbd(iterations=20), Vbd(substeps=2), Vbd(chebyshev_rho=0.9)]
+    for solver in solvers:
+        with create_backend("glsl-compute", scene, solver, STRICT) as b:
+            assert b.shape == "wg=256" and b.mode.endswith("/wg=256"), b.mode
+    vbd_shapes = len(shapes.candidates(scene, STRICT, "vbd"))
+    assert timed.count("vbd") == 4 * TUNING_ROUNDS * vbd_shapes  # not one answered from another's
+    assert len(json.loads((tmp_path / "tuning" / "glsl-compute.json").read_text())) == len(solvers)
+
+
+def test_a_local_size_fixes_the_shape_and_excludes_one():
+    scene = load_scene("drape").replace(grid=8)
+    with create_backend("glsl-compute", scene, Vbd(), BackendOptions(local_size=32)) as b:
+        assert b.shape is None and b.mode == "fast/vbd/ls=32", b.mode  # untuned, no shape in the mode
+    for refused in (BackendOptions(local_size=32, shape="wg=128"), BackendOptions(shape="wg=99")):
+        with pytest.raises(ClothbenchError) as e:
+            create_backend("glsl-compute", scene, Vbd(), refused)
+        assert "\n" not in str(e.value) and refused.shape in str(e.value)

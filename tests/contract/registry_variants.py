@@ -57,3 +57,11 @@ def usable(param: tuple) -> tuple:
 def options(name: str, solver: str = "verlet", **values) -> BackendOptions:
     """BackendOptions with `values`, less what the backend does not take (as a sweep gives them)."""
     return backend_class(name, solver).capabilities.adapt(BackendOptions(**values))
+
+
+def shapes_of(name: str, scene, solver, **values) -> tuple:
+    """The kernel shapes `name` offers for `scene` and `solver` (a Pbd or a Vbd) with the options
+    `values` (None: it has one, or the options fix it, as glsl-compute's --local-size does)."""
+    cls = backend_class(name, solver.name)
+    offered = cls.kernel_shapes(scene, options(name, solver.name, **values), solver) if cls.capabilities.shapes else ()
+    return offered or (None,)

@@ -26,9 +26,8 @@ from clothbench.model.scene import Scene, load_scene
 from clothbench.model.solver import PBD_METHODS, Pbd, Vbd, solver_for_spec
 
 from conftest import VERLET, assert_bit_exact
-from registry_variants import backend_params, options, solver_params, usable
+from registry_variants import backend_params, options, shapes_of, solver_params, usable
 from test_meshes import winding_number, world_mesh  # tests/test_meshes.py: the mesh's own check
-from test_pbd_contract import shapes_of
 
 N = 32  # the contract's grid
 # After contact: the torus is reached from about step 200; the carried sheet moves with its
@@ -440,8 +439,7 @@ def pbd_cases(solver: str = "pbd", steps: dict = PBD_STEPS) -> list:
 def assert_pbd_reference_bits(name, scene, solver, steps, search, what):
     """Strict `name` is NumPy float32 bit for bit in each of its shapes (PBD's or VBD's solver)."""
     ref_pos, ref_prev = reference(scene, solver, steps, "f32")
-    cls = backend_class(name, solver.name)
-    for shape in shapes_of(name, scene, solver) if cls.capabilities.shapes else (None,):
+    for shape in shapes_of(name, scene, solver):
         opts = options(name, solver.name, strict=True, mesh_collision=search, shape=shape)
         pos, prev = simulate(name, scene, solver, steps, opts)
         assert_bit_exact(pos, ref_pos, f"pos, {name} {what} mesh={search} {shape}")

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import pytest
 
-from clothbench.backends import backend_class
 from clothbench.harness import reference, simulate
 from clothbench.model.scene import Cylinder, Plane, Sphere, load_scene
 from clothbench.model.solver import PBD_METHODS, Pbd
 
 from conftest import assert_bit_exact, setup
-from registry_variants import backend_params, options, usable
+from registry_variants import backend_params, options, shapes_of, usable
 
 AT_60HZ = 1 / 60
 STRICT_GRID = 24  # n - 4 = 20: OpenCL's Jacobi interior has whole vectors and leftover columns
@@ -86,9 +85,3 @@ def test_work_group_size_changes_no_strict_bit(param):
                 opts = options(name, "pbd", strict=True, local_size=ls, shape=shape)
                 pos = simulate(name, scene, solver, 30, opts)[0]
                 assert_bit_exact(pos, ref, f"{name} {method} {shape} local size {ls}")
-
-
-def shapes_of(name: str, scene, solver) -> tuple:
-    """The kernel shapes `name` offers for `scene` and `solver` (None: it has one)."""
-    cls = backend_class(name, "pbd")
-    return cls.kernel_shapes(scene, options(name, "pbd"), solver) if cls.capabilities.shapes else (None,)

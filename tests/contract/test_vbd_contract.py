@@ -16,7 +16,7 @@ from clothbench.model.scene import load_scene
 from clothbench.model.solver import Vbd
 
 from conftest import assert_bit_exact, every_collider_scene
-from registry_variants import backend_params, options, usable
+from registry_variants import backend_params, options, shapes_of, usable
 from test_pbd_contract import SCENES, STRICT_GRID, three_colliders
 from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: CUDA through its CPU build)
 
@@ -59,8 +59,8 @@ def test_work_group_size_changes_no_strict_vbd_bit(param, request):
     name, _ = usable_here(param, request)
     scene, solver = three_colliders(13), Vbd(dt=AT_60HZ)
     ref = reference(scene, solver, 30, "f32")[0]
-    for shape in shapes_of(name, scene, solver):
-        for ls in (7, 128):
+    for ls in (7, 128):
+        for shape in shapes_of(name, scene, solver, local_size=ls):
             pos = simulate(name, scene, solver, 30, options(name, "vbd", strict=True, local_size=ls, shape=shape))[0]
             assert_bit_exact(pos, ref, f"{name} vbd {shape} local size {ls}")
 
@@ -140,9 +140,3 @@ def test_a_vbd_profile_names_every_stage_and_changes_no_bit(param):
     assert set(stages) == {"predict", "sweep", "chebyshev", "collide", "update"}
     assert all(ms >= 0 for ms in stages.values())
     assert_bit_exact(runs[1], runs[0], f"{name}: the profiled steps")
-
-
-def shapes_of(name: str, scene, solver) -> tuple:
-    """The kernel shapes `name` offers for `scene` and `solver` (None: it has one)."""
-    cls = backend_class(name, "vbd")
-    return cls.kernel_shapes(scene, options(name, "vbd"), solver) if cls.capabilities.shapes else (None,)

@@ -7,7 +7,11 @@ the (x, v) buffers, the moving bodies and the dispatch with glsl-compute's PBD s
 (compute_pbd.GLComputeSolver). One program per stage (the kernel file's STAGE), the scene's
 constants (model/kernel_inputs.py VbdConstants) compiled in as exact float32 literals; the
 sweep takes its colour's range of the particles sorted by colour as uniforms, the Chebyshev
-stage its weight. One kernel shape: a particle per invocation.
+stage its weight.
+
+Kernel shapes (gl/shapes.py): a particle per invocation in every shape, "wg=L" the work-group
+size of every dispatch of the substep; chosen per driver, grid, build and solver settings by
+measurement (backends/tuning.py) unless --shape or --local-size fixes it.
 
 Self-collision ([self_collision], docs/vbd.md), only where the scene has it: per substep after
 the last sweep (and Chebyshev), in collide's place, the final iterate is keyed and sorted
@@ -17,12 +21,14 @@ collides it into y, which update reads (pbd_device's plan).
 
 from __future__ import annotations
 
-from dataclasses import replace
+import hashlib
+from dataclasses import dataclass, replace
 
-from clothbench.kernel_source import glsl_float
+from clothbench.kernel_source import glsl_float, read_kernel
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Vbd
 from clothbench.backends.base import BackendOptions
+from clothbench.backends.gl import shapes
 from clothbench.backends.gl.compute_pbd import GLComputeSolver, GLSLComputePbdBackend
 from clothbench.backends.gl.context import work_groups
 from clothbench.backends.gl.self_contact import GLSelfContact
@@ -30,6 +36,32 @@ from clothbench.backends.pbd_device import VbdDeviceBackend
 
 KERNEL_FILE = "vbd_cloth.comp"
 STAGES = {"predict": 0, "sweep": 1, "chebyshev": 2, "collide": 3, "update": 4, "self collision": 5}  # as the kernel's
+# colour sweeps per timed run of a shape: 4 steps at the default 10 iterations, a few ms at 64^2
+TUNING_SWEEPS = 40
+
+
+@dataclass(frozen=True)
+class VbdPlan:
+    """A shape's substep: its launches as (stage, launch), and the programs they run by stage."""
+
+    shape: shapes.ComputeShape
+    launches: list
+    programs: dict
+
+
+def tuning_key(backend: GLSLComputeVbdBackend) -> dict[str, str]:
+    """Verlet's key (shapes.tuning_key) and what a VBD substep's dispatches depend on: the
+    solver, its sweeps and the kernel, so that one solver's choice never answers the other's
+    (both are kept in glsl-compute's tuning file)."""
+    solver = backend.solver
+    return {
+        **shapes.tuning_key(backend),
+        "solver": "vbd",
+        "iterations": str(solver.iterations),
+        "substeps": str(solver.substeps),
+        "chebyshev": "on" if backend.chebyshev else "off",
+        "kernel": hashlib.sha256(read_kernel(KERNEL_FILE).encode()).hexdigest()[:12],
+    }
 
 
 class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
@@ -40,11 +72,14 @@ class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
         moving_colliders=(*GLSLComputePbdBackend.capabilities.moving_colliders, "vbd"),
         boxes=(*GLSLComputePbdBackend.capabilities.boxes, "vbd"),
         self_collision=(*GLSLComputePbdBackend.capabilities.self_collision, "vbd"),  # docs/vbd.md
+        shapes=True,
     )
     kernel_file = KERNEL_FILE
 
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
+        shapes.refuse_shape_with_local_size(options)  # before the device's buffers exist
         super().__init__(scene, solver, options)
+        self.max_invocations = shapes.limits(self.gl)[0]
         # [self_collision]: its defines, sort buffers and search programs; None: no pass, no code
         self.contact = GLSelfContact.of(self.gl, scene, self.local_size)
         with self.gl:
@@ -54,7 +89,34 @@ class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):
             self.order = self.gl.ctx.buffer(self.colour_order.tobytes())
             # an imageBuffer view of the iterate (no copy), for the sweep's neighbour reads
             self.views = [self.gl.buffer_texture(self.xs)] if self.image_reads else []
-            self.launches = self._plan_launches()
+        if options.local_size is not None:  # the shape of that size, not tuned (and not in the mode)
+            self._use_plan(self.build_plan(f"wg={self.local_size}"))
+        else:
+            steps = max(1, TUNING_SWEEPS // (solver.iterations * solver.substeps))
+            self.pick_shape(tuning_key(self), lambda name: shapes.time_shape(self, name, steps))
+            self._use_plan(self.build_plan(self.shape))
+
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
+        return shapes.candidates(scene, options, "vbd")
+
+    def build_plan(self, name: str) -> VbdPlan:
+        """The substep's launches in shape `name`: every dispatch in work groups of its size
+        (but the self-collision search's, made once: such a scene has one shape)."""
+        shape = shapes.parse(name, self.scene, self.max_invocations)
+        self.local_size, self.programs = shape.local, {}  # what _program and _launches_of build with
+        with self.gl:
+            return VbdPlan(shape, self._plan_launches(), self.programs)
+
+    def run_plan(self, plan: VbdPlan, steps: int) -> None:
+        """Enqueue `steps` steps with `plan` (the chosen one, or one being timed)."""
+        self._use_plan(plan)
+        self.advance(steps)
+
+    def _use_plan(self, plan: VbdPlan) -> None:
+        self.local_size = self.effective_local_size = plan.shape.local
+        self.launches, self.programs = plan.launches, plan.programs
+        self.motion_readers = None  # found again among this plan's programs (_use_substep)
 
     def _program(self, stage: str):
         if stage in self.programs:

@@ -1,8 +1,9 @@
-"""The kernel shapes of glsl-compute (Verlet), how each is dispatched, and how they are timed
-for backends/tuning.py.
+"""The kernel shapes of glsl-compute (Verlet and VBD), how each is dispatched, and how they
+are timed for backends/tuning.py.
 
 A shape changes how the particles are split over invocations and dispatches, never the
-operations done on one particle, so every shape of a strict build is bit-exact with NumPy:
+operations done on one particle, so every shape of a strict build is bit-exact with NumPy.
+Verlet's:
 - "wg=L": work groups of L consecutive particles (row-major), the interior pass and the
   border pass (kernels/verlet_cloth.comp); "wg=64" is the default.
 - "wg=WxH": the interior pass in 2-D work groups of W columns x H rows (TILE_W, TILE_H),
@@ -11,6 +12,8 @@ operations done on one particle, so every shape of a strict build is bit-exact w
   dispatch (kernels/verlet_cloth_steps.comp), on grids of up to MULTI_STEP_MAX_PARTICLES;
   the neighbours' positions go through shared memory where 6 floats per particle fit in the
   driver's GL_MAX_COMPUTE_SHARED_MEMORY_SIZE, else through a scratch storage buffer.
+VBD's (gl/compute_vbd.py): "wg=L" only, every dispatch of a substep in work groups of L
+(VBD_SIZES); a colour's sweep is one particle per invocation whatever L is.
 An explicit --local-size fixes the shape to "wg=L" with no tuning (and no shape in the mode);
 --shape and --local-size exclude each other.
 """
@@ -28,6 +31,8 @@ from clothbench.backends.tuning import median_seconds
 
 DEFAULT_SHAPE = "wg=64"
 LINEAR_SIZES = (64, 256)  # work-group sizes of the 1-D shape (the first is the default)
+# VBD's work-group sizes, the default first; none below 64, slower on llvmpipe (docs/vbd.md)
+VBD_SIZES = (64, 128, 256)
 TILES = ((8, 8), (16, 16), (32, 4))  # (columns, rows) of the 2-D interior shape
 BORDER_LOCAL_SIZE = 64  # the border pass of the 2-D shapes
 STEPS_PER_DISPATCH = (16, 64)
@@ -80,9 +85,9 @@ def steps_layout(particles: int, max_invocations: int, shared_bytes: int) -> Ste
     return StepsLayout(local, ppi, particles * SCRATCH_BYTES_PER_PARTICLE <= shared_bytes)
 
 
-def candidates(scene: Scene, options: BackendOptions) -> tuple[str, ...]:
-    """The shape names glsl-compute can run `scene` with, the default first; none where
-    --local-size fixes the shape."""
+def candidates(scene: Scene, options: BackendOptions, solver: str = "verlet") -> tuple[str, ...]:
+    """The shape names glsl-compute's `solver` (verlet or vbd) can run `scene` with, the
+    default first; none where --local-size fixes the shape."""
     if options.local_size is not None:
         return ()
     if scene.self_collision is not None:
@@ -90,6 +95,8 @@ def candidates(scene: Scene, options: BackendOptions) -> tuple[str, ...]:
         # costs more than the step, so timing the shapes would mostly time the pass; and the
         # one-group shape has no dispatch between steps for it
         return (DEFAULT_SHAPE,)
+    if solver == "vbd":
+        return tuple(f"wg={size}" for size in VBD_SIZES)
     names = [f"wg={size}" for size in LINEAR_SIZES]
     if scene.grid >= 5:  # there is an interior to tile
         names += [f"wg={w}x{h}" for w, h in TILES]
@@ -149,17 +156,18 @@ def collider_counts(scene) -> str:
     return "".join(f"{count}{kind.name[0]}" for kind, count in counts if count or kind.capability is None)
 
 
-def time_shape(backend, name: str) -> float:
-    """Seconds per step of shape `name` on `backend`'s own buffers, from its initial state
-    (the caller uploads the real state afterwards). A shape the driver cannot build is
-    dropped by the tuner, with the compiler's first line (a ClothbenchError)."""
+def time_shape(backend, name: str, steps: int = TUNING_STEPS) -> float:
+    """Seconds per step of shape `name` on `backend`'s own buffers (its build_plan(name), then
+    run_plan(plan, steps) timed), from its initial state (the caller uploads the real state
+    afterwards). A shape the driver cannot build is dropped by the tuner, with the compiler's
+    first line (a ClothbenchError)."""
     import moderngl
 
     try:
         plan = backend.build_plan(name)
     except moderngl.Error as e:
         raise ClothbenchError(f"glsl-compute: {name} does not build: {str(e).strip().splitlines()[0]}") from None
-    steps = max(TUNING_STEPS, plan.shape.steps or 0)
+    steps = max(steps, plan.shape.steps or 0)
     backend.upload(*backend.initial_state())
     seconds = median_seconds(lambda: backend.run_plan(plan, steps), backend.synchronize, TUNING_REPEATS)
     return seconds / steps
