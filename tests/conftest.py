@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,6 +34,12 @@ from clothbench.model.solver import Verlet
 # the solver every built-in scene file names: Verlet at dt = 0.5 ms, from rest
 VERLET = load_setup("sphere").solver
 assert VERLET == Verlet(dt=5e-4)
+
+# The box scene every box test uses (two oriented boxes, a fixed rotated one and a moving one,
+# over a sphere and a plane), and its step count, the file's: both boxes push particles within
+# it in every solver, moving or stopped (tests/contract/test_box_contract.py holds that).
+BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
+BOX_STEPS = load_setup(str(BOX_SCENE)).steps
 
 
 # A study row's columns that say how fast, when and in which process it ran, not what it computed

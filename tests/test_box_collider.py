@@ -7,7 +7,6 @@ of a kind reads."""
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,9 +24,8 @@ from clothbench.harness.bounds import step_count
 from clothbench.model.scene import Box, Scene, load_scene, load_setup
 from clothbench.model.solver import Pbd, Vbd
 
-from conftest import VERLET, every_collider_scene
+from conftest import BOX_SCENE, VERLET, every_collider_scene
 
-BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
 f32 = np.float32
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,14 +25,13 @@ from clothbench.harness.plan import without_motion
 from clothbench.kernel_source import kernel_path
 from clothbench.model.scene import Box, Scene, load_setup
 
-from conftest import VERLET, assert_bit_exact, sphere
+from conftest import BOX_SCENE, BOX_STEPS, VERLET, assert_bit_exact, sphere
 from test_cuda import cuda_on_cpu, entry_body, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
 
 KERNEL = kernel_path(cuda.KERNEL_FILE)
-BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
 # the contract's length: the sheet reaches both boxes, moving or stopped, well within it
 # (tests/contract/test_box_contract.py checks)
-STEPS = 500
+STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
 BUILDS = {"specialised": False, "generic": True}
 
 

@@ -20,7 +20,6 @@ import dataclasses
 import functools
 import shutil
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -34,7 +33,7 @@ from clothbench.kernel_source import kernel_path, read_kernel, resolve_includes
 from clothbench.model.scene import load_scene, load_setup
 from clothbench.model.solver import Vbd
 
-from conftest import VERLET, assert_bit_exact, every_kind
+from conftest import BOX_SCENE, VERLET, assert_bit_exact, every_kind
 from test_cuda import cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
 from test_opencl_vbd import N, scene_of  # built-in scenes at 16^2, as the OpenCL VBD tests take them
 
@@ -48,7 +47,7 @@ ARCHS = ("sm_80", "sm_90")
 
 def boxes_scene():
     """The contract's boxes (tests/data/boxes.toml): a fixed rotated box and a moving one."""
-    return load_scene(str(Path(__file__).parent / "data" / "boxes.toml"))
+    return load_scene(str(BOX_SCENE))
 
 
 def all_kinds(n: int = N):

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ from clothbench.reports.export import OBJ_TOLERANCE, RunInfo, UsdWriter, frame_s
 from clothbench.reports.meshes import cloth_indices
 from clothbench.model.scene import body_pose, load_setup
 
-from conftest import assert_bit_exact, require
+from conftest import BOX_SCENE, assert_bit_exact, require
 
 pxr = pytest.importorskip("pxr", reason="usd-core not installed (pip install 'clothbench[export]')")
 from pxr import Usd, UsdGeom  # noqa: E402
@@ -120,7 +119,7 @@ def test_a_moving_collider_is_time_sampled_at_its_pose_and_a_still_one_is_not(tm
 
 def test_a_box_is_a_cube_prim_where_the_box_is_and_a_moving_one_follows_its_pose(tmp_path):
     out = tmp_path / "boxes.usd"
-    scene_file = str(Path(__file__).parent / "data" / "boxes.toml")
+    scene_file = str(BOX_SCENE)
     run(tmp_path, "--export", str(out), "--export-every", "10", scene=scene_file, steps=20)
     stage = Usd.Stage.Open(str(out))
     for i, box in enumerate(load_setup(scene_file).scene.boxes):

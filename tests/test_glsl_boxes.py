@@ -9,7 +9,6 @@ and a program holds box code only where its scene has a box."""
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,14 +19,13 @@ from clothbench.harness.plan import without_motion
 from clothbench.model.scene import Box, load_scene, load_setup
 from clothbench.model.solver import Pbd
 
-from conftest import VERLET, assert_bit_exact, require, sphere
+from conftest import BOX_SCENE, BOX_STEPS, VERLET, assert_bit_exact, require, sphere
 
 pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
 
-BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
 # steps compared, as the contract's: both boxes are reached, still (numpy float32 moves the
 # sheet with each by step 500: test_fixed_boxes_match_numpy_f32_bit_for_bit checks it) or moving
-STEPS = 500
+STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
 PBD = Pbd(dt=5e-4, iterations=4, substeps=2)  # the contract's PBD solver
 
 

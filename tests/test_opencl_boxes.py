@@ -6,7 +6,6 @@ shape of each), and a scene without a box compiles no box code."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -21,10 +20,9 @@ from clothbench.harness import reference
 from clothbench.kernel_source import read_kernel
 from clothbench.model.scene import Box, Scene, load_setup
 from clothbench.model.solver import Pbd
-from conftest import VERLET, assert_bit_exact, require
+from conftest import BOX_SCENE, BOX_STEPS, VERLET, assert_bit_exact, require
 
-BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
-STEPS = 500  # both boxes push particles within them (tests/contract/test_box_contract.py)
+STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
 
 
 @pytest.fixture(autouse=True)

@@ -6,7 +6,6 @@ motion stopped: no peer takes moving colliders."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,11 +16,10 @@ from clothbench.harness.health import max_penetration
 from clothbench.harness.plan import without_motion
 from clothbench.model.scene import load_setup
 
-from conftest import assert_bit_exact, require
+from conftest import BOX_SCENE, BOX_STEPS, assert_bit_exact, require
 
-BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
 PEERS = ("taichi", "warp", "numba", "torch", "jax")  # the CPU peers; cupy and numba-cuda need a GPU
-STEPS = 500  # the contract's: the sheet reaches both boxes well within it
+STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
 # float32 rounding leaves a pushed-out particle a few ulp inside (tests/test_peers.py's bound)
 PENETRATION_TOLERANCE = 1e-6
 

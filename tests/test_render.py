@@ -8,7 +8,6 @@ image as a backend whose positions are read back and uploaded.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,12 +24,11 @@ from clothbench.reports.render import RenderSettings, frame_scene, render
 from clothbench.model.scene import load_scene
 from clothbench.model.solver import Pbd
 
-from conftest import VERLET, require
+from conftest import BOX_SCENE, VERLET, require
 
 pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
 
 SIZE = (160, 120)
-BOX_SCENE = Path(__file__).parent / "data" / "boxes.toml"
 # Strict GL and numpy f32 states are the same bits, so the two ways to the vertex shader
 # draw the same triangles: at most a few edge pixels may differ (measured: none).
 PIXEL_TOLERANCE = 0.002  # fraction of pixels allowed to differ

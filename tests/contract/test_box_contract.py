@@ -7,7 +7,6 @@ reaches both. A backend that does not declare boxes refuses the scene
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,13 +18,12 @@ from clothbench.harness.plan import without_motion
 from clothbench.model.scene import load_setup
 from clothbench.model.solver import Pbd, Vbd
 
-from conftest import assert_bit_exact
+from conftest import BOX_SCENE, BOX_STEPS, assert_bit_exact
 from registry_variants import options, usable
 
-BOX_SCENE = Path(__file__).parent.parent / "data" / "boxes.toml"
-# the sheet reaches both boxes, moving or stopped, well within these steps (numpy float32:
-# after about 300; test_the_sheet_reaches_both_boxes_within_the_steps_compared holds it)
-STEPS = 500
+# the scene's steps: the sheet reaches both boxes, moving or stopped, well within them (numpy
+# float32: by step 291; test_the_sheet_reaches_both_boxes_within_the_steps_compared holds it)
+STEPS = BOX_STEPS
 PBD = Pbd(dt=5e-4, iterations=4, substeps=2)
 VBD = Vbd(dt=5e-4, iterations=4, substeps=2)
 
@@ -96,7 +94,7 @@ def test_strict_pbd_and_vbd_boxes_match_numpy_f32_bit_for_bit(param, solver):
 
 
 @pytest.mark.parametrize("moving", [True, False], ids=["moving", "stopped"])
-# Verlet's in the quick tier; PBD's and VBD's (NumPy's iterations over 500 steps: the quick
+# Verlet's in the quick tier; PBD's and VBD's (NumPy's iterations over the scene's steps: the quick
 # tier's slowest) in --full, where they hold the strict PBD and VBD cases to contact as well
 @pytest.mark.parametrize(
     "solver",
