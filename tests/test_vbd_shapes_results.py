@@ -80,3 +80,16 @@ def test_the_planes_shapes_beat_gather_by_what_the_readme_says():
         < 3.5
         < best["opencl", "Intel", "gather", 256, "fast"] / c
     )
+
+
+def test_the_bound_sweep_holds_the_shares_the_readme_gives():
+    rows = {
+        (r["backend"], r["grid"], r["strict"]): r
+        for r in csv.DictReader((RESULTS / "bound-sweep-zen4-2026-12-05.csv").open())
+    }
+    share = {key: round(float(r["bound_fraction"]), 2) for key, r in rows.items()}
+    assert share["c", "256", "false"] == 0.22 and share["c", "256", "true"] == 0.21
+    assert (share["c", "128", "false"], share["c", "128", "true"]) == (0.17, 0.15)
+    assert (share["opencl", "256", "false"], share["opencl", "128", "false"]) == (0.11, 0.09)
+    assert all(r["bound_kind"] == "arithmetic" and r["busy"] != "true" for r in rows.values())
+    assert round(float(rows["c", "256", "false"]["bound_ms"]), 2) == 1.22
