@@ -7,6 +7,7 @@ editable install reads the top-level kernels/ folder beside the package.
 
 from __future__ import annotations
 
+import hashlib
 import re
 from importlib import resources
 from pathlib import Path
@@ -94,6 +95,30 @@ def resolve_includes(
         return "".join(out)
 
     return expand(filename, text), files
+
+
+class _EveryGeneratedBlank(dict):
+    """resolve_includes' `generated` that takes every `#include <name>` as empty text."""
+
+    def __contains__(self, name) -> bool:
+        return True
+
+    def __bool__(self) -> bool:  # empty, yet not to be replaced by resolve_includes' default
+        return True
+
+    def __missing__(self, name):
+        return lambda: ""
+
+
+def kernel_hash(*filenames: str) -> str:
+    """12 hex digits of kernels/`filenames` and every file they include by name: what a kernel
+    shape measured on them (backends/tuning.py) was measured on, so that an edit to any of them
+    measures again. The generated `#include <...>` parts are left out: they follow the scene,
+    which a tuning key names in its own fields."""
+    digest = hashlib.sha256()
+    for name in filenames:
+        digest.update(resolve_includes(name, read_kernel(name), lambda *_: "", _EveryGeneratedBlank())[0].encode())
+    return digest.hexdigest()[:12]
 
 
 def c_float(x) -> str:

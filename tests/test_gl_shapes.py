@@ -15,6 +15,7 @@ import json
 import numpy as np
 import pytest
 
+from clothbench import kernel_source
 from clothbench import cli
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.gl import context as gl_context
@@ -271,3 +272,14 @@ def test_the_anatomy_tool_cuts_every_part_it_names():
                 b.gl.ctx.compute_shader(variant).release()
     with pytest.raises(ClothbenchError, match="finds nothing to cut"):
         anatomy.variants(source.replace("P vec3 f = s * d - bv;", "P vec3 f = s * d + -bv;"), anatomy.COMPUTE_CUTS)
+
+
+def test_an_edit_to_any_file_the_step_includes_is_a_new_tuning_key(monkeypatch):
+    # the choice was measured on the kernels' text: verlet_cloth.comp includes the step's file,
+    # whose edit must measure again as an edit to the top file does (generated parts aside)
+    before = kernel_source.kernel_hash(*shapes.VERLET_KERNELS)
+    assert kernel_source.kernel_hash(*shapes.VERLET_KERNELS) == before  # the text, nothing else
+    original = kernel_source.read_kernel
+    edited = {"verlet_cloth_step.glsl": "// a comment\n"}
+    monkeypatch.setattr(kernel_source, "read_kernel", lambda name: original(name) + edited.get(name, ""))
+    assert kernel_source.kernel_hash(*shapes.VERLET_KERNELS) != before

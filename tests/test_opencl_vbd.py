@@ -13,7 +13,8 @@ import pytest
 from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.opencl import device
 from clothbench.backends.tuning import TUNING_ROUNDS
-from clothbench.backends.opencl.vbd import OpenCLVbdBackend, parse_planes, planes_shapes, vector_rest
+from clothbench.backends.opencl import vbd as vbd_module
+from clothbench.backends.opencl.vbd import VECTOR_WIDTHS, OpenCLVbdBackend, parse_planes, planes_shapes, vector_rest
 from clothbench.harness import reference, simulate
 from clothbench.harness.plan import without_motion
 from clothbench.model.scene import load_setup
@@ -135,3 +136,17 @@ def test_the_tuned_vbd_shape_is_kept_under_vbd_s_own_key(monkeypatch, tmp_path):
     assert len(timed) == 3 * TUNING_ROUNDS * len(offered)  # the second Vbd() read the first's choice
     kept = json.loads((tmp_path / "tuning" / "opencl.json").read_text())
     assert [json.loads(k)["solver"] for k in kept] == ["vbd"] * 3
+
+
+@pytest.mark.parametrize("width", VECTOR_WIDTHS)
+def test_every_lane_width_is_bit_exact_whatever_the_device_offers(width, monkeypatch):
+    # a device offers its native width only (16 with AVX-512, 8 with AVX2): each width's vector
+    # sweep is built and held to NumPy here too, with the runtime's work-groups and with 4
+    shapes = (f"planes/v{width}", f"planes/v{width}/wg=4")
+    monkeypatch.setattr(vbd_module, "planes_shapes", lambda device, scene, options: shapes)
+    scene, solver = scene_of("curtain").replace(grid=41), Vbd(dt=1 / 60, chebyshev_rho=0.9)
+    ref_pos, ref_prev = reference(scene, solver, 30, "f32")
+    for shape in shapes:
+        pos, prev = simulate("opencl", scene, solver, 30, BackendOptions(strict=True, shape=shape))
+        assert_bit_exact(pos, ref_pos, f"pos, {shape}")
+        assert_bit_exact(prev, ref_prev, f"prev, {shape}")

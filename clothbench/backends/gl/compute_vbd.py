@@ -21,10 +21,9 @@ collides it into y, which update reads (pbd_device's plan).
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, replace
 
-from clothbench.kernel_source import glsl_float, read_kernel
+from clothbench.kernel_source import glsl_float, kernel_hash
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Vbd
 from clothbench.backends.base import BackendOptions
@@ -60,7 +59,7 @@ def tuning_key(backend: GLSLComputeVbdBackend) -> dict[str, str]:
         "iterations": str(solver.iterations),
         "substeps": str(solver.substeps),
         "chebyshev": "on" if backend.chebyshev else "off",
-        "kernel": hashlib.sha256(read_kernel(KERNEL_FILE).encode()).hexdigest()[:12],
+        "kernel": kernel_hash(KERNEL_FILE),
     }
 
 

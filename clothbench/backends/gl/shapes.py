@@ -25,10 +25,13 @@ from dataclasses import dataclass
 
 from clothbench.model.colliders.kinds import KINDS
 from clothbench.errors import ClothbenchError
+from clothbench.kernel_source import kernel_hash
 from clothbench.model.scene import Scene
 from clothbench.backends.base import BackendOptions
 from clothbench.backends.tuning import median_seconds
 
+# the Verlet shapes' kernel files (gl/compute.py), whose text a choice was measured on
+VERLET_KERNELS = ("verlet_cloth.comp", "verlet_cloth_steps.comp")
 DEFAULT_SHAPE = "wg=64"
 LINEAR_SIZES = (64, 256)  # work-group sizes of the 1-D shape (the first is the default)
 # VBD's work-group sizes, the default first; none below 64, slower on llvmpipe (docs/vbd.md)
@@ -131,7 +134,8 @@ def refuse_shape_with_local_size(options: BackendOptions) -> None:
 
 def tuning_key(backend) -> dict[str, str]:
     """What a measured choice holds for: the driver, the grid, the colliders (meshes: their
-    triangles and algorithm; motion), the build."""
+    triangles and algorithm; motion), the build and the Verlet kernels' text (a solver with
+    kernels of its own names them in place of those: gl/compute_vbd.py)."""
     scene, options = backend.scene, backend.options
     triangles = sum(m.geometry.triangles for m in scene.meshes)
     return {
@@ -145,6 +149,7 @@ def tuning_key(backend) -> dict[str, str]:
         # only where the scene has them, so that a scene without them keeps its key and its choice
         **({"meshes": f"{triangles}t/{backend.mesh_collision}"} if scene.meshes else {}),
         **({"motion": "moving"} if scene.has_motion else {}),
+        "kernel": kernel_hash(*VERLET_KERNELS),  # an edit to the step measures again
     }
 
 
