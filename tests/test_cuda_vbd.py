@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import shutil
 import subprocess
 
@@ -28,6 +29,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.errors import ClothbenchError
 from clothbench.backends.cuda import cpu, launch, vbd
 from clothbench.backends.cuda import verlet as cuda
+from clothbench.backends.tuning import TUNING_ROUNDS
 from clothbench.harness import reference
 from clothbench.kernel_source import kernel_path, read_kernel, resolve_includes
 from clothbench.model.scene import load_scene, load_setup
@@ -190,7 +192,7 @@ def test_cuda_vbd_backend_runs_the_cpu_build_of_its_own_kernel(cuda_on_cpu):  # 
     scene, solver = all_kinds(), Vbd(dt=1 / 60, chebyshev_rho=0.9)
     with vbd.CudaVbdBackend(scene, solver, BackendOptions(strict=True, local_size=64)) as backend:
         assert compiled[-1] == (True, vbd.vbd_defines(scene))
-        assert backend.mode == "strict/vbd/ls=64"
+        assert backend.mode == "strict/vbd/ls=64/block=64"  # --local-size: that one shape, untuned
         assert backend.device_timer == "cuda-events"
         backend.upload(*solver.initial_state(scene, np.float32))
         backend.advance(40)
@@ -201,7 +203,10 @@ def test_cuda_vbd_backend_runs_the_cpu_build_of_its_own_kernel(cuda_on_cpu):  # 
     assert_bit_exact(pos, ref_pos, "pos")
     assert_bit_exact(prev, ref_prev, "prev")
     with vbd.CudaVbdBackend(scene, solver, BackendOptions()) as backend:  # the defaults: fast, 256 a block
-        assert backend.mode == f"fast/vbd/ls={launch.AUTO_BLOCK}" and backend.state.block == launch.AUTO_BLOCK
+        b = launch.AUTO_BLOCK
+        assert backend.mode == f"fast/vbd/ls={b}/block={b}" and backend.state.block == b
+    with vbd.CudaVbdBackend(scene, solver, BackendOptions(shape="block=128")) as backend:  # a shape named
+        assert backend.mode == "fast/vbd/ls=128/block=128" and backend.state.block == 128
 
 
 @pytest.mark.parametrize(
@@ -210,7 +215,8 @@ def test_cuda_vbd_backend_runs_the_cpu_build_of_its_own_kernel(cuda_on_cpu):  # 
         ({"generic": True}, "cuda does not take --generic"),
         ({"normals": True}, "cuda does not take --save-normals"),
         ({"transfer": "copy"}, "cuda does not take --transfer copy"),
-        ({"shape": "block=64"}, "cuda does not take --shape block=64"),
+        ({"shape": "block=100"}, "cuda has no kernel shape 'block=100' for this scene"),
+        ({"shape": "steps/launch=32"}, "cuda has no kernel shape 'steps/launch=32'"),  # Verlet's only
         ({"local_size": 2048}, r"cuda --local-size must be 1 \.\. 1024 here, got 2048"),
     ],
 )
@@ -226,3 +232,27 @@ def test_the_verlet_class_is_unchanged_by_vbd(cuda_on_cpu):  # noqa: F811
     with backend:
         assert type(backend) is cuda.CudaBackend and runtime.kernel == launch.STEP_KERNEL
         assert backend.defines == cuda.kernel_defines(every_kind(8), VERLET)
+
+
+def test_the_tuned_block_is_kept_under_vbd_s_own_key(cuda_on_cpu, monkeypatch, tmp_path):  # noqa: F811
+    # the fastest block wins and is read back without measuring; a Verlet choice for the same
+    # scene, and VBD's with other sweeps, are other keys of cuda's one tuning file
+    cuda_on_cpu.install()
+    monkeypatch.setenv("CLOTHBENCH_TUNING", "on")
+    monkeypatch.setenv("CLOTHBENCH_CACHE", str(tmp_path))
+    timed: list[str] = []
+
+    def fake(backend, shape):  # block=128 is the fastest, for either solver
+        timed.append(shape)
+        return 1e-4 if shape == "block=128" else 2e-4
+
+    monkeypatch.setattr(cuda.CudaDevice, "_time_shape", fake)
+    scene = every_kind(8)
+    for solver in (Vbd(dt=1 / 60), Vbd(dt=1 / 60), Vbd(dt=1 / 60, iterations=20), VERLET):
+        with create_backend("cuda", scene, solver, BackendOptions()) as b:
+            assert b.shape == "block=128" and b.effective_local_size == 128, b.mode
+    vbd_blocks = len(vbd.CudaVbdBackend.kernel_shapes(scene, BackendOptions()))
+    verlet_shapes = len(cuda.CudaBackend.kernel_shapes(scene, BackendOptions()))
+    assert len(timed) == TUNING_ROUNDS * (2 * vbd_blocks + verlet_shapes)  # the second Vbd read the first's
+    keys = [json.loads(k) for k in json.loads((tmp_path / "tuning" / "cuda.json").read_text())]
+    assert sorted(k.get("solver", "verlet") for k in keys) == ["vbd", "vbd", "verlet"]

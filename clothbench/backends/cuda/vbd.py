@@ -1,9 +1,10 @@
 """The VBD solver (docs/vbd.md) on CUDA: kernels/vbd_cloth.cu through CuPy.
 
-Host code only; the step is the kernel file's and docs/vbd.md's. One kernel shape: a substep
-is a fixed list of launches on one stream (each sees the one before): predict, then per
-iteration one launch per vertex colour (and with Chebyshev one extrapolation), collide,
-update, each in blocks of --local-size threads (256 by default); with [self_collision],
+Host code only; the step is the kernel file's and docs/vbd.md's. A substep is a fixed list of
+launches on one stream (each sees the one before): predict, then per iteration one launch per
+vertex colour (and with Chebyshev one extrapolation), collide, update, each in blocks of the
+kernel shape's threads (`block=N`, launch.BLOCK_SIZES, chosen per device and scene by
+measurement as the Verlet class's block sizes are; --local-size fixes it); with [self_collision],
 self_contact.py's pass (keys, sort stages, the pass and the colliders) from xs into y in place
 of collide, and update reads y (docs/vbd.md, "Self-collision"). `VbdLaunches` holds that
 list once, written against PingPong's small runtime (alloc, upload, download, launch), one
@@ -16,8 +17,8 @@ included, are kernels/collide.cuh's, the Verlet kernel's own code, built for the
 (scene_defines); moving colliders and attached pins take one row set per substep, at its end,
 from launch.py's per-step table and its window on the device.
 
-What a later change may tune: a small grid would gain from whole substeps in one block (the
-colours separated by __syncthreads(), as verlet_steps does it for Verlet steps).
+Not tried yet: whole substeps in one block on a small grid (the colours separated by
+__syncthreads(), as verlet_steps does it for Verlet steps).
 """
 
 from __future__ import annotations
@@ -35,14 +36,17 @@ from clothbench.model.kernel_inputs import VbdConstants
 from clothbench.backends.pbd_device import position_state, velocity_state
 from clothbench.backends.cuda.launch import (
     AUTO_BLOCK,
+    BLOCK_SIZES,
     MotionWindow,
     attached_pins,
     mesh_buffers,
     motion_table,
+    parse_shape,
     pin_slots,
 )
 from clothbench.backends.cuda.self_contact import KERNELS as SELF_KERNELS, SelfContact, self_collision_defines
 from clothbench.backends.cuda.verlet import CudaBackend, CudaDevice, CupyRuntime, scene_defines
+from clothbench.kernel_source import kernel_hash
 
 KERNEL_FILE = "vbd_cloth.cu"
 PREDICT, SWEEP, CHEBYSHEV, COLLIDE, UPDATE = "vbd_predict", "vbd_sweep", "vbd_chebyshev", "vbd_collide", "vbd_update"
@@ -147,13 +151,14 @@ class VbdLaunches:
 
 class CudaVbdBackend(CudaDevice):
     """VBD on a CUDA device: the Verlet class's device, compiler, stream and events (CudaDevice),
-    vbd_cloth.cu's kernels, one kernel shape."""
+    vbd_cloth.cu's kernels, in blocks of the tuned shape's threads."""
 
     name = "cuda"
     kernel_file = KERNEL_FILE
     capabilities = Capabilities(
         local_size=True,  # the threads a block of every launch
         device=True,
+        shapes=True,  # block=N: the threads a block of every launch (kernel_shapes)
         # collide.cuh is the Verlet kernel's collider code, so every scene feature it takes
         meshes=("vbd",),
         moving_colliders=("vbd",),
@@ -169,9 +174,37 @@ class CudaVbdBackend(CudaDevice):
         kernels = {name: module.get_function(name) for name in kernels_of(scene)}
         for kernel in kernels.values():
             self._check_local_size(kernel)
-        self.effective_local_size = options.local_size or AUTO_BLOCK
-        runtimes = {name: CupyRuntime(kernel, self.stream) for name, kernel in kernels.items()}
-        self.state = VbdLaunches(runtimes, scene, solver, self.effective_local_size)
+        self._threads_limit = min(kernel.max_threads_per_block for kernel in kernels.values())
+        self._runtimes = {name: CupyRuntime(kernel, self.stream) for name, kernel in kernels.items()}
+        self.state = self._shape_state(self.pick_shape(self._tuning_key(), self._time_shape))
+
+    # a VBD step is tens of launches (a sweep a colour): fewer steps than Verlet's time a shape
+    tuning_steps = 16
+
+    @classmethod
+    def kernel_shapes(cls, scene: Scene, options: BackendOptions, solver=None) -> tuple[str, ...]:
+        """block=N for each of launch.BLOCK_SIZES (the first the default), or --local-size's only."""
+        return tuple(f"block={b}" for b in ((options.local_size,) if options.local_size else BLOCK_SIZES))
+
+    def _tuning_key(self) -> dict[str, str]:
+        solver = self.solver
+        return {
+            **self._device_key(),
+            "solver": "vbd",
+            "iterations": str(solver.iterations),
+            "substeps": str(solver.substeps),
+            "chebyshev": str(solver.chebyshev_rho > 0),
+            "kernel": kernel_hash(KERNEL_FILE),
+            **({"self_collision": "after the sweeps"} if self.scene.self_collision is not None else {}),
+        }
+
+    def _shape_state(self, shape: str) -> VbdLaunches:
+        """The launches of one substep in blocks of `shape`'s threads (block=N)."""
+        _, block = parse_shape(shape, self.scene.particles)
+        if block > self._threads_limit:
+            raise ClothbenchError(f"cuda {shape}: {block} threads a block, at most {self._threads_limit} here")
+        self.effective_local_size = block
+        return VbdLaunches(self._runtimes, self.scene, self.solver, block)
 
 
 __all__ = ["CudaVbdBackend", "VbdLaunches", "vbd_defines"]

@@ -347,6 +347,59 @@ class CudaDevice(Backend):
         self._timed = False
         return module
 
+    tuning_steps = TUNING_STEPS  # steps a candidate shape is timed over
+
+    def _shape_state(self, shape: str):
+        """The device state (self.state's kind) that runs kernel shape `shape`."""
+        raise NotImplementedError
+
+    def _device_key(self) -> dict[str, str]:
+        """What any CUDA solver's fastest shape depends on: the device and its software, the
+        grid and its colliders, the arithmetic and the local size; each solver adds its own."""
+        o, s = self.options, self.scene
+        return {
+            "device": self._name,
+            "driver": self._driver,
+            "grid": str(s.grid),
+            "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
+            "arithmetic": "strict" if o.strict else "fast",
+            "local_size": str(o.local_size or "auto"),
+            # only where the scene has them, so that a scene without them keeps its key
+            **(
+                {
+                    "meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
+                    f"{self.mesh_collision}"
+                }
+                if s.meshes
+                else {}
+            ),
+            **({"motion": "per-step poses"} if s.has_motion else {}),
+            **({"boxes": str(len(s.boxes))} if s.boxes else {}),
+        }
+
+    def _time_shape(self, shape: str) -> float:
+        """Device seconds a step of `shape`, from CUDA events around tuning_steps steps (the
+        median of TUNING_REPEATS, after as many steps untimed), on the state the subclass
+        makes for it (_shape_state)."""
+        import cupy
+
+        try:
+            state = self._shape_state(shape)
+            state.upload(*self.solver.initial_state(self.scene, np.float32))
+            state.advance(self.tuning_steps)
+            times = []
+            for _ in range(TUNING_REPEATS):
+                self._start.record(self.stream)
+                state.advance(self.tuning_steps)
+                self._end.record(self.stream)
+                self._end.synchronize()
+                times.append(cupy.cuda.get_elapsed_time(self._start, self._end) / 1e3 / self.tuning_steps)
+        except ClothbenchError:
+            raise
+        except Exception as e:  # e.g. too many resources requested: this shape cannot run here
+            raise ClothbenchError(f"cuda {shape}: {error_name(e)}") from None
+        return statistics.median(times)
+
     def _check_local_size(self, kernel) -> None:
         limit = kernel.max_threads_per_block
         local_size = self.options.local_size
@@ -442,32 +495,19 @@ class CudaBackend(CudaDevice):
         self.state = self._pingpong(self.pick_shape(self._tuning_key(), self._time_shape))
 
     def _tuning_key(self) -> dict[str, str]:
-        """What the fastest shape depends on: the device and its software, the grid and its
-        colliders, the arithmetic, and what else each launch does."""
+        """What the fastest shape depends on: the device's key (CudaDevice._device_key) and
+        what else each launch does."""
         o, s = self.options, self.scene
         return {
-            "device": self._name,
-            "driver": self._driver,
-            "grid": str(s.grid),
-            "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
-            "arithmetic": "strict" if o.strict else "fast",
+            **self._device_key(),
             "generic": str(o.generic),
             "normals": str(o.normals),
             "transfer": self.transfer,
-            "local_size": str(o.local_size or "auto"),
-            # only where the scene has them, so that a scene without them keeps its key
-            **(
-                {
-                    "meshes": f"{sum(m.geometry.triangles for m in s.meshes)} triangles in {len(s.meshes)}, "
-                    f"{self.mesh_collision}"
-                }
-                if s.meshes
-                else {}
-            ),
-            **({"motion": "per-step poses"} if s.has_motion else {}),
-            **({"boxes": str(len(s.boxes))} if s.boxes else {}),
             **({"self_collision": "verlet_step and the pass"} if s.self_collision is not None else {}),
         }
+
+    def _shape_state(self, shape: str) -> PingPong:
+        return self._pingpong(shape)
 
     def _pingpong(self, shape: str) -> PingPong:
         """Device buffers and the kernel for one shape (launch.py)."""
@@ -493,28 +533,6 @@ class CudaBackend(CudaDevice):
         if state.shared_bytes:  # above 48 KiB a kernel must opt in, up to the device's limit
             kernel.max_dynamic_shared_size_bytes = state.shared_bytes
         return state
-
-    def _time_shape(self, shape: str) -> float:
-        """Device seconds a step of `shape`, from CUDA events around TUNING_STEPS steps (the
-        median of TUNING_REPEATS, after as many steps untimed)."""
-        import cupy
-
-        try:
-            state = self._pingpong(shape)
-            state.upload(*self.solver.initial_state(self.scene, np.float32))
-            state.advance(TUNING_STEPS)
-            times = []
-            for _ in range(TUNING_REPEATS):
-                self._start.record(self.stream)
-                state.advance(TUNING_STEPS)
-                self._end.record(self.stream)
-                self._end.synchronize()
-                times.append(cupy.cuda.get_elapsed_time(self._start, self._end) / 1e3 / TUNING_STEPS)
-        except ClothbenchError:
-            raise
-        except Exception as e:  # e.g. too many resources requested: this shape cannot run here
-            raise ClothbenchError(f"cuda {shape}: {error_name(e)}") from None
-        return statistics.median(times)
 
     def read_normals(self) -> np.ndarray | None:
         """Normals of the positions the last step read (read()[1]), see docs/normals.md."""
