@@ -288,7 +288,7 @@ typedef float8 float8_u __attribute__((aligned(4)));
 #define INTERIOR_COUNT(first) (((N - 3) - (first)) / 2 + 1)
 
 /* vec_type_hint: the kernel is vectors already; without it Intel's runtime vectorised it again
- * across work items, 10-15% slower (docs/vbd.md, "Kernel shapes") */
+ * across work items, its sweeps 10-20% slower (docs/vbd.md, "Kernel shapes") */
 __kernel __attribute__((vec_type_hint(floatw))) void
 vbd_sweep_vectors(__global float *P, __global const float *Yp, __global const float *Xp, __global const float *Wp,
                   const int parity, const int bit, const float mh2, const float bh, const float k, const float4 rest)
