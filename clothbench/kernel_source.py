@@ -61,7 +61,7 @@ def resolve_includes(
     OpenCL driver is then all of the program, so a program cache keyed on the source text
     (ours, PoCL's) sees an edit to an included file."""
     files: list[str] = []
-    generated = generated or {}
+    generated = {} if generated is None else generated
 
     def expand(name: str, text: str) -> str:
         number = len(files)
@@ -101,9 +101,6 @@ class _EveryGeneratedBlank(dict):
     """resolve_includes' `generated` that takes every `#include <name>` as empty text."""
 
     def __contains__(self, name) -> bool:
-        return True
-
-    def __bool__(self) -> bool:  # empty, yet not to be replaced by resolve_includes' default
         return True
 
     def __missing__(self, name):

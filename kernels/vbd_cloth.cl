@@ -163,19 +163,8 @@ INLINE float3 newton_step(int row, int col, float3 xi, __global const float4 *X,
     return xi; /* never for a finite state: H is positive definite */
 }
 
-/* Particle i = (row, col), free or pinned, one Newton step in place (a pinned one stays). */
-INLINE void sweep_particle(int row, int col, __global float4 *X, __global const float4 *y,
-                           __global const float4 *x, float mh2, float bh, float k, float4 rest)
-{
-    int i = row * N + col;
-    float4 p = X[i];
-    if (p.w == 0.0f)
-        return;
-    X[i] = (float4)(newton_step(row, col, p.xyz, X, 0, y[i].xyz, x[i].xyz, mh2, bh, k, rest), p.w);
-}
-
 /* One colour of a sweep, the `gather` shape: the particles order[first .. first + count - 1]
- * (every particle of the colour), one per work item, X in place. */
+ * (every particle of the colour; a pinned one returns), one per work item, X in place. */
 __kernel void vbd_sweep(__global float4 *X, __global const float4 *y, __global const float4 *x,
                         __global const int *order, const int first, const int count, const float mh2,
                         const float bh, const float k, const float4 rest)
@@ -184,7 +173,10 @@ __kernel void vbd_sweep(__global float4 *X, __global const float4 *y, __global c
     if (t >= count)
         return;
     int i = order[first + t];
-    sweep_particle(i / N, i % N, X, y, x, mh2, bh, k, rest);
+    float4 p = X[i];
+    if (p.w == 0.0f)
+        return;
+    X[i] = (float4)(newton_step(i / N, i % N, p.xyz, X, 0, y[i].xyz, x[i].xyz, mh2, bh, k, rest), p.w);
 }
 
 /* Chebyshev (docs/vbd.md): with `apply`, X = omega (X - before) + before for the free

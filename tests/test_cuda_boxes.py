@@ -31,7 +31,6 @@ from test_cuda import cuda_on_cpu, entry_body, shim_library  # noqa: F401  (fixt
 KERNEL = kernel_path(cuda.KERNEL_FILE)
 # the contract's length: the sheet reaches both boxes, moving or stopped, well within it
 # (tests/contract/test_box_contract.py checks)
-STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
 BUILDS = {"specialised": False, "generic": True}
 
 
@@ -126,8 +125,8 @@ def test_strict_boxes_on_the_cpu_build_equal_numpy_f32(build, moving):
     scene, solver = box_scene(moving)
     pp = pingpong(scene, solver, generic=BUILDS[build])
     pp.upload(*solver.initial_state(scene, np.float32))
-    pp.advance(STEPS)
-    assert_equals_reference(*pp.read(), scene, solver, STEPS, f"{build}, {'moving' if moving else 'fixed'}")
+    pp.advance(BOX_STEPS)
+    assert_equals_reference(*pp.read(), scene, solver, BOX_STEPS, f"{build}, {'moving' if moving else 'fixed'}")
 
 
 @pytest.mark.parametrize("build", BUILDS)
@@ -139,8 +138,8 @@ def test_strict_boxes_in_the_multistep_kernel_equal_numpy_f32(build):
     pp.upload(*solver.initial_state(scene, np.float32))
     pp.advance(37)
     assert_equals_reference(*pp.read(), scene, solver, 37, f"{build}, verlet_steps")
-    pp.advance(STEPS - 37)
-    assert_equals_reference(*pp.read(), scene, solver, STEPS, f"{build}, verlet_steps")
+    pp.advance(BOX_STEPS - 37)
+    assert_equals_reference(*pp.read(), scene, solver, BOX_STEPS, f"{build}, verlet_steps")
 
 
 def test_strict_boxes_through_cuda_backend_equal_numpy_f32(cuda_on_cpu):  # noqa: F811
@@ -152,10 +151,10 @@ def test_strict_boxes_through_cuda_backend_equal_numpy_f32(cuda_on_cpu):  # noqa
     with backend:
         assert "-DCLOTH_BOX_COUNT=2" in backend.defines
         backend.upload(*solver.initial_state(scene, np.float32))
-        backend.advance(STEPS)
+        backend.advance(BOX_STEPS)
         backend.synchronize()
         pos, prev = backend.read()
-    assert_equals_reference(pos, prev, scene, solver, STEPS, "CudaBackend")
+    assert_equals_reference(pos, prev, scene, solver, BOX_STEPS, "CudaBackend")
 
 
 # Hand-placed particles, one in each branch of the response, in a box rotated about all three

@@ -25,7 +25,6 @@ pytestmark = pytest.mark.serial  # holds a GL context: one xdist worker
 
 # steps compared, as the contract's: both boxes are reached, still (numpy float32 moves the
 # sheet with each by step 500: test_fixed_boxes_match_numpy_f32_bit_for_bit checks it) or moving
-STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
 PBD = Pbd(dt=5e-4, iterations=4, substeps=2)  # the contract's PBD solver
 
 
@@ -48,14 +47,14 @@ def test_fixed_boxes_match_numpy_f32_bit_for_bit(backend, solver, generic):
     require(backend)
     scene = still_boxes()
     options = BackendOptions(strict=True, generic=generic)
-    pos, prev = simulate(backend, scene, solver, STEPS, options)
-    ref_pos, ref_prev = reference(scene, solver, STEPS, "f32")
-    what = f"{backend} {solver.name} generic={generic} still boxes, {STEPS} steps"
+    pos, prev = simulate(backend, scene, solver, BOX_STEPS, options)
+    ref_pos, ref_prev = reference(scene, solver, BOX_STEPS, "f32")
+    what = f"{backend} {solver.name} generic={generic} still boxes, {BOX_STEPS} steps"
     assert_bit_exact(pos, ref_pos, f"pos, {what}")
     assert_bit_exact(prev, ref_prev, f"prev, {what}")
     for i, box in enumerate(scene.boxes):  # each box did something: without it the sheet ends elsewhere
         others = scene.replace(boxes=scene.boxes[:i] + scene.boxes[i + 1 :])
-        assert not np.array_equal(pos, reference(others, solver, STEPS, "f32")[0]), f"{box.name} moved nothing"
+        assert not np.array_equal(pos, reference(others, solver, BOX_STEPS, "f32")[0]), f"{box.name} moved nothing"
 
 
 def response_scene():
@@ -136,8 +135,8 @@ def test_compute_shapes_read_the_moving_boxes_rows_bit_for_bit(shape):
     # the per-step rows (MOTION_BOXES) read by the two-pass, the tiled and the one-group shape
     require("glsl-compute")
     setup = load_setup(str(BOX_SCENE))
-    pos, prev = simulate("glsl-compute", setup.scene, setup.solver, STEPS, BackendOptions(strict=True, shape=shape))
-    ref_pos, ref_prev = reference(setup.scene, setup.solver, STEPS, "f32")
+    pos, prev = simulate("glsl-compute", setup.scene, setup.solver, BOX_STEPS, BackendOptions(strict=True, shape=shape))
+    ref_pos, ref_prev = reference(setup.scene, setup.solver, BOX_STEPS, "f32")
     assert_bit_exact(pos, ref_pos, f"pos, glsl-compute shape={shape} moving boxes")
     assert_bit_exact(prev, ref_prev, f"prev, glsl-compute shape={shape} moving boxes")
 
@@ -149,7 +148,7 @@ def test_fast_error_with_boxes_is_of_the_order_of_numpy_f32s_own(backend):
     # distance to float64, with a 1 um floor, is the contract's bound (test_glsl_meshes.py)
     require(backend)
     setup = load_setup(str(BOX_SCENE))
-    scene, steps = setup.scene, STEPS
+    scene, steps = setup.scene, BOX_STEPS
     ref64, _ = reference(scene, setup.solver, steps, "f64")
     _, f32_max = position_error(reference(scene, setup.solver, steps, "f32")[0], ref64)
     pos, _ = simulate(backend, scene, setup.solver, steps, BackendOptions())

@@ -22,8 +22,6 @@ from clothbench.model.scene import Box, Scene, load_setup
 from clothbench.model.solver import Pbd
 from conftest import BOX_SCENE, BOX_STEPS, VERLET, assert_bit_exact, require
 
-STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
-
 
 @pytest.fixture(autouse=True)
 def _opencl():
@@ -101,7 +99,7 @@ def test_every_verlet_shape_is_bit_exact_with_numpy_f32_on_boxes():
         with create_backend("opencl", scene, VERLET, BackendOptions(strict=True, shape=name)) as b:
             b.upload(*b.initial_state())
             done = 0
-            for steps in (1, STEPS):
+            for steps in (1, BOX_STEPS):
                 b.advance(steps - done)
                 done = steps
                 pos, prev = b.read()
@@ -119,13 +117,13 @@ def test_every_verlet_shape_is_bit_exact_with_numpy_f32_on_boxes():
 )
 def test_every_pbd_shape_is_bit_exact_with_numpy_f32_on_boxes(solver):
     scene = box_scene().replace(grid=24)  # the bands shapes' smallest grid, and quicker
-    ref_pos, ref_prev = reference(scene, solver, STEPS, "f32")
-    without = reference(scene.replace(boxes=()), solver, STEPS, "f32")[0]
-    assert (ref_pos != without).any(), f"no particle touched a box in {STEPS} steps"
+    ref_pos, ref_prev = reference(scene, solver, BOX_STEPS, "f32")
+    without = reference(scene.replace(boxes=()), solver, BOX_STEPS, "f32")[0]
+    assert (ref_pos != without).any(), f"no particle touched a box in {BOX_STEPS} steps"
     for name in OpenCLPbdBackend.kernel_shapes(scene, BackendOptions(strict=True), solver):
         with create_backend("opencl", scene, solver, BackendOptions(strict=True, shape=name)) as b:
             b.upload(*b.initial_state())
-            b.advance(STEPS)
+            b.advance(BOX_STEPS)
             pos, prev = b.read()
         assert_bit_exact(pos, ref_pos, f"pos, pbd {solver.method} {name}")
         assert_bit_exact(prev, ref_prev, f"prev, pbd {solver.method} {name}")

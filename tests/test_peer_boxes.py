@@ -19,7 +19,6 @@ from clothbench.model.scene import load_setup
 from conftest import BOX_SCENE, BOX_STEPS, assert_bit_exact, require
 
 PEERS = ("taichi", "warp", "numba", "torch", "jax")  # the CPU peers; cupy and numba-cuda need a GPU
-STEPS = BOX_STEPS  # the box scene's own (tests/conftest.py)
 # float32 rounding leaves a pushed-out particle a few ulp inside (tests/test_peers.py's bound)
 PENETRATION_TOLERANCE = 1e-6
 
@@ -38,9 +37,9 @@ def stopped_box_scene():
 def test_no_particle_ends_inside_a_box(name, strict):
     require(name)
     scene, solver = stopped_box_scene()
-    pos = simulate(name, scene, solver, STEPS, BackendOptions(strict=strict))[0]
+    pos = simulate(name, scene, solver, BOX_STEPS, BackendOptions(strict=strict))[0]
     assert np.isfinite(pos).all(), f"{name}: non-finite positions"
-    without_boxes = reference(scene.replace(boxes=()), solver, STEPS, "f32")[0]
+    without_boxes = reference(scene.replace(boxes=()), solver, BOX_STEPS, "f32")[0]
     assert max_penetration(without_boxes, scene) > 1e-2, "without its boxes the sheet passes through them"
     assert max_penetration(pos, scene) <= PENETRATION_TOLERANCE, f"{name} strict={strict}: a particle is inside"
 
@@ -49,6 +48,6 @@ def test_warp_default_with_boxes_is_numpy_f32_bit_for_bit():
     # Warp's default kernel is its strict one (clothbench/peers/warp.py), boxes included
     require("warp")
     scene, solver = stopped_box_scene()
-    got, want = simulate("warp", scene, solver, STEPS), reference(scene, solver, STEPS, "f32")
+    got, want = simulate("warp", scene, solver, BOX_STEPS), reference(scene, solver, BOX_STEPS, "f32")
     assert_bit_exact(got[0], want[0], "warp default, boxes, pos")
     assert_bit_exact(got[1], want[1], "warp default, boxes, prev")

@@ -71,6 +71,18 @@ _met: dict[str, dict] = {}  # backend -> the choice choose_shape last returned f
 _measured_here: set[tuple[str, str]] = set()
 
 
+def sweeps_key(solver) -> dict[str, str]:
+    """The part of a VBD tuning key its launches depend on (opencl, glsl-compute and cuda alike):
+    the solver, its sweeps a substep, its substeps, and Chebyshev (a launch more a sweep), so
+    that neither another solver's choice nor one of other settings answers for it."""
+    return {
+        "solver": solver.spec,
+        "iterations": str(solver.iterations),
+        "substeps": str(solver.substeps),
+        "chebyshev": "on" if solver.chebyshev_rho > 0 else "off",
+    }
+
+
 def tuning_enabled() -> bool:
     value = os.environ.get(TUNING_ENV, "on").strip().lower()
     if value not in ("on", "off"):

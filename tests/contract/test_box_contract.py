@@ -21,9 +21,9 @@ from clothbench.model.solver import Pbd, Vbd
 from conftest import BOX_SCENE, BOX_STEPS, assert_bit_exact
 from registry_variants import options, usable
 
-# the scene's steps: the sheet reaches both boxes, moving or stopped, well within them (numpy
-# float32: by step 291; test_the_sheet_reaches_both_boxes_within_the_steps_compared holds it)
-STEPS = BOX_STEPS
+# BOX_STEPS, the scene's steps: the sheet reaches both boxes, moving or stopped, well within
+# them (numpy float32: by step 291; test_the_sheet_reaches_both_boxes_within_the_steps_compared
+# holds it)
 PBD = Pbd(dt=5e-4, iterations=4, substeps=2)
 VBD = Vbd(dt=5e-4, iterations=4, substeps=2)
 
@@ -60,9 +60,9 @@ def box_scene(name: str, solver: str = "verlet"):
 def test_strict_boxes_match_numpy_f32_bit_for_bit(param):
     name, generic = usable(param)
     scene = box_scene(name)
-    pos, prev = simulate(name, scene, box_setup().solver, STEPS, options(name, strict=True, generic=generic))
-    ref_pos, ref_prev = reference(scene, box_setup().solver, STEPS, "f32")
-    what = f"{name} generic={generic} boxes moving={scene.has_motion} n={scene.grid} steps={STEPS}"
+    pos, prev = simulate(name, scene, box_setup().solver, BOX_STEPS, options(name, strict=True, generic=generic))
+    ref_pos, ref_prev = reference(scene, box_setup().solver, BOX_STEPS, "f32")
+    what = f"{name} generic={generic} boxes moving={scene.has_motion} n={scene.grid} steps={BOX_STEPS}"
     assert_bit_exact(pos, ref_pos, f"pos, {what}")
     assert_bit_exact(prev, ref_prev, f"prev, {what}")
 
@@ -75,10 +75,10 @@ def test_strict_float64_boxes_match_numpy_f64_bit_for_bit(param):
     if "f64" not in backend_class(name).capabilities.precisions:
         pytest.skip(f"{name} has no float64")
     scene = box_scene(name)
-    pos, prev = simulate(name, scene, box_setup().solver, STEPS, options(name, strict=True, precision="f64"))
-    ref_pos, ref_prev = simulate("numpy", scene, box_setup().solver, STEPS, options("numpy", precision="f64"))
-    assert_bit_exact(pos, ref_pos, f"pos, {name} f64 boxes steps={STEPS}")
-    assert_bit_exact(prev, ref_prev, f"prev, {name} f64 boxes steps={STEPS}")
+    pos, prev = simulate(name, scene, box_setup().solver, BOX_STEPS, options(name, strict=True, precision="f64"))
+    ref_pos, ref_prev = simulate("numpy", scene, box_setup().solver, BOX_STEPS, options("numpy", precision="f64"))
+    assert_bit_exact(pos, ref_pos, f"pos, {name} f64 boxes steps={BOX_STEPS}")
+    assert_bit_exact(prev, ref_prev, f"prev, {name} f64 boxes steps={BOX_STEPS}")
 
 
 @pytest.mark.parametrize(
@@ -87,10 +87,10 @@ def test_strict_float64_boxes_match_numpy_f64_bit_for_bit(param):
 def test_strict_pbd_and_vbd_boxes_match_numpy_f32_bit_for_bit(param, solver):
     name, generic = usable(param)
     scene = box_scene(name, solver.name)
-    pos, prev = simulate(name, scene, solver, STEPS, options(name, solver.name, strict=True, generic=generic))
-    ref_pos, ref_prev = reference(scene, solver, STEPS, "f32")
-    assert_bit_exact(pos, ref_pos, f"pos, {name} {solver.name} boxes steps={STEPS}")
-    assert_bit_exact(prev, ref_prev, f"prev, {name} {solver.name} boxes steps={STEPS}")
+    pos, prev = simulate(name, scene, solver, BOX_STEPS, options(name, solver.name, strict=True, generic=generic))
+    ref_pos, ref_prev = reference(scene, solver, BOX_STEPS, "f32")
+    assert_bit_exact(pos, ref_pos, f"pos, {name} {solver.name} boxes steps={BOX_STEPS}")
+    assert_bit_exact(prev, ref_prev, f"prev, {name} {solver.name} boxes steps={BOX_STEPS}")
 
 
 @pytest.mark.parametrize("moving", [True, False], ids=["moving", "stopped"])
@@ -116,9 +116,9 @@ def test_the_sheet_reaches_both_boxes_within_the_steps_compared(monkeypatch, sol
     scene = box_setup().scene if moving else without_motion(box_setup().scene)
     with create_backend("numpy", scene, solver) as b:
         b.upload(*b.initial_state())
-        b.advance(STEPS)
+        b.advance(BOX_STEPS)
         pos, _ = b.read()
     assert np.isfinite(pos).all()
     halves = {float(np.float32(box.half_extents[0])) for box in scene.boxes}
     assert set(pushed) == halves, "every box is applied every step"
-    assert all(pushed[h] > 0 for h in halves), f"a box pushed no particle in {STEPS} steps: {pushed}"
+    assert all(pushed[h] > 0 for h in halves), f"a box pushed no particle in {BOX_STEPS} steps: {pushed}"

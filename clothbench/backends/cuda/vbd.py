@@ -46,6 +46,7 @@ from clothbench.backends.cuda.launch import (
 )
 from clothbench.backends.cuda.self_contact import KERNELS as SELF_KERNELS, SelfContact, self_collision_defines
 from clothbench.backends.cuda.verlet import CudaBackend, CudaDevice, CupyRuntime, scene_defines
+from clothbench.backends.tuning import sweeps_key
 from clothbench.kernel_source import kernel_hash
 
 KERNEL_FILE = "vbd_cloth.cu"
@@ -187,13 +188,9 @@ class CudaVbdBackend(CudaDevice):
         return tuple(f"block={b}" for b in ((options.local_size,) if options.local_size else BLOCK_SIZES))
 
     def _tuning_key(self) -> dict[str, str]:
-        solver = self.solver
         return {
             **self._device_key(),
-            "solver": "vbd",
-            "iterations": str(solver.iterations),
-            "substeps": str(solver.substeps),
-            "chebyshev": str(solver.chebyshev_rho > 0),
+            **sweeps_key(self.solver),
             "kernel": kernel_hash(KERNEL_FILE),
             **({"self_collision": "after the sweeps"} if self.scene.self_collision is not None else {}),
         }

@@ -32,6 +32,7 @@ from clothbench.backends.gl.compute_pbd import GLComputeSolver, GLSLComputePbdBa
 from clothbench.backends.gl.context import work_groups
 from clothbench.backends.gl.self_contact import GLSelfContact
 from clothbench.backends.pbd_device import VbdDeviceBackend
+from clothbench.backends.tuning import sweeps_key
 
 KERNEL_FILE = "vbd_cloth.comp"
 STAGES = {"predict": 0, "sweep": 1, "chebyshev": 2, "collide": 3, "update": 4, "self collision": 5}  # as the kernel's
@@ -50,17 +51,9 @@ class VbdPlan:
 
 def tuning_key(backend: GLSLComputeVbdBackend) -> dict[str, str]:
     """Verlet's key (shapes.tuning_key) and what a VBD substep's dispatches depend on: the
-    solver, its sweeps and the kernel, so that one solver's choice never answers the other's
-    (both are kept in glsl-compute's tuning file)."""
-    solver = backend.solver
-    return {
-        **shapes.tuning_key(backend),
-        "solver": "vbd",
-        "iterations": str(solver.iterations),
-        "substeps": str(solver.substeps),
-        "chebyshev": "on" if backend.chebyshev else "off",
-        "kernel": kernel_hash(KERNEL_FILE),
-    }
+    solver and its sweeps (tuning.sweeps_key) and the kernel, so that one solver's choice never
+    answers the other's (both are kept in glsl-compute's tuning file)."""
+    return {**shapes.tuning_key(backend), **sweeps_key(backend.solver), "kernel": kernel_hash(KERNEL_FILE)}
 
 
 class GLSLComputeVbdBackend(GLComputeSolver, VbdDeviceBackend):

@@ -42,6 +42,7 @@ from clothbench.model.kernel_inputs import VbdConstants
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
 from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.opencl.verlet_shapes import tuning_key
+from clothbench.backends.tuning import sweeps_key
 from clothbench.backends.pbd_device import position_state, velocity_state
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
@@ -143,8 +144,7 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         self.substeps_done = 0  # since the last upload(): the clock of moving bodies
         self.planes = None  # the planes shape's copies and program, made when first used (_use_planes)
         key = tuning_key(self._device, scene, options, self.source, self.mesh_collision)
-        key.update(solver=solver.spec, iterations=str(solver.iterations), substeps=str(solver.substeps))
-        key.update(chebyshev=str(self.chebyshev))  # a launch more per sweep
+        key.update(sweeps_key(solver))
         self._use_shape(self.pick_shape(key, self._time_shape))
 
     @classmethod
