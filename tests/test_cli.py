@@ -80,6 +80,33 @@ def test_backends_lists_every_platform_with_a_reason(capsys):
         assert r["usable"] or r["reason"], f"{r['backend']} is unusable without a reason"
 
 
+def test_backends_named_are_the_only_ones_probed(capsys, monkeypatch):
+    import clothbench.backends as backends
+    from clothbench.cli import backends as command
+
+    probed = []
+    real = backends.availability
+    monkeypatch.setattr(backends, "availability", lambda name: probed.append(name) or real(name))
+    monkeypatch.setattr(command, "opencl_devices", lambda retune: probed.append("opencl devices") or (None, ""))
+    assert main(["backends", "numpy", "c", "numpy", "--json"]) == 0
+    assert [r["backend"] for r in json.loads(capsys.readouterr().out)] == ["numpy", "c"] == probed
+    assert main(["backends", "opencl", "--json"]) == 0
+    assert probed[2:] == ["opencl", "opencl devices"]
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["backends", "numpy", "fortran"], "unknown backend 'fortran'"),
+        (["backends", "numpy", "--retune"], "add opencl to the backends named"),
+    ],
+)
+def test_backends_refuses_an_unknown_name_or_a_retune_without_opencl(argv, words, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert words in err and len(err.strip().splitlines()) == 1
+
+
 @pytest.mark.parametrize("backend", ["c", "opencl", "glsl", "glsl-compute", "cuda"])
 def test_backends_lists_the_driver_run_prints(backend, capsys):
     # one fact, said twice: what `backends` lists (the probe's) is what `run` names as the

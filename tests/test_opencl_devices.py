@@ -243,7 +243,11 @@ def test_empty_vendors_folder_sees_only_pip_runtimes_and_works_or_says_the_fix(t
     env = {**os.environ, "OCL_ICD_VENDORS": str(empty)}
     env.pop("PYOPENCL_CTX", None)
     done = subprocess.run(
-        [sys.executable, "-m", "clothbench", "backends", "--json"], env=env, capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "clothbench", "backends", "opencl", "--json"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr
     row = next(r for r in json.loads(done.stdout) if r["backend"] == "opencl")

@@ -175,8 +175,15 @@ REFUSALS = [
 
 
 @pytest.mark.parametrize("line, words", REFUSALS, ids=[r[0].split()[0] + ": " + r[0] for r in REFUSALS])
-def test_every_command_refuses_bad_input_in_one_line(line, words, tmp_path, capsys):
+def test_every_command_refuses_bad_input_in_one_line(line, words, tmp_path, capsys, monkeypatch):
     from pathlib import Path
+
+    from matplotlib.figure import Figure
+
+    def drawn(*a, **k):  # plot drew every figure (seconds) before it found --out unwritable
+        raise AssertionError("a figure was drawn before the input was checked")
+
+    monkeypatch.setattr(Figure, "draw", drawn)
 
     binary = tmp_path / "binary.csv"
     binary.write_bytes(bytes(range(256)) * 4)

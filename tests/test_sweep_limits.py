@@ -134,6 +134,20 @@ def test_limits_that_cannot_be_measured_are_tried_once_and_the_rows_say_nothing(
     assert "no machine bound measured: no C compiler found" in capsys.readouterr().err
 
 
+def test_no_bound_measures_no_limits_and_says_the_columns_are_empty(tmp_path, monkeypatch, capsys):
+    from clothbench.harness import bounds
+
+    calls = []
+    monkeypatch.setattr(bounds, "machine_or_reason", lambda *a: calls.append(a) or (None, "not asked"))
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "--backends", "numpy", "--grids", "16", *TINY, "--no-bound", "--out", str(out)]) == 0
+    assert calls == []
+    rows = rows_of(out)
+    assert len(rows) == 2 and all(r["bound_ms"] == r["bound_fraction"] == r["bandwidth_gb_s"] == "" for r in rows)
+    assert all(float(r["ms_median"]) > 0 for r in rows)
+    assert "no machine bound measured (--no-bound)" in capsys.readouterr().err
+
+
 def test_every_solver_row_has_a_bound(tmp_path):
     from clothbench.native import compiler
 

@@ -6,21 +6,36 @@ from __future__ import annotations
 
 import json
 
+from clothbench.errors import ClothbenchError
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("backends", help="list every backend, whether it runs here, and why not")
+    p.add_argument(
+        "names",
+        nargs="*",
+        metavar="BACKEND",
+        help="only these backends (default: all; a cold probe of every peer imports each, seconds apiece)",
+    )
     p.add_argument("--json", action="store_true")
     p.add_argument("--retune", action="store_true", help="measure the OpenCL devices again to choose the default")
     p.set_defaults(func=cmd_backends)
 
 
 def cmd_backends(args) -> int:
-    from clothbench.backends import BACKENDS, availability
+    from clothbench.backends import BACKENDS, availability, check_name
     from clothbench.progress import waiting
 
+    names = list(dict.fromkeys(args.names)) or list(BACKENDS)
+    for name in names:
+        check_name(name)  # an unknown name refused before any probe
+    if args.retune and "opencl" not in names:
+        raise ClothbenchError("--retune measures the OpenCL devices: add opencl to the backends named")
     rows = []
+    devices = None
     with waiting("probing backends"):  # a cold probe imports every peer and opens every device
-        for name, entry in BACKENDS.items():
+        for name in names:
+            entry = BACKENDS[name]
             with waiting(f"probing backends: {name}"):
                 a = availability(name)
             rows.append(
@@ -33,8 +48,9 @@ def cmd_backends(args) -> int:
                     "reason": a.reason,
                 }
             )
-        with waiting("probing backends: OpenCL devices (compiling a kernel on each)"):
-            devices, default = opencl_devices(args.retune)
+        if "opencl" in names:
+            with waiting("probing backends: OpenCL devices (compiling a kernel on each)"):
+                devices, default = opencl_devices(args.retune)
     for row in rows:
         if row["backend"] == "opencl" and devices is not None:
             row["devices"], row["default_device"] = devices, default
@@ -52,8 +68,6 @@ def cmd_backends(args) -> int:
 def opencl_devices(retune: bool) -> tuple[list[dict] | None, str]:
     """The OpenCL device rows and the default's line; (None, why) without pyopencl or any
     platform (the opencl row's reason already says so)."""
-    from clothbench.errors import ClothbenchError
-
     try:
         from clothbench.backends.opencl import device
 

@@ -147,6 +147,13 @@ def register(subparsers) -> None:
         action="store_true",
         help="resume, and measure again the rows the file holds as failed, crashed or timeout",
     )
+    p.add_argument(
+        "--no-bound",
+        dest="bound",
+        action="store_false",
+        help="do not measure the machine's limits before the first row (1-5 s: a STREAM run over 1.5 GiB and "
+        "the arithmetic rates, docs/bounds.md); bound_ms and the columns beside it stay empty",
+    )
     add_row_args(p)
     p.add_argument("--columns", action="store_true", help="print what every CSV column means, and exit")
     p.set_defaults(func=cmd_sweep)
@@ -200,6 +207,7 @@ def cmd_sweep(args) -> int:
         mesh_triangles=tuple(args.mesh_triangles),
         motion=tuple(args.motion),
         self_collision=tuple(args.self_collision),
+        bounds=args.bound,
     )
     for note in settings.notes:
         _note(note)
@@ -281,6 +289,8 @@ def cmd_sweep(args) -> int:
         _note(f"machine limits (the bound_ms column, docs/bounds.md): {progress.machine.what()}")
     elif progress.machine_note:
         _note(f"no machine bound measured: {progress.machine_note}")
+    elif not args.bound and progress.measured:
+        _note("no machine bound measured (--no-bound): bound_ms and the columns beside it are empty")
     bad = [r for r in progress.measured if r["status"] != "ok"]
     total = progress.already + len(progress.measured)
     _note(

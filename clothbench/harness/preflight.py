@@ -66,6 +66,22 @@ def check_writable(
     return path
 
 
+def check_folder(folder: str | os.PathLike, what: str = "output folder") -> Path:
+    """`folder` is one this process can write in, or can make with its parents, checked
+    without making it (a command that draws for seconds first must not learn it at the end):
+    its nearest existing ancestor is a folder, writable."""
+    folder = Path(folder)
+    for above in (folder, *folder.parents):
+        if not above.exists():
+            continue
+        if not above.is_dir():
+            raise ClothbenchError(f"cannot create {what} {folder}: {above} is a file, not a folder")
+        if not os.access(above, os.W_OK | os.X_OK):
+            raise ClothbenchError(f"cannot create {what} {folder}: {above} is not writable")
+        break
+    return folder
+
+
 @contextlib.contextmanager
 def signals_held(signals=(signal.SIGINT, signal.SIGTERM)):
     """SIGINT and SIGTERM held back inside the block and raised again as it ends, so their

@@ -28,7 +28,8 @@ BOUND_COLUMN_DOCS = {
     "arithmetic), measured in this run (docs/bounds.md); verlet: the step's state streamed once and its springs, "
     "particles and colliders' operations; pbd-jacobi, pbd-coloured, vbd: the state streamed once a step, each "
     "substep's iterations (per directed constraint, per constraint, per free particle and its springs) with their "
-    "arrays streamed again each iteration only where they exceed the caches; empty where there is no C compiler",
+    "arrays streamed again each iteration only where they exceed the caches; empty where there is no C compiler "
+    "or the sweep was told --no-bound",
     "bound_kind": "which limit sets bound_ms: memory (bytes at the streaming rate) or arithmetic (the busiest unit)",
     "bound_fraction": "bound_ms / ms_median: the fraction of the machine's bound achieved (1 = at the bound)",
 }

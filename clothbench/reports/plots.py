@@ -37,6 +37,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter
 
 from clothbench.errors import ClothbenchError
+from clothbench.harness.preflight import check_folder
 from clothbench.reports.figures_common import (
     BOUND_COLOR,
     FRONT_COLOR,
@@ -572,6 +573,7 @@ def plot_mesh_triangles(rows: list[Row], report: PlotReport) -> None:
 
 def plot_mesh(path, out) -> PlotReport:
     """The mesh_triangles figure alone, written to `out` (PNG, and SVG beside it)."""
+    check_folder(Path(out).parent, "plot folder")
     ok, _ = load(path)
     if not ok:
         raise ClothbenchError(f"{path} has no row with status ok: nothing to plot")
@@ -632,7 +634,7 @@ def _one_scene_variant(rows: list[Row], report: PlotReport) -> list[Row]:
 def plot_sweep(path, out) -> PlotReport:
     """Draw every figure the CSV has data for into `out` as PNG and SVG; say what was left
     out and why."""
-    out = Path(out)
+    out = check_folder(out, "plot folder")  # before the drawing, seconds of it
     report = draw_sweep(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
