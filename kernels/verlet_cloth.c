@@ -20,8 +20,8 @@
  * The numbers (k, b, dt, dt2, g, rest lengths, the collider table) are arguments, rounded once
  * on the host (clothbench/model/kernel_inputs.py), so a dt or stiffness sweep builds nothing.
  *
- * Layout: positions as three planes x | y | z of n*n values; w (inverse mass, 0 = pinned)
- * in its own plane. Two state buffers, ping-ponged by the step count: a particle reads its
+ * Layout: positions as three planes x | y | z of n*n values, PLANE apart (below); w (inverse
+ * mass, 0 = pinned) in its own plane. Two state buffers, ping-ponged by the step count: a particle reads its
  * own previous position and nothing else of that buffer, so x(t+dt) overwrites x(t-dt) in
  * place and the buffer that held x(t) is the next step's previous position. No copy, and one
  * state written per step instead of two (pos_out and pos_prev_out, as the GPU kernels do).
@@ -42,6 +42,15 @@
 #endif
 #define N CLOTH_N
 #define N2 (N * N)
+/* The distance between the x, y and z planes of a state buffer: n*n values and a pad
+ * (CLOTH_PLANE_PAD, set by this step's host; 0 where another kernel includes this file and
+ * keeps its planes n*n apart). Without one, at n = 1024 or 2048 each plane starts 4 or 16 MiB after the last, so the
+ * same column of every plane, and of the 5 rows the stencil reads (4 KiB apart), falls in one
+ * L1 set and on the same 4 KiB alias: 20-28% of the step (docs/c.md, "Planes apart"). */
+#ifndef CLOTH_PLANE_PAD
+#define CLOTH_PLANE_PAD 0
+#endif
+#define PLANE (N2 + CLOTH_PLANE_PAD)
 
 #ifdef CLOTH_DOUBLE
 typedef double real;
@@ -246,8 +255,8 @@ INLINE void integrate(const constants *c, const real *colliders, int i, real spr
 #endif
     int pinned = w == 0; /* never integrated nor collided */
     q[i] = pinned ? x : nx;
-    q[N2 + i] = pinned ? y : ny;
-    q[2 * N2 + i] = pinned ? z : nz;
+    q[PLANE + i] = pinned ? y : ny;
+    q[2 * PLANE + i] = pinned ? z : nz;
 }
 
 /* The velocity term of the damping, b * ((x - xp) / dt), per component (step 3). */
@@ -257,9 +266,9 @@ INLINE void integrate(const constants *c, const real *colliders, int i, real spr
 INLINE void interior_particle(const constants *c, const real *colliders, int i, const real *restrict p,
                               real *restrict q, const real *restrict w)
 {
-    const real *px = p, *py = p + N2, *pz = p + 2 * N2;
+    const real *px = p, *py = p + PLANE, *pz = p + 2 * PLANE;
     real x = px[i], y = py[i], z = pz[i];
-    real xp = q[i], yp = q[N2 + i], zp = q[2 * N2 + i];
+    real xp = q[i], yp = q[PLANE + i], zp = q[2 * PLANE + i];
 #ifdef CLOTH_STRICT
     real bx = DAMPING(c, x, xp), by = DAMPING(c, y, yp), bz = DAMPING(c, z, zp);
 #else
@@ -287,10 +296,10 @@ INLINE void interior_particle(const constants *c, const real *colliders, int i, 
 static void border_particle(const constants *c, const real *colliders, int row, int col,
                             const real *restrict p, real *restrict q, const real *restrict w)
 {
-    const real *px = p, *py = p + N2, *pz = p + 2 * N2;
+    const real *px = p, *py = p + PLANE, *pz = p + 2 * PLANE;
     int i = row * N + col;
     real x = px[i], y = py[i], z = pz[i];
-    real xp = q[i], yp = q[N2 + i], zp = q[2 * N2 + i];
+    real xp = q[i], yp = q[PLANE + i], zp = q[2 * PLANE + i];
     real bx = DAMPING(c, x, xp), by = DAMPING(c, y, yp), bz = DAMPING(c, z, zp);
     real fx = 0, fy = 0, fz = 0;
     real springs = 0;
@@ -401,7 +410,7 @@ INLINE int clamp_key(int k) { return k < -KEY_LIMIT ? -KEY_LIMIT : k > KEY_LIMIT
 static void bucket_row(const contact *ct, int row, const real *restrict q)
 {
     for (int i = row * N; i < row * N + N; ++i) {
-        real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
+        real x = q[i], y = q[PLANE + i], z = q[2 * PLANE + i];
         int finite = __builtin_isfinite(x) && __builtin_isfinite(y) && __builtin_isfinite(z);
         ct->bucket[i] = finite ? bucket_of(cell_key(x, ct->inv_cell), cell_key(y, ct->inv_cell),
                                            cell_key(z, ct->inv_cell))
@@ -424,8 +433,8 @@ static void sort_buckets(const contact *ct, const real *restrict q)
         int k = start[ct->bucket[i] + 1]++;
         ct->order[k] = i;
         ct->sorted[k] = q[i];
-        ct->sorted[N2 + k] = q[N2 + i];
-        ct->sorted[2 * N2 + k] = q[2 * N2 + i];
+        ct->sorted[N2 + k] = q[PLANE + i];
+        ct->sorted[2 * N2 + k] = q[2 * PLANE + i];
     }
 }
 
@@ -468,8 +477,8 @@ INLINE int close_pair(const contact *ct, int i, int row, int col, int j, const r
     if (dr >= -2 && dr <= 2 && dc >= -2 && dc <= 2 && ct->joined[dr + 2][dc + 2])
         return 0;
     d[0] = x - q[j];
-    d[1] = y - q[N2 + j];
-    d[2] = z - q[2 * N2 + j];
+    d[1] = y - q[PLANE + j];
+    d[2] = z - q[2 * PLANE + j];
     *L2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2];
     return *L2 < ct->thickness2 && *L2 > 0; /* coincident: no direction, nothing added */
 }
@@ -593,15 +602,15 @@ static void push(const contact *ct, cell_ranges *cell, int i, const real *restri
 INLINE void contact_particle(const contact *ct, cell_ranges *cell, const real *colliders, int i,
                              const real *restrict q, real *restrict out, const real *restrict w)
 {
-    real x = q[i], y = q[N2 + i], z = q[2 * N2 + i];
+    real x = q[i], y = q[PLANE + i], z = q[2 * PLANE + i];
     if (w[i] != 0) { /* pinned: neither pushed nor collided */
         if (w[i] > 0 && ct->bucket[i] != NOWHERE)
             push(ct, cell, i, q, w, &x, &y, &z);
         collide(colliders, &x, &y, &z);
     }
     out[i] = x;
-    out[N2 + i] = y;
-    out[2 * N2 + i] = z;
+    out[PLANE + i] = y;
+    out[2 * PLANE + i] = z;
 }
 
 /* One grid row of the pass: q (the updated positions, uncollided) to out, then the colliders;
@@ -764,4 +773,5 @@ int cloth_advance(real *a, real *b, const real *w, const real *numbers, const re
 
 /* The build's shape, for the host to check it loaded the library it asked for. */
 int cloth_grid(void) { return N; }
+int cloth_plane(void) { return PLANE; }
 int cloth_real_bytes(void) { return (int)sizeof(real); }

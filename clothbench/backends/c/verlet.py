@@ -43,6 +43,13 @@ KERNEL_FILE = "verlet_cloth.c"
 THREADS_ENV = "OMP_NUM_THREADS"
 SELF_FLAG = "-DCLOTH_SELF"  # the [self_collision] pass, compiled in only for a scene that has it
 ALIGN = 64  # bytes: a cache line, and one AVX-512 vector
+# Values between a state buffer's planes, and between where one buffer and the next start:
+# without them the planes of a power-of-two grid, and the buffers NumPy gives page-aligned,
+# share their low 12 address bits, column for column (docs/c.md, "Planes apart": 20-28% of
+# the step at 1024^2 and 2048^2 on the Zen 4). The Verlet kernel takes the pad as
+# -DCLOTH_PLANE_PAD; VBD's planes are n*n apart, its buffers staggered alike.
+PLANE_PAD = 32
+BUFFER_STAGGER = 112
 
 # Both arithmetics: optimised for this CPU; no errno from sqrt (so it is one instruction) and
 # no FP traps assumed (so selects may compute both sides). Neither changes a rounded value.
@@ -144,17 +151,26 @@ def load_library(flags: tuple[str, ...]) -> ctypes.CDLL:
             lib.cloth_advance.argtypes += [p, p, ctypes.c_longlong, p]
             lib.cloth_contact_ints.restype = ctypes.c_int
         lib.cloth_advance.restype = ctypes.c_int
-        lib.cloth_grid.restype = lib.cloth_real_bytes.restype = ctypes.c_int
+        lib.cloth_grid.restype = lib.cloth_plane.restype = lib.cloth_real_bytes.restype = ctypes.c_int
         _LIBRARIES[flags] = lib
     return lib
 
 
-def aligned(count: int, dtype) -> np.ndarray:
-    """A zeroed 1-D array of `count` values whose data starts on an ALIGN-byte boundary."""
+def aligned(count: int, dtype, offset: int = 0) -> np.ndarray:
+    """A zeroed 1-D array of `count` values whose data starts `offset` values after an
+    ALIGN-byte boundary."""
     itemsize = np.dtype(dtype).itemsize
-    raw = np.zeros(count + ALIGN // itemsize, dtype)
-    start = (-raw.ctypes.data % ALIGN) // itemsize
+    raw = np.zeros(count + ALIGN // itemsize + offset, dtype)
+    start = (-raw.ctypes.data % ALIGN) // itemsize + offset
     return raw[start : start + count]
+
+
+def state_buffers(count: int, n2: int, dtype) -> tuple[list[np.ndarray], np.ndarray]:
+    """`count` state buffers of three planes PLANE_PAD apart, and the inverse-mass plane: each
+    starts BUFFER_STAGGER values after the one before it, off the 4 KiB boundary the others
+    start on (docs/c.md, "Planes apart")."""
+    size = 3 * (n2 + PLANE_PAD)
+    return [aligned(size, dtype, k * BUFFER_STAGGER) for k in range(count)], aligned(n2, dtype, count * BUFFER_STAGGER)
 
 
 class CBackend(Backend):
@@ -173,9 +189,11 @@ class CBackend(Backend):
         super().__init__(scene, solver, options)
         t = self.dtype = options.dtype
         self.n2 = scene.particles
-        self.flags = build_flags(scene, options.precision, options.strict)
+        self.flags = (*build_flags(scene, options.precision, options.strict), f"-DCLOTH_PLANE_PAD={PLANE_PAD}")
         self._lib = load_library(self.flags)
-        if self._lib.cloth_grid() != scene.grid or self._lib.cloth_real_bytes() != np.dtype(t).itemsize:
+        self.pitch = self.n2 + PLANE_PAD  # values from one plane of a state buffer to the next
+        named = (self._lib.cloth_grid(), self._lib.cloth_plane(), self._lib.cloth_real_bytes())
+        if named != (scene.grid, self.pitch, np.dtype(t).itemsize):
             raise ClothbenchError(f"c: the cached library for {self.flags} is not the one it names; clear its cache")
         c = VerletConstants.of(scene, solver, t)  # rounded once, docs/semantics.md
         self._numbers = np.array((c.k, c.b, c.dt, c.dt2, *c.g, *c.rest), dtype=t)
@@ -185,8 +203,7 @@ class CBackend(Backend):
         # the state buffers, x|y|z planes: _state[0] holds x(t), _state[1] x(t - dt), and with
         # [self_collision] _state[2] the pass's output, the next x(t + dt)
         self._contact = self._contact_args(scene, t)
-        self._state = [aligned(3 * self.n2, t) for _ in range(3 if self._contact else 2)]
-        self._w = aligned(self.n2, t)
+        self._state, self._w = state_buffers(3 if self._contact else 2, self.n2, t)
         self._w_prev = self._w  # the prev state's w as uploaded, until a step writes pos's w
         self.threads = thread_count(self.pick_shape(self._tuning_key(), self._time_shape))
         self.run_note = self._fewer_threads_if_busy()
@@ -264,7 +281,7 @@ class CBackend(Backend):
         if np.shape(pos) != expected or np.shape(prev) != expected:
             raise ClothbenchError(f"state must be two {expected} arrays, got {np.shape(pos)} and {np.shape(prev)}")
         for buf, state in zip(self._state, (pos, prev)):
-            buf[:] = np.asarray(state, self.dtype)[:, :3].T.reshape(-1)
+            self._planes(buf)[:] = np.asarray(state, self.dtype)[:, :3].T
         self._w[:] = np.asarray(pos, self.dtype)[:, 3]
         self._w_prev = np.asarray(prev, self.dtype)[:, 3].copy()
 
@@ -302,9 +319,13 @@ class CBackend(Backend):
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         return self._rows(self._state[0], self._w), self._rows(self._state[1], self._w_prev)
 
-    def _rows(self, planes: np.ndarray, w: np.ndarray) -> np.ndarray:
+    def _planes(self, buf: np.ndarray) -> np.ndarray:
+        """The (3, n*n) x, y, z planes of a state buffer, a view past its pads."""
+        return buf.reshape(3, self.pitch)[:, : self.n2]
+
+    def _rows(self, buf: np.ndarray, w: np.ndarray) -> np.ndarray:
         out = np.empty((self.n2, 4), self.dtype)
-        out[:, :3] = planes.reshape(3, self.n2).T
+        out[:, :3] = self._planes(buf).T
         out[:, 3] = w
         return out
 
