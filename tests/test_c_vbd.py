@@ -128,3 +128,20 @@ def test_the_verlet_library_compiles_none_of_vbd():
     # source (and cached library) it was before VBD
     source = resolve_includes("verlet_cloth.c", read_kernel("verlet_cloth.c"), lambda *_: "")[0]
     assert "vbd" not in source.lower()
+
+
+def test_an_edit_to_any_file_the_vbd_kernel_includes_is_a_new_tuning_key(monkeypatch):
+    # the thread count was measured on vbd_cloth.c and what it includes: an edit to vbd_newton.h
+    # (or verlet_cloth.c) must measure again, as an edit to vbd_cloth.c does
+    require("c")
+    from clothbench import kernel_source
+
+    with create_backend("c", load_scene("drape").replace(grid=8), Vbd(), BackendOptions()) as b:
+        before = b._tuning_key()
+        assert b._tuning_key() == before and "planes" not in before  # the text, nothing else
+        original = kernel_source.read_kernel
+        for name in ("vbd_newton.h", "verlet_cloth.c", "vbd_cloth.c"):
+            monkeypatch.setattr(
+                kernel_source, "read_kernel", lambda n, name=name: original(n) + ("//\n" if n == name else "")
+            )
+            assert b._tuning_key()["kernel"] != before["kernel"], name

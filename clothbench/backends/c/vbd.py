@@ -20,7 +20,6 @@ within 1e-4 m of the float64 reference).
 from __future__ import annotations
 
 import ctypes
-import hashlib
 from dataclasses import replace
 
 import numpy as np
@@ -32,7 +31,7 @@ from clothbench.model.solver import Vbd
 from clothbench.backends.base import Backend, BackendOptions
 from clothbench.backends.c.verlet import SELF_FLAG, CBackend, aligned, build_flags, thread_count
 from clothbench.model.kernel_inputs import VbdConstants, collider_rows
-from clothbench.kernel_source import read_kernel
+from clothbench.kernel_source import kernel_hash
 
 VBD_KERNEL_FILE = "vbd_cloth.c"
 
@@ -83,9 +82,11 @@ class CVbdBackend(CBackend):
         self.run_note = self._fewer_threads_if_busy()
 
     def _tuning_key(self) -> dict[str, str]:
-        # the Verlet key names verlet_cloth.c, which this kernel includes; this file is added
-        vbd = hashlib.sha256(read_kernel(VBD_KERNEL_FILE).encode()).hexdigest()[:12]
-        return {**super()._tuning_key(), "solver": "vbd", "vbd_kernel": vbd}
+        # this kernel and every file it includes (verlet_cloth.c, vbd_newton.h): an edit to any
+        # of them measures again; not the Verlet layout's field (VBD's planes are n*n apart)
+        key = super()._tuning_key()
+        del key["planes"]
+        return {**key, "solver": "vbd", "kernel": kernel_hash(VBD_KERNEL_FILE)}
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         expected = (self.n2, 4)

@@ -23,7 +23,6 @@ costs more than they save). The default, untuned shape is every core.
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import os
 
 import numpy as np
@@ -37,7 +36,7 @@ from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.model.kernel_inputs import SelfCollisionConstants, VerletConstants, collider_rows
 from clothbench.backends.tuning import median_seconds
-from clothbench.kernel_source import read_kernel
+from clothbench.kernel_source import kernel_hash
 
 KERNEL_FILE = "verlet_cloth.c"
 THREADS_ENV = "OMP_NUM_THREADS"
@@ -254,7 +253,8 @@ class CBackend(Backend):
             "cpu": environment.cpu_model(),
             "cores": str(environment.cores()),
             "compiler": cc.version if cc else "",
-            "kernel": hashlib.sha256(read_kernel(KERNEL_FILE).encode()).hexdigest()[:12],
+            "kernel": kernel_hash(KERNEL_FILE),
+            "planes": f"pad={PLANE_PAD}/stagger={BUFFER_STAGGER}",  # the layout the threads were timed on
             "grid": str(s.grid),
             "colliders": "/".join(str(len(getattr(s, kind.plural))) for kind in kinds_in("c")),
             "precision": self.options.precision,
