@@ -32,7 +32,10 @@
 /* x, y, z planes (the pointer past CLOTH_PAD), the inverse mass in its own buffer */
 #include "collide.cl"
 #define SC_STATE __global const float *
-#define SC_X(s, j) ((float3)((s)[j], (s)[N2 + (j)], (s)[2 * N2 + (j)]))
+#ifndef STATE_STRIDE
+#define STATE_STRIDE N2 /* the planes of a state buffer n*n apart, where the step sets no pad */
+#endif
+#define SC_X(s, j) ((float3)((s)[j], (s)[STATE_STRIDE + (j)], (s)[2 * STATE_STRIDE + (j)]))
 #define SC_W(s, inv_mass, j) ((inv_mass)[j])
 #endif
 
@@ -316,6 +319,6 @@ __kernel void self_collision(__global const float *x_in, __global const float *i
         x = collide_meshes(x, colliders + ANALYTIC_ROWS, mesh_geometry, mesh_ints); /* after the planes */
 #endif
     }
-    x_out[i] = x.x, x_out[N2 + i] = x.y, x_out[2 * N2 + i] = x.z;
+    x_out[i] = x.x, x_out[STATE_STRIDE + i] = x.y, x_out[2 * STATE_STRIDE + i] = x.z;
 }
 #endif

@@ -40,6 +40,7 @@
  *                           code, and a kind the scene lacks is not compiled at all.
  *       CLOTH_VECTOR_WIDTH  particles per work item (1 for the border kernel).
  *       CLOTH_PAD           floats before and after the planes in each state buffer.
+ *       CLOTH_STATE_GAP     floats between the planes beyond n*n (STATE_STRIDE below).
  *   Meshes, motion and attached pins (docs/semantics.md), either build, each only where the
  *       scene has it (the host sets them; a scene without them compiles none of it):
  *       CLOTH_MESHES        triangle meshes: their code is kernels/collide_mesh.cl, in the
@@ -246,6 +247,15 @@ __kernel void verlet_cloth(__global const float4 *pos, __global const float4 *po
 #define CLOTH_PAD 0
 #endif
 #define PAD CLOTH_PAD
+/* Floats from one plane of a state buffer to the next: n*n and CLOTH_STATE_GAP (set by
+ * the host). Planes exactly n*n apart put the same column of x, y and z, and of the rows the
+ * stencil reads, at the same low 12 address bits whenever n*n*4 is a multiple of 4 KiB: one L1
+ * set, more lines than its ways (docs/c.md, "Planes apart", measured on the c kernel). The
+ * normals keep their planes n*n apart: they are written once a step, never read here. */
+#ifndef CLOTH_STATE_GAP
+#define CLOTH_STATE_GAP 0
+#endif
+#define STATE_STRIDE (N2 + CLOTH_STATE_GAP)
 /* Every helper is inlined: PoCL 3.0 (the wheel) and 3.1 left the bigger ones as calls, which
  * pass the vectors through memory. */
 #define INLINE __attribute__((always_inline))
@@ -282,7 +292,7 @@ typedef intv intv_u __attribute__((aligned(4)));
 INLINE void spring_add(floatv x, floatv y, floatv z, __global const float *pos, int j, float k,
                 float rest, floatv bx, floatv by, floatv bz, floatv *fx, floatv *fy, floatv *fz)
 {
-    floatv dx = LOADV(pos, j) - x, dy = LOADV(pos, N2 + j) - y, dz = LOADV(pos, 2 * N2 + j) - z;
+    floatv dx = LOADV(pos, j) - x, dy = LOADV(pos, STATE_STRIDE + j) - y, dz = LOADV(pos, 2 * STATE_STRIDE + j) - z;
 #ifdef CLOTH_STRICT
     /* docs/semantics.md to the letter: sqrt, '/', and the damping -b*vel of this spring */
     floatv L2 = (dx * dx + dy * dy) + dz * dz;
@@ -476,8 +486,8 @@ INLINE void unit_or_zero_v(floatv *x, floatv *y, floatv *z)
 INLINE void face_add(floatv x, floatv y, floatv z, __global const float *pos, int ja, int jb,
               floatv *sx, floatv *sy, floatv *sz)
 {
-    floatv ax = LOADV(pos, ja) - x, ay = LOADV(pos, N2 + ja) - y, az = LOADV(pos, 2 * N2 + ja) - z;
-    floatv cx = LOADV(pos, jb) - x, cy = LOADV(pos, N2 + jb) - y, cz = LOADV(pos, 2 * N2 + jb) - z;
+    floatv ax = LOADV(pos, ja) - x, ay = LOADV(pos, STATE_STRIDE + ja) - y, az = LOADV(pos, 2 * STATE_STRIDE + ja) - z;
+    floatv cx = LOADV(pos, jb) - x, cy = LOADV(pos, STATE_STRIDE + jb) - y, cz = LOADV(pos, 2 * STATE_STRIDE + jb) - z;
     floatv fx = ay * cz - az * cy, fy = az * cx - ax * cz, fz = ax * cy - ay * cx;
     unit_or_zero_v(&fx, &fy, &fz);
     *sx = *sx + fx;
@@ -537,8 +547,8 @@ INLINE void integrate(int i, floatv x, floatv y, floatv z, floatv xp, floatv yp,
 INLINE void store_position(int i, int first_lane, floatv x, floatv y, floatv z, __global float *p)
 {
     store_lanes(x, p, i, first_lane);
-    store_lanes(y, p, N2 + i, first_lane);
-    store_lanes(z, p, 2 * N2 + i, first_lane);
+    store_lanes(y, p, STATE_STRIDE + i, first_lane);
+    store_lanes(z, p, 2 * STATE_STRIDE + i, first_lane);
 }
 
 /* Steps 6-8 for the split kernels, which keep the chapter's four state buffers: x(t+dt) to
@@ -615,8 +625,8 @@ __kernel void verlet_cloth_interior(__global const float *pos, __global const fl
     int row = 2 + item / VECTORS_PER_ROW, vector = item % VECTORS_PER_ROW;
     int last = vector == VECTORS_PER_ROW - 1;
     int i = row * N + (last ? N - 2 - V : 2 + V * vector);
-    floatv x = LOADV(pos, i), y = LOADV(pos, N2 + i), z = LOADV(pos, 2 * N2 + i);
-    floatv xp = LOADV(pos_prev, i), yp = LOADV(pos_prev, N2 + i), zp = LOADV(pos_prev, 2 * N2 + i);
+    floatv x = LOADV(pos, i), y = LOADV(pos, STATE_STRIDE + i), z = LOADV(pos, 2 * STATE_STRIDE + i);
+    floatv xp = LOADV(pos_prev, i), yp = LOADV(pos_prev, STATE_STRIDE + i), zp = LOADV(pos_prev, 2 * STATE_STRIDE + i);
     floatv bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
     floatv fx = 0.0f, fy = 0.0f, fz = 0.0f;
     springs_inside(x, y, z, pos, i, k, rest, bx, by, bz, &fx, &fy, &fz);
@@ -650,8 +660,8 @@ __kernel void verlet_cloth_border(__global const float *pos, __global const floa
     pos += PAD, pos_prev += PAD, pos_out += PAD, pos_prev_out += PAD;
     int i = particles[item];
     int row = i / N, col = i % N;
-    float x = pos[i], y = pos[N2 + i], z = pos[2 * N2 + i];
-    float xp = pos_prev[i], yp = pos_prev[N2 + i], zp = pos_prev[2 * N2 + i];
+    float x = pos[i], y = pos[STATE_STRIDE + i], z = pos[2 * STATE_STRIDE + i];
+    float xp = pos_prev[i], yp = pos_prev[STATE_STRIDE + i], zp = pos_prev[2 * STATE_STRIDE + i];
     float bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
     float fx = 0.0f, fy = 0.0f, fz = 0.0f;
     float springs = 0.0f;
@@ -782,9 +792,9 @@ INLINE void rows_item(int item, __global const float *pos, __global float *pos_p
     int first_lane = last ? ROW_LAST_FIRST_LANE : 0;
     int i = row * N + c0;
     int inside = row >= 2 && row < N - 2 && c0 >= 2 && c0 + V <= N - 2;
-    floatv x = LOADV(pos, i), y = LOADV(pos, N2 + i), z = LOADV(pos, 2 * N2 + i);
-    floatv xp = load_lanes(pos_prev, i, first_lane, x), yp = load_lanes(pos_prev, N2 + i, first_lane, y);
-    floatv zp = load_lanes(pos_prev, 2 * N2 + i, first_lane, z);
+    floatv x = LOADV(pos, i), y = LOADV(pos, STATE_STRIDE + i), z = LOADV(pos, 2 * STATE_STRIDE + i);
+    floatv xp = load_lanes(pos_prev, i, first_lane, x), yp = load_lanes(pos_prev, STATE_STRIDE + i, first_lane, y);
+    floatv zp = load_lanes(pos_prev, 2 * STATE_STRIDE + i, first_lane, z);
     floatv bx = b * ((x - xp) / dt), by = b * ((y - yp) / dt), bz = b * ((z - zp) / dt);
     floatv fx = 0.0f, fy = 0.0f, fz = 0.0f;
     floatv springs = 12.0f;

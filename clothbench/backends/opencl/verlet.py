@@ -132,7 +132,9 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         # PAD floats before and after them (the rows kernels' masked loads reach past).
         mf = cl.mem_flags
         self._pad = 0 if self.generic else shapes.PAD
-        state_bytes = 4 * (self.n2 * 4 if self.generic else self.n2 * 3 + 2 * self._pad)
+        # values from one plane to the next (the generic layout has none: float4 rows)
+        self._pitch = self.n2 if self.generic else self.n2 + shapes.STATE_GAP
+        state_bytes = 4 * (self.n2 * 4 if self.generic else self._pitch * 3 + 2 * self._pad)
         self._state = [cl.Buffer(context, mf.READ_WRITE, state_bytes) for _ in range(4)]
         self._host = [np.zeros(state_bytes // 4, np.float32) for _ in range(2)]  # per-step copy
         # the self-collision pass's output: it reads the step's x_new, so it cannot write there
@@ -243,7 +245,8 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
         if self.generic:
             return ("-DCLOTH_GENERIC", *self._body_options(), *arithmetic)
         shape = (*shape_options(self.scene, vector_width), *self._body_options())
-        return (*shape, f"-DCLOTH_PAD={self._pad}", *arithmetic)
+        layout = (f"-DCLOTH_PAD={self._pad}", f"-DCLOTH_STATE_GAP={self._pitch - self.n2}")
+        return (*shape, *layout, *arithmetic)
 
     def _kernel(self, name: str, dtypes, vector_width: int = 1):
         """Kernel `name` of this scene's program (built once per key, see build_program),
@@ -396,22 +399,26 @@ class OpenCLBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
             return None
         flat = np.empty(self.n2 * (4 if self.generic else 3), np.float32)
         self._cl.enqueue_copy(self.queue, flat, self._normals)  # blocking: waits for the steps
-        return self._unpack(flat, np.zeros(self.n2, np.float32), pad=0)
+        return self._unpack(flat, np.zeros(self.n2, np.float32), pad=0, pitch=self.n2)  # planes n*n apart
 
     # --- layouts -----------------------------------------------------------------------
     def _pack(self, state: np.ndarray) -> np.ndarray:
-        """(n2, 4) -> the device layout: float4 rows (generic) or x, y, z planes between
-        PAD zeros."""
+        """(n2, 4) -> the device layout: float4 rows (generic) or x, y, z planes, each
+        STATE_GAP zeros after it, between PAD zeros."""
         if self.generic:
             return state.reshape(-1)
-        pad = np.zeros(self._pad, np.float32)
-        return np.concatenate([pad, state[:, :3].T.reshape(-1), pad])
+        flat = np.zeros(3 * self._pitch + 2 * self._pad, np.float32)
+        self._planes(flat, self._pad, self._pitch)[:] = state[:, :3].T
+        return flat
 
-    def _unpack(self, flat: np.ndarray, w: np.ndarray, pad: int | None = None) -> np.ndarray:
+    def _unpack(self, flat: np.ndarray, w: np.ndarray, pad: int | None = None, pitch: int | None = None) -> np.ndarray:
         if self.generic:
             return flat.reshape(self.n2, 4)
-        pad = self._pad if pad is None else pad
         out = np.empty((self.n2, 4), np.float32)
-        out[:, :3] = flat[pad : pad + 3 * self.n2].reshape(3, self.n2).T
+        out[:, :3] = self._planes(flat, self._pad if pad is None else pad, pitch or self._pitch).T
         out[:, 3] = w
         return out
+
+    def _planes(self, flat: np.ndarray, pad: int, pitch: int) -> np.ndarray:
+        """The (3, n*n) x, y, z planes of a flat device layout: a view."""
+        return flat[pad : pad + 3 * pitch].reshape(3, pitch)[:, : self.n2]

@@ -27,6 +27,10 @@ from clothbench.backends.opencl.bodies import collider_counts
 # Floats before and after the x, y, z planes of a state buffer (CLOTH_PAD in the kernel): the
 # rows kernels' masked loads reach one float past either end. 16 keeps the planes 64-byte aligned.
 PAD = 16
+# Floats between the planes of a state buffer beyond n*n (CLOTH_STATE_GAP in the kernel):
+# planes exactly n*n apart alias in the L1 and at 4 KiB at power-of-two grids (docs/opencl.md,
+# "Planes apart"); 32 is the c kernel's pad, measured there (docs/c.md).
+STATE_GAP = 32
 # work items per work-group of rows/vN/wg=32: it and the runtime's choice won in turn, and 8, 32
 # and 128 ran level (docs/opencl.md, "What was profiled")
 WORK_GROUP = 32
