@@ -21,8 +21,8 @@
  * on the host (clothbench/model/kernel_inputs.py), so a dt or stiffness sweep builds nothing.
  *
  * Layout: positions as three planes x | y | z of n*n values, PLANE apart (below); w (inverse
- * mass, 0 = pinned) in its own plane. Two state buffers, ping-ponged by the step count: a particle reads its
- * own previous position and nothing else of that buffer, so x(t+dt) overwrites x(t-dt) in
+ * mass, 0 = pinned) in its own plane. Two state buffers, ping-ponged by the step count: a
+ * particle reads its own previous position and nothing else of that buffer, so x(t+dt) overwrites x(t-dt) in
  * place and the buffer that held x(t) is the next step's previous position. No copy, and one
  * state written per step instead of two (pos_out and pos_prev_out, as the GPU kernels do).
  *
@@ -44,9 +44,10 @@
 #define N2 (N * N)
 /* The distance between the x, y and z planes of a state buffer: n*n values and a pad
  * (CLOTH_PLANE_PAD, set by this step's host; 0 where another kernel includes this file and
- * keeps its planes n*n apart). Without one, at n = 1024 or 2048 each plane starts 4 or 16 MiB after the last, so the
- * same column of every plane, and of the 5 rows the stencil reads (4 KiB apart), falls in one
- * L1 set and on the same 4 KiB alias: 20-28% of the step (docs/c.md, "Planes apart"). */
+ * keeps its planes n*n apart). Without one, at n = 1024 or 2048 each plane starts 4 or 16 MiB
+ * after the last, so the same column of every plane, and of the 5 rows the stencil reads
+ * (4 KiB apart), falls in one L1 set and on the same 4 KiB alias: 20-28% of the step with the
+ * buffers' own alignment (docs/c.md, "Planes apart"). */
 #ifndef CLOTH_PLANE_PAD
 #define CLOTH_PLANE_PAD 0
 #endif

@@ -221,7 +221,7 @@ def fit_labels(fig: Figure, labels: list) -> None:
 
 def _place_labels(fig: Figure, labels: list) -> list:
     """fit_labels' placement on the figure as it is laid out now; each label's box."""
-    fig.draw_without_rendering()  # the layout and the texts placed, no pixels: a third of the time
+    fig.draw_without_rendering()  # laid out and the texts placed, no pixels: the same PNG, ~10 % sooner
     renderer = fig.canvas.get_renderer()
     own = set(map(id, labels))
     axes = list(dict.fromkeys(label.axes for label in labels))
