@@ -35,9 +35,9 @@ def check_writable(
     if path.is_dir():
         raise ClothbenchError(f"{what} {path} is a directory: name a file")
     folder = path.parent
-    for above in (folder, *folder.parents):
-        if above.exists() and not above.is_dir():
-            raise ClothbenchError(f"cannot write {what} {path}: {above} is a file, not a folder")
+    above = _nearest_existing(folder)
+    if above is not None and not above.is_dir():
+        raise ClothbenchError(f"cannot write {what} {path}: {above} is a file, not a folder")
     base = folder.parent if new_folder else folder
     if make_folders:
         try:
@@ -71,15 +71,17 @@ def check_folder(folder: str | os.PathLike, what: str = "output folder") -> Path
     without making it (a command that draws for seconds first must not learn it at the end):
     its nearest existing ancestor is a folder, writable."""
     folder = Path(folder)
-    for above in (folder, *folder.parents):
-        if not above.exists():
-            continue
-        if not above.is_dir():
-            raise ClothbenchError(f"cannot create {what} {folder}: {above} is a file, not a folder")
-        if not os.access(above, os.W_OK | os.X_OK):
-            raise ClothbenchError(f"cannot create {what} {folder}: {above} is not writable")
-        break
+    above = _nearest_existing(folder)
+    if above is not None and not above.is_dir():
+        raise ClothbenchError(f"cannot create {what} {folder}: {above} is a file, not a folder")
+    if above is not None and not os.access(above, os.W_OK | os.X_OK):
+        raise ClothbenchError(f"cannot create {what} {folder}: {above} is not writable")
     return folder
+
+
+def _nearest_existing(folder: Path) -> Path | None:
+    """`folder` or its nearest parent that exists (a file there means no folder can be made)."""
+    return next((above for above in (folder, *folder.parents) if above.exists()), None)
 
 
 @contextlib.contextmanager

@@ -31,7 +31,6 @@ from clothbench.model.solver import Vbd
 from clothbench.backends.base import Backend, BackendOptions
 from clothbench.backends.c.verlet import SELF_FLAG, CBackend, aligned, build_flags, thread_count
 from clothbench.model.kernel_inputs import VbdConstants, collider_rows
-from clothbench.kernel_source import kernel_hash
 
 VBD_KERNEL_FILE = "vbd_cloth.c"
 
@@ -61,6 +60,11 @@ class CVbdBackend(CBackend):
     # the sweeps, before the colliders: docs/vbd.md); neither meshes, motion nor boxes
     capabilities = replace(CBackend.capabilities, self_collision=(*CBackend.capabilities.self_collision, "vbd"))
 
+    # the tuning key's "kernel" covers what vbd_cloth.c includes (verlet_cloth.c, vbd_newton.h):
+    # an edit to any of them measures again; no layout field: VBD's planes are n*n apart
+    kernel_file = VBD_KERNEL_FILE
+    layout_key: dict[str, str] = {}
+
     def __init__(self, scene: Scene, solver: Vbd, options: BackendOptions):
         Backend.__init__(self, scene, solver, options)  # none of the Verlet state
         t = self.dtype = options.dtype
@@ -82,11 +86,7 @@ class CVbdBackend(CBackend):
         self.run_note = self._fewer_threads_if_busy()
 
     def _tuning_key(self) -> dict[str, str]:
-        # this kernel and every file it includes (verlet_cloth.c, vbd_newton.h): an edit to any
-        # of them measures again; not the Verlet layout's field (VBD's planes are n*n apart)
-        key = super()._tuning_key()
-        del key["planes"]
-        return {**key, "solver": "vbd", "kernel": kernel_hash(VBD_KERNEL_FILE)}
+        return {**super()._tuning_key(), "solver": "vbd"}
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         expected = (self.n2, 4)

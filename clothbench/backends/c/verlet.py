@@ -185,6 +185,9 @@ class CBackend(Backend):
         self_collision=("verlet",),
     )
 
+    kernel_file = KERNEL_FILE  # with what it includes: the tuning key's "kernel"
+    layout_key = {"planes": f"pad={PLANE_PAD}/stagger={BUFFER_STAGGER}"}  # the layout the threads were timed on
+
     def __init__(self, scene: Scene, solver: Verlet, options: BackendOptions):
         super().__init__(scene, solver, options)
         t = self.dtype = options.dtype
@@ -254,8 +257,8 @@ class CBackend(Backend):
             "cpu": environment.cpu_model(),
             "cores": str(environment.cores()),
             "compiler": cc.version if cc else "",
-            "kernel": kernel_hash(KERNEL_FILE),
-            "planes": f"pad={PLANE_PAD}/stagger={BUFFER_STAGGER}",  # the layout the threads were timed on
+            "kernel": kernel_hash(self.kernel_file),
+            **self.layout_key,
             "grid": str(s.grid),
             "colliders": "/".join(str(len(getattr(s, kind.plural))) for kind in kinds_in("c")),
             "precision": self.options.precision,
