@@ -30,6 +30,7 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 from clothbench.backends import availability
 from clothbench.model.scene import Cylinder, Plane, Scene, Setup, Sphere, load_scene, load_setup
 from clothbench.model.solver import Verlet
+from shared_runs import share_in
 
 # the solver every built-in scene file names: Verlet at dt = 0.5 ms, from rest
 VERLET = load_setup("sphere").solver
@@ -126,7 +127,8 @@ def bent_state(n: int) -> tuple[Scene, np.ndarray]:
 
 # Two tiers from one switch (README, "Tests"). `python -m pytest` is the quick tier: every
 # backend's contract at small sizes, every command's happy path and its refusals. A test marked
-# `full` (a long physics check, a study's rerun, a larger size's or another runtime's copy of a
+# `full` (a long physics check or study, a study's rerun, a fault on a cluster, the layout of a
+# drawn figure, a larger size's, more steps', another build's, runtime's or command's copy of a
 # check the quick tier makes once) runs only with `--full`, which is what .ci/run runs. The mark
 # stands on the test, its parameter or its module (`pytestmark`), where a reader of the test sees it.
 def pytest_addoption(parser):
@@ -146,6 +148,14 @@ def pytest_collection_modifyitems(config, items):
     if full:
         config.hook.pytest_deselected(items=full)
         items[:] = [item for item in items if item.get_closest_marker("full") is None]
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _shared_runs(tmp_path_factory) -> None:
+    """Both xdist workers' float32 references and machine limits in one folder
+    (tests/shared_runs.py): a worker's temporary folders lie side by side under the run's own."""
+    run = tmp_path_factory.getbasetemp()
+    share_in((run.parent if os.environ.get("PYTEST_XDIST_WORKER") else run) / "shared-runs")
 
 
 @pytest.fixture

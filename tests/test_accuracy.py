@@ -325,6 +325,7 @@ def test_a_cap_stops_the_bisection_and_a_cap_above_the_limit_does_not_move_it():
     assert not high.capped and high.dt_stable == pytest.approx(flat.dt_stable, rel=0.03)
 
 
+@pytest.mark.full  # a physics study: 2,000 XPBD steps at four iteration counts
 def test_undamped_xpbd_converges_to_the_mass_spring_answer():
     # XPBD with compliance 1/k is implicit in the same springs: as dt -> 0 (at fixed
     # iterations) its answer tends to Verlet's. With b = 0 the damping forms cannot differ.
@@ -413,6 +414,7 @@ def test_stability_cli_shows_both_solvers_side_by_side_and_marks_60hz(tmp_path, 
     assert "Verlet explodes in 2 of 2 runs and PBD stays stable in 2 of 2" in text
 
 
+@pytest.mark.full  # a physics study of PBD's iteration counts and steps
 def test_pbd_is_softer_at_few_iterations_and_damps_at_a_large_step():
     drape = setup("drape", 6)
     verlet, few, many = solver_artefacts(drape.scene, drape.pbd, ("coloured",), (2, 30), (DT_60HZ,))

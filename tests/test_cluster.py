@@ -57,6 +57,7 @@ def _rows(path) -> int:
         return 0
 
 
+@pytest.mark.full  # a fault on the cluster; its rows asking for the timing resource stay quick
 def test_a_worker_killed_mid_sweep_has_its_rows_rescheduled_and_each_row_is_written_once(tmp_path, cluster):
     c, client = cluster
     out = tmp_path / "s.csv"

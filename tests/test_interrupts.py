@@ -194,6 +194,7 @@ def test_an_interrupted_study_keeps_its_finished_rows_and_resume_completes_it(tm
     assert main(other) == 2  # measured with other settings: refused
 
 
+@pytest.mark.full  # accuracy's copy (three studies) of the sweep's: tests/test_executor.py, quick
 def test_accuracy_resume_keeps_crashed_rows_and_retry_failed_measures_them_again(tmp_path, monkeypatch):
     from clothbench.cli import main
 

@@ -89,6 +89,7 @@ def test_collisions_keep_the_curtain_outside_the_sphere():
     assert max_penetration(pos, scene) < 1e-3
 
 
+@pytest.mark.full  # a physics comparison: 0.5 s of the drape in Newton and in NumPy float64 VBD
 def test_newton_vbd_hangs_the_drape_as_clothbench_vbd_does():
     # both implicit Euler of the same springs, undamped; at 10 substeps of 10 iterations they are
     # 1.7 mm RMS apart on the 16^2 drape after 0.5 s (contact and convergence differ: docs/newton.md);

@@ -381,6 +381,7 @@ def _clashes(texts, renderer) -> list[tuple[str, str]]:
     return [(a, b) for i, (a, box) in enumerate(boxes) for b, other in boxes[i + 1 :] if box.overlaps(other)]
 
 
+@pytest.mark.full  # the tick labels' layout over seven grids, measured on a drawn figure
 def test_grid_labels_on_time_vs_grid_never_overlap(tmp_path):
     # small multiples (a panel a third of the figure wide) over seven grids: `1024×1024` and
     # `2048×2048` with their particle counts ran into each other. Only this figure is drawn:
@@ -398,6 +399,7 @@ def test_grid_labels_on_time_vs_grid_never_overlap(tmp_path):
         assert [t.get_text().split("\n")[0] for t in labels] == [f"{n}²" for n in OCTAVES], ax.get_title()
 
 
+@pytest.mark.full  # the labels' layout in a clump; which rows are labelled: test_speed_vs_error_labels_exactly_the_front_of_each_grid, quick
 def test_front_labels_never_overlap_and_a_moved_one_is_joined_to_its_point(tmp_path):
     # eight variants each 6 % less accurate and 3 % cheaper than the last (all on the front, their
     # points in a clump on an axis four decades wide), and numpy f64 (error 0) just above real

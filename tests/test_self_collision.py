@@ -212,6 +212,7 @@ def smallest_distance(scene, solver, steps, on=True) -> float:
     return self_contact(reference(run, solver, steps, "f32")[0], scene)[1]
 
 
+@pytest.mark.full  # 1.5 s of the twist; the pass itself is the tests above and the contract's, quick
 def test_the_twist_keeps_every_pair_apart_by_half_the_thickness_at_a_small_grid():
     # 20^2 for 1.5 s: the smallest grid and time at which the twist, without the pass, brings
     # two particles within half the thickness (docs/scenes.md, "twist")

@@ -146,6 +146,7 @@ def test_run_takes_solver_vbd_with_iterations_and_substeps(capsys):
     assert "--pbd-method applies to the pbd solver only" in capsys.readouterr().err
 
 
+@pytest.mark.full  # the stability command's VBD copy; the physics: test_stable_at_stiffness_1e5_and_60hz..., quick
 def test_stability_finds_vbd_stable_at_60hz_and_the_cap_at_stiffness_1e5(tmp_path, capsys):
     # issue 33: the largest stable dt at one substep; VBD holds the bisection's cap (0.1 s)
     out = tmp_path / "stability.csv"

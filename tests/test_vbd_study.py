@@ -161,6 +161,7 @@ def test_the_vbd_iterations_figure_draws_a_line_per_dt_and_nothing_for_one_sweep
     assert vbd_iterations_chart(AccuracyResult([_vbd_row(10, 1 / 60, 1e-3)], None)) is None
 
 
+@pytest.mark.full  # a whole study for its figure; the figure's drawing is the test above, quick
 def test_accuracy_with_two_vbd_sweep_counts_writes_the_figure(tmp_path, capsys):
     out = tmp_path / "acc.csv"
     argv = ["accuracy", "--backends", "numpy", "--solvers", "vbd", "--vbd-iterations", "1,3", "--grid", "4"]
@@ -170,10 +171,14 @@ def test_accuracy_with_two_vbd_sweep_counts_writes_the_figure(tmp_path, capsys):
     assert (tmp_path / "acc-vbd-iterations.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_no_exact_leaves_the_exact_step_out_of_vbd_rows_and_is_refused_without_vbd(tmp_path, capsys):
+NO_EXACT_STUDY = ["accuracy", "--backends", "numpy", "--grid", "4", "--dts", "0.01", "--time", "0.05", "--levels", "2"]
+
+
+@pytest.mark.full  # two studies; the refusal is the next test's, quick
+def test_no_exact_leaves_the_exact_step_out_of_vbd_rows(tmp_path, capsys):
     # the 256² study's rows spent their time in the exact step's sparse solves, which goal (c)
     # does not use: --no-exact leaves vs_exact empty, and the other columns as they were
-    argv = ["accuracy", "--backends", "numpy", "--grid", "4", "--dts", "0.01", "--time", "0.05", "--levels", "2"]
+    argv = NO_EXACT_STUDY
     for flags, name in (([], "with.csv"), (["--no-exact"], "without.csv")):
         assert main([*argv, "--solvers", "vbd", *flags, "--out", str(tmp_path / name)]) == 0
     capsys.readouterr()
@@ -182,7 +187,10 @@ def test_no_exact_leaves_the_exact_step_out_of_vbd_rows_and_is_refused_without_v
     assert all(float(r["vs_exact_rms"]) < 1 for r in with_exact)
     assert all(r["vs_exact_rms"] in ("", "nan") for r in without), [r["vs_exact_rms"] for r in without]
     assert [r["vs_verlet_rms"] for r in without] == [r["vs_verlet_rms"] for r in with_exact]
-    assert main([*argv, "--solvers", "verlet", "--no-exact", "--out", str(tmp_path / "v.csv")]) == 2
+
+
+def test_no_exact_is_refused_without_vbd(tmp_path, capsys):
+    assert main([*NO_EXACT_STUDY, "--solvers", "verlet", "--no-exact", "--out", str(tmp_path / "v.csv")]) == 2
     err = capsys.readouterr().err
     assert "--no-exact" in err and "add vbd to --solvers" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "v.csv").exists()

@@ -159,7 +159,8 @@ def test_a_backend_without_the_bodies_refuses_them_in_one_line_before_any_work(p
 # --- the cases reach their bodies -----------------------------------------------------------
 
 
-@pytest.mark.parametrize("scene_name", list(CHECKPOINTS))
+# the torus's 500 steps with and without its mesh, in --full; the moving bodies' two, quick
+@pytest.mark.parametrize("scene_name", [pytest.param("torus", marks=FULL), "sweep", "carried"])
 def test_the_bodies_change_the_reference_after_contact(scene_name):
     # not vacuous: at each checkpoint after contact the mesh, the motion or the pins on the bar
     # have moved the sheet by more than 1 mm, and by the last over a quarter of its particles
@@ -531,7 +532,10 @@ def test_strict_vbd_matches_numpy_f32_bit_for_bit_with_bodies(param, scene_name,
     assert_pbd_reference_bits(name, scene, solver, VBD_STEPS[scene_name], search, f"{scene_name} vbd")
 
 
-@pytest.mark.parametrize("scene_name", list(VBD_STEPS))
+# the mesh's case quick; the moving paddle's and the carried pins', each two VBD references, in --full
+@pytest.mark.parametrize(
+    "scene_name", ["torus", pytest.param("sweep", marks=FULL), pytest.param("carried", marks=FULL)]
+)
 def test_the_vbd_bodies_change_the_result(scene_name):
     # not vacuous: without its mesh, or with its motion stopped, the reference ends elsewhere
     scene = scene_named(scene_name, PBD_N)

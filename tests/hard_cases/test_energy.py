@@ -53,6 +53,7 @@ def test_undamped_energy_stays_in_its_band_for_100000_steps(variant):
     assert worst <= band, f"energy left its band: |E - E0| = {worst:.3g} J > {band:.3g} J"
 
 
+@pytest.mark.full  # 20,000 steps a variant: a study's length (the energy's arithmetic: tests/test_accuracy.py)
 def test_damped_energy_never_increases_by_more_than_rounding(variant):
     if variant.options.strict and variant.backend != "numpy":
         # as above: a strict variant's 20,000 steps are numpy f32's, which this test runs
