@@ -433,6 +433,20 @@ def test_tuning_times_every_shape_and_remembers_the_fastest(cuda_on_cpu, monkeyp
     assert again.shape == backend.shape and again_runtime.launches == 0  # read back, not timed
 
 
+def test_an_edit_to_the_kernel_or_a_file_it_includes_is_a_new_tuning_key(cuda_on_cpu, monkeypatch):  # noqa: F811
+    # a block size was measured on verlet_cloth.cu and what it includes: an edit to any of them
+    # must measure again (the key named no kernel text before 2026-12-06; VBD's always did)
+    from clothbench import kernel_source
+
+    backend, _ = cuda_on_cpu(sphere(16))
+    before = backend._tuning_key()
+    assert backend._tuning_key() == before
+    original = kernel_source.read_kernel
+    for name in ("verlet_cloth.cu", "collide.cuh", "self_collision.cuh"):
+        monkeypatch.setattr(kernel_source, "read_kernel", lambda n, name=name: original(n) + ("//\n" if n == name else ""))
+        assert backend._tuning_key()["kernel"] != before["kernel"], name
+
+
 # --- 4. on a CUDA device (skipped without one) -----------------------------------------
 
 

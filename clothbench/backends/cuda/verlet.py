@@ -44,7 +44,7 @@ import numpy as np
 
 from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
-from clothbench.kernel_source import c_float, read_kernel, resolve_includes
+from clothbench.kernel_source import c_float, kernel_hash, read_kernel, resolve_includes
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Solver
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
@@ -495,11 +495,13 @@ class CudaBackend(CudaDevice):
         self.state = self._pingpong(self.pick_shape(self._tuning_key(), self._time_shape))
 
     def _tuning_key(self) -> dict[str, str]:
-        """What the fastest shape depends on: the device's key (CudaDevice._device_key) and
-        what else each launch does."""
+        """What the fastest shape depends on: the device's key (CudaDevice._device_key), the
+        kernel's text (an edit to it or to what it includes measures again, as VBD's key does)
+        and what else each launch does."""
         o, s = self.options, self.scene
         return {
             **self._device_key(),
+            "kernel": kernel_hash(self.kernel_file),
             "generic": str(o.generic),
             "normals": str(o.normals),
             "transfer": self.transfer,
