@@ -351,6 +351,22 @@ def test_opencl_bands_are_jacobi_only_the_vector_sweep_coloured_only_bands_sized
         assert "project (jacobi)" in stages and "predict" in stages, stages
 
 
+def test_jacobi_with_chebyshev_is_tuned_under_a_key_of_its_own(monkeypatch, tmp_path):
+    # Chebyshev gives Jacobi a second multiplier buffer and doubles the bands' scratch, so the
+    # shape measured without it does not answer for it (the key named no Chebyshev before 2026-12-06)
+    require("opencl")
+    from clothbench.backends.opencl import pbd as opencl_pbd
+
+    monkeypatch.setenv("CLOTHBENCH_TUNING", "on")
+    monkeypatch.setenv("CLOTHBENCH_CACHE", str(tmp_path))
+    monkeypatch.setattr(opencl_pbd.OpenCLPbdBackend, "_time_shape", lambda self, name: 1e-4)
+    scene, jacobi = curtain("jacobi", grid=20)
+    for solver in (jacobi, jacobi.replace(chebyshev_rho=0.9), jacobi):
+        create_backend("opencl", scene, solver, FAST).close()
+    kept = [json.loads(k) for k in json.loads((tmp_path / "tuning" / "opencl.json").read_text())]
+    assert sorted(k["chebyshev"] for k in kept) == ["off", "on"], kept
+
+
 # n = 2V + extra: no interior vector; one, overlapping the edge vector's lanes; several, the last overlapping
 @pytest.mark.parametrize("extra", [0, 1, 21])
 def test_opencl_bands_edge_vectors_are_exact_in_every_lane(extra):

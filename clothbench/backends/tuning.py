@@ -72,9 +72,10 @@ _measured_here: set[tuple[str, str]] = set()
 
 
 def sweeps_key(solver) -> dict[str, str]:
-    """The part of a VBD tuning key its launches depend on (opencl, glsl-compute and cuda alike):
-    the solver, its sweeps a substep, its substeps, and Chebyshev (a launch more a sweep), so
-    that neither another solver's choice nor one of other settings answers for it."""
+    """The part of a VBD or PBD tuning key its launches depend on (VBD on opencl, glsl-compute
+    and cuda alike; PBD on opencl): the solver, its sweeps (iterations) a substep, its substeps,
+    and Chebyshev (VBD: a launch more a sweep; Jacobi PBD: a second multiplier buffer), so that
+    neither another solver's choice nor one of other settings answers for it."""
     return {
         "solver": solver.spec,
         "iterations": str(solver.iterations),

@@ -45,6 +45,7 @@ from clothbench.backends.opencl.device import (
     shape_options,
 )
 from clothbench.backends.opencl.verlet_shapes import tuning_key
+from clothbench.backends.tuning import sweeps_key
 from clothbench.backends.pbd_device import PbdDeviceBackend
 
 KERNEL_FILE = "pbd_cloth.cl"
@@ -148,7 +149,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
         # the Jacobi passes' Chebyshev weights, one per iteration (all 1 without): bands, one-launch
         self.omega_buffer = self._read_only_buffer(np.array(self.constants.omega, np.float32))
         key = tuning_key(self._device, scene, options, self._source, self.mesh_collision)
-        key.update(solver=solver.spec, iterations=str(solver.iterations), substeps=str(solver.substeps))
+        key.update(sweeps_key(solver))  # Chebyshev too: a second multiplier buffer, and the bands' scratch doubles
         self._use_shape(self.pick_shape(key, self._time_shape))
 
     @classmethod
