@@ -14,7 +14,7 @@ from PIL import Image
 
 from clothbench.cli import main
 from clothbench.harness.sweep_csv import COLUMNS, csv_line
-from clothbench.reports.figures_common import MAX_SERIES, PNG_DPI, figure_svg, pareto_front
+from clothbench.reports.figures_common import MAX_SERIES, PNG_DPI, figure_svg, new_figure, pareto_front, save_figure
 from clothbench.reports.plots import FILES, PlotReport, draw_sweep, plot_sweep, plot_time_vs_grid, scaling_exponent
 from clothbench.reports.sweep_rows import load
 
@@ -330,6 +330,32 @@ def test_the_machine_bound_is_drawn_only_where_the_csv_has_it(tmp_path, with_bou
         else:
             assert bound_lines == []
     assert "<svg" in figure_svg(report.charts["time_vs_grid"].figure)[:2000]
+
+
+def test_the_same_figure_writes_the_same_svg_whatever_the_last_bits_of_its_clip_paths(tmp_path, monkeypatch):
+    # matplotlib names a clip path by a hash of its unrounded corners, whose last bits differed
+    # between processes (about one run in three); here each render's corners are made to differ
+    # as they did, and the files must not
+    from matplotlib.backends import backend_svg
+
+    make_id, renders = backend_svg.RendererSVG._make_id, []
+
+    def jittered(self, kind, content):
+        if kind == "p":
+            content = (*content, len(renders))  # another set of last bits each render
+        return make_id(self, kind, content)
+
+    monkeypatch.setattr(backend_svg.RendererSVG, "_make_id", jittered)
+    for name in ("a", "b"):
+        renders.append(name)
+        fig = new_figure(6, 3)
+        for k, ax in enumerate(fig.subplots(1, 2)):
+            ax.plot([1, 2, 3], [k, 2 * k, 1])
+            ax.set_title(f"panel {k}")
+        save_figure(fig, tmp_path / f"{name}.png")
+    a, b = ((tmp_path / f"{n}.svg").read_text() for n in "ab")
+    assert a.count("<clipPath") == 2 and a == b
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
 
 
 def test_compare_prints_the_ratio_of_matching_rows(tmp_path, capsys):

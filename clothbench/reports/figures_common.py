@@ -10,8 +10,10 @@ Figures are matplotlib Figures on the Agg canvas, never pyplot: nothing global, 
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
+import re
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +22,7 @@ from typing import Callable, Iterable, Mapping, TypeVar
 from matplotlib import rc_context
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.layout_engine import ConstrainedLayoutEngine
 from matplotlib.text import Annotation, Text
 from matplotlib.ticker import FuncFormatter
 
@@ -470,18 +473,43 @@ def save_figure(fig: Figure, path: Path, dpi: int = PNG_DPI) -> list[Path]:
     data writes the same bytes, so regenerated figures change in git only where they changed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    written = []
+    freeze_layout(fig)
+    png, svg = path.with_suffix(".png"), path.with_suffix(".svg")
     with rc_context(REPRODUCIBLE):
-        for ext in (".png", ".svg"):
-            target = path.with_suffix(ext)
-            fig.savefig(target, dpi=dpi if ext == ".png" else None, metadata={"Date": None} if ext == ".svg" else None)
-            written.append(target)
-    return written
+        fig.savefig(png, dpi=dpi)
+    svg.write_text(figure_svg(fig), encoding="utf-8")
+    return [png, svg]
 
 
 def figure_svg(fig: Figure) -> str:
     """The figure as SVG text (for a page that inlines its figures), as save_figure writes it."""
     buffer = io.StringIO()
+    freeze_layout(fig)
     with rc_context(REPRODUCIBLE):
         fig.savefig(buffer, format="svg", metadata={"Date": None})
-    return buffer.getvalue()
+    svg = buffer.getvalue()
+    names = {m[1]: "p" + hashlib.sha256(m[2].encode()).hexdigest()[:10] for m in _CLIP_PATH.finditer(svg)}
+    return re.sub(r"\bp[0-9a-f]{10}\b", lambda m: names.get(m[0], m[0]), svg) if names else svg
+
+
+# matplotlib names an SVG clip path by a hash of its rectangle's unrounded corners, whose last
+# bits differ from one process to the next even where the axes' places are the same (measured:
+# 1e-13 apart, about one run in three), though the rectangle it writes (6 decimals) is the
+# same: figure_svg renames each by a hash of what it writes. (Not numbered: a page inlines
+# several figures, and one id must name one clip path in all of them.)
+_CLIP_PATH = re.compile(r'<clipPath id="(p[0-9a-f]{10})">(.*?)</clipPath>', re.S)
+
+
+def freeze_layout(fig: Figure) -> None:
+    """Lay `fig` out once more and keep that layout, its axes' places rounded to 1e-7 of the
+    figure, for every file drawn from it (PNG and SVG alike). Constrained layout's solver
+    (kiwisolver) does not repeat its last bits from one process to the next (measured: the same
+    figure's axes 1e-13 apart, about one run in three); a coordinate that lay on a 6-decimal
+    boundary was then written differently."""
+    if not isinstance(fig.get_layout_engine(), ConstrainedLayoutEngine):
+        return  # laid out and frozen already, or laid out by hand
+    fig.draw_without_rendering()
+    places = [(ax, ax.get_position(original=False).bounds) for ax in fig.axes]
+    fig.set_layout_engine("none")
+    for ax, bounds in places:
+        ax.set_position([round(v, 7) for v in bounds])
