@@ -26,7 +26,7 @@ from clothbench.cli import main
 from clothbench.harness import simulate
 from clothbench.harness.energy import energy_problem, total_energy
 from clothbench.harness.plan import Variant, plan_variants
-from clothbench.model.scene import Scene, load_scene
+from clothbench.model.scene import OFFSETS, Scene, load_scene
 from clothbench.model.solver import Pbd
 from conftest import VERLET, require, setup
 
@@ -118,6 +118,32 @@ def test_energy_of_free_fall_is_constant_and_a_blow_up_is_caught():
     pos = pos.copy()
     pos[5, :3] += 10.0  # one particle 10 m off in one step: 2e4 m/s, springs torn
     assert "total energy grew" in energy_problem(pos, prev, scene, VERLET, 300)
+
+
+def test_the_energy_is_its_sum_over_particles_and_springs_written_out():
+    # the definitions of harness/energy.py, one particle and one spring at a time, on a random
+    # state with a pinned row (pins hold no kinetic or gravitational energy; their springs
+    # count): the vectorised sums agree to float64 rounding
+    scene = Scene(grid=6, pin_edge="top")
+    rng = np.random.default_rng(3)
+    pos, prev = VERLET.initial_state(scene)
+    free = pos[:, 3] != 0
+    pos[free, :3] += 0.01 * rng.standard_normal((int(free.sum()), 3))
+    prev[free, :3] += 0.01 * rng.standard_normal((int(free.sum()), 3))
+    n, m, k, dt, g = scene.grid, scene.mass, scene.stiffness, VERLET.dt, np.array(scene.gravity)
+    kinetic = sum(0.5 * m * np.sum(((pos[i, :3] - prev[i, :3]) / dt) ** 2) for i in range(n * n) if free[i])
+    gravity = sum(-m * g @ (0.5 * (pos[i, :3] + prev[i, :3])) for i in range(n * n) if free[i])
+    spring = 0.0
+    for (dr, dc), rest in zip(OFFSETS, scene.rest_lengths()):
+        for r in range(n):
+            for c in range(n):
+                if 0 <= r + dr < n and 0 <= c + dc < n:  # each spring from both ends: half of each
+                    i, j = r * n + c, (r + dr) * n + c + dc
+                    stretch = np.linalg.norm(pos[j, :3] - pos[i, :3]) - rest
+                    stretch_prev = np.linalg.norm(prev[j, :3] - prev[i, :3]) - rest
+                    spring += 0.25 * k * stretch * stretch_prev
+    e = total_energy(pos, prev, scene, dt)
+    assert (e.kinetic, e.gravity, e.spring) == pytest.approx((kinetic, gravity, spring), rel=1e-12)
 
 
 def _assert_measured_here(rows: list[dict], since: str) -> None:

@@ -443,7 +443,9 @@ def test_an_edit_to_the_kernel_or_a_file_it_includes_is_a_new_tuning_key(cuda_on
     assert backend._tuning_key() == before
     original = kernel_source.read_kernel
     for name in ("verlet_cloth.cu", "collide.cuh", "self_collision.cuh"):
-        monkeypatch.setattr(kernel_source, "read_kernel", lambda n, name=name: original(n) + ("//\n" if n == name else ""))
+        monkeypatch.setattr(
+            kernel_source, "read_kernel", lambda n, name=name: original(n) + ("//\n" if n == name else "")
+        )
         assert backend._tuning_key()["kernel"] != before["kernel"], name
 
 

@@ -57,15 +57,28 @@ class Energy:
         return self.total if solver.name not in ITERATIVE else self.kinetic + self.gravity
 
 
+# Every array below is planar, (3, n, n) in float64: x, y and z each contiguous. The state's
+# (n*n, 4) rows made the sums over a component axis of length 3 strided, and those took 1.4 s
+# a state at 2048^2, after every timed chunk of a sweep's row (harness/health.py), 15 s a row;
+# planar, 0.6 s, the same bits (docs/timing.md, "What a row costs besides its timed steps").
 def _grid(a: np.ndarray, n: int) -> np.ndarray:
-    return a[:, :3].astype(np.float64).reshape(n, n, 3)
+    return np.ascontiguousarray(a[:, :3].T, dtype=np.float64).reshape(3, n, n)
+
+
+def _squares(d: np.ndarray) -> np.ndarray:
+    """|d|^2 of planar vectors d (squared in place), summed x, y, z in that order."""
+    np.multiply(d, d, out=d)
+    total = d[0] + d[1]
+    total += d[2]
+    return total
 
 
 def _lengths(x: np.ndarray, dr: int, dc: int) -> np.ndarray:
-    n = x.shape[0]
-    a = x[max(0, -dr) : n - max(0, dr), max(0, -dc) : n - max(0, dc)]
-    b = x[max(0, dr) : n + min(0, dr), max(0, dc) : n + min(0, dc)]
-    return np.sqrt(((b - a) ** 2).sum(axis=-1))
+    n = x.shape[1]
+    a = x[:, max(0, -dr) : n - max(0, dr), max(0, -dc) : n - max(0, dc)]
+    b = x[:, max(0, dr) : n + min(0, dr), max(0, dc) : n + min(0, dc)]
+    lengths = _squares(b - a)
+    return np.sqrt(lengths, out=lengths)
 
 
 def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float) -> Energy:
@@ -75,10 +88,10 @@ def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float) -> 
     free = pos[:, 3] != 0
     x, xp = _grid(pos, n), _grid(prev, n)
     v = (x - xp) / dt
-    kinetic = 0.5 * m * float((v * v).sum(axis=-1).reshape(-1)[free].sum())
-    g = np.array(scene.gravity)
-    mid = 0.5 * (x + xp).reshape(-1, 3)[free]
-    gravity = -m * float((mid @ g).sum())
+    kinetic = 0.5 * m * float(_squares(v).reshape(-1)[free].sum())
+    g = scene.gravity
+    mid = 0.5 * (x + xp)
+    gravity = -m * float(((mid[0] * g[0] + mid[1] * g[1]) + mid[2] * g[2]).reshape(-1)[free].sum())
     spring = 0.0
     rest = dict(zip(OFFSETS, scene.rest_lengths()))
     for dr, dc in FORWARD:
@@ -88,17 +101,24 @@ def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float) -> 
     return Energy(kinetic, spring, gravity)
 
 
-def energy_scale(scene: Scene, solver: Solver, pos: np.ndarray | None = None, prev: np.ndarray | None = None) -> float:
+def energy_scale(
+    scene: Scene,
+    solver: Solver,
+    pos: np.ndarray | None = None,
+    prev: np.ndarray | None = None,
+    e: Energy | None = None,
+) -> float:
     """What a stable run of `scene` can plausibly move around (J): the energy of lifting the
-    free particles by the size of the sheet, plus the kinetic and elastic energy at the start,
-    plus the cloth moving at FLOOR_SPEED."""
+    free particles by the size of the sheet, plus the kinetic and elastic energy at the start
+    (`e`, the start's energy where the caller has it), plus the cloth moving at FLOOR_SPEED."""
     if pos is None:
         pos, prev = solver.initial_state(scene, np.float64)
     free_mass = scene.mass * int((pos[:, 3] != 0).sum())
     g = math.sqrt(sum(c * c for c in scene.gravity))
     xyz = pos[:, :3].astype(np.float64)
     extent = max(scene.size, float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0))))
-    e = total_energy(pos, prev, scene, solver.dt)
+    if e is None:
+        e = total_energy(pos, prev, scene, solver.dt)
     spring = abs(e.spring) if solver.name not in ITERATIVE else 0.0
     return free_mass * g * extent + abs(e.kinetic) + spring + 0.5 * free_mass * FLOOR_SPEED**2
 
@@ -106,7 +126,8 @@ def energy_scale(scene: Scene, solver: Solver, pos: np.ndarray | None = None, pr
 @lru_cache(maxsize=32)
 def _start(scene: Scene, solver: Solver) -> tuple[float, float]:
     pos, prev = solver.initial_state(scene, np.float64)
-    return total_energy(pos, prev, scene, solver.dt).watched(solver), energy_scale(scene, solver, pos, prev)
+    e = total_energy(pos, prev, scene, solver.dt)
+    return e.watched(solver), energy_scale(scene, solver, pos, prev, e)
 
 
 def energy_bound(
@@ -118,8 +139,8 @@ def energy_bound(
     if start is None:
         e0, scale = _start(scene, solver)
     else:
-        e0 = total_energy(*start, scene, solver.dt).watched(solver)
-        scale = energy_scale(scene, solver, *start)
+        e = total_energy(*start, scene, solver.dt)
+        e0, scale = e.watched(solver), energy_scale(scene, solver, *start, e)
     return e0, e0 + ENERGY_GROWTH * scale
 
 
