@@ -1,8 +1,9 @@
 """What both xdist workers would compute alike, computed once per test run and shared.
 
-Each is a pure function of its arguments on this machine, cached per process by clothbench; with
-two workers it was computed twice, and for the references clothbench's cache (32 states) dropped
-states that later tests of the same worker asked for again. The first process to need one
+Each is the same in both workers (a reference is a function of its arguments alone; the limits
+are the one machine's), cached per process by clothbench; with two workers it was computed twice,
+and for the references clothbench's cache (32 states) dropped states that later tests of the same
+worker asked for again. The first process to need one
 computes it under a lock and writes it to the run's shared temporary folder; every other reads
 the file.
 

@@ -469,8 +469,9 @@ def panel_legend(ax, ncol: int | None = None, handles: list | None = None) -> No
 
 def save_figure(fig: Figure, path: Path, dpi: int = PNG_DPI) -> list[Path]:
     """Write `fig` as PNG at `path` (its suffix made .png) and as SVG beside it, the folder
-    made if missing; the two paths. No date and SVG ids from a fixed salt: a figure drawn again from the same
-    data writes the same bytes, so regenerated figures change in git only where they changed."""
+    made if missing; the two paths. No date, the layout frozen once (freeze_layout) and SVG ids
+    from a fixed salt or what they name (figure_svg): a figure drawn again from the same data
+    writes the same bytes, so regenerated figures change in git only where they changed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     freeze_layout(fig)
@@ -482,7 +483,8 @@ def save_figure(fig: Figure, path: Path, dpi: int = PNG_DPI) -> list[Path]:
 
 
 def figure_svg(fig: Figure) -> str:
-    """The figure as SVG text (for a page that inlines its figures), as save_figure writes it."""
+    """The figure as SVG text (for a page that inlines its figures), as save_figure writes it:
+    its clip paths named by a hash of what they hold (below), every other id from the salt."""
     buffer = io.StringIO()
     freeze_layout(fig)
     with rc_context(REPRODUCIBLE):
