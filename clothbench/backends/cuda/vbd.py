@@ -47,7 +47,6 @@ from clothbench.backends.cuda.launch import (
 from clothbench.backends.cuda.self_contact import KERNELS as SELF_KERNELS, SelfContact, self_collision_defines
 from clothbench.backends.cuda.verlet import CudaBackend, CudaDevice, CupyRuntime, scene_defines
 from clothbench.backends.tuning import sweeps_key
-from clothbench.kernel_source import kernel_hash
 
 KERNEL_FILE = "vbd_cloth.cu"
 PREDICT, SWEEP, CHEBYSHEV, COLLIDE, UPDATE = "vbd_predict", "vbd_sweep", "vbd_chebyshev", "vbd_collide", "vbd_update"
@@ -191,7 +190,6 @@ class CudaVbdBackend(CudaDevice):
         return {
             **self._device_key(),
             **sweeps_key(self.solver),
-            "kernel": kernel_hash(KERNEL_FILE),
             **({"self_collision": "after the sweeps"} if self.scene.self_collision is not None else {}),
         }
 

@@ -355,11 +355,13 @@ class CudaDevice(Backend):
 
     def _device_key(self) -> dict[str, str]:
         """What any CUDA solver's fastest shape depends on: the device and its software, the
+        kernel's text (kernels/`kernel_file` and what it includes: an edit measures again), the
         grid and its colliders, the arithmetic and the local size; each solver adds its own."""
         o, s = self.options, self.scene
         return {
             "device": self._name,
             "driver": self._driver,
+            "kernel": kernel_hash(self.kernel_file),
             "grid": str(s.grid),
             "colliders": f"{len(s.spheres)} spheres, {len(s.cylinders)} cylinders, {len(s.planes)} planes",
             "arithmetic": "strict" if o.strict else "fast",
@@ -495,13 +497,11 @@ class CudaBackend(CudaDevice):
         self.state = self._pingpong(self.pick_shape(self._tuning_key(), self._time_shape))
 
     def _tuning_key(self) -> dict[str, str]:
-        """What the fastest shape depends on: the device's key (CudaDevice._device_key), the
-        kernel's text (an edit to it or to what it includes measures again, as VBD's key does)
-        and what else each launch does."""
+        """What the fastest shape depends on: the device's key (CudaDevice._device_key, the
+        kernel's text among it) and what else each launch does."""
         o, s = self.options, self.scene
         return {
             **self._device_key(),
-            "kernel": kernel_hash(self.kernel_file),
             "generic": str(o.generic),
             "normals": str(o.normals),
             "transfer": self.transfer,
