@@ -3,17 +3,21 @@
 // with the fragment shader; this file is the data access around it.
 //
 // State: std430 arrays of vec4 (a vec3 array would be padded to 16 bytes anyway), particle
-// i = row * n + col, w = inverse mass. The host ping-pongs two (pos, prev) pairs of buffers
-// by swapping which pair is read and which is written (bindings 2-3).
+// i = row * n + col, w = inverse mass, in two buffers: x(t) at binding 0 and x(t - dt) at
+// binding 1. A step writes x(t + dt) in place over x(t - dt) (only this particle's invocation
+// reads that slot, the neighbours are read from binding 0), and the host swaps the two
+// buffers' roles: step 8 (x(t - dt) <- x(t)) is that swap. 48 bytes a particle a step where
+// the chapter's two pairs of buffers (x(t), x(t - dt)) -> (x(t + dt), x(t)) move 64.
 //
 // The host (clothbench/backends/gl/compute.py) prepends #version 430, LOCAL_SIZE, the
 // switches of the shared step (STRICT, NORMALS, GENERIC, the constants: see
 // verlet_cloth_step.glsl), and:
 //   NORMALS      also write the particle's normal to binding 4.
-//   IMAGE_READS  read the input pair through imageBuffer views of the same buffers rather
-//                than as SSBOs: llvmpipe loads an SSBO one lane at a time, with a bounds
-//                test per component, and an image with vector gathers (half the step time
-//                at n = 256). The bits read are the same.
+//   IMAGE_READS  read x(t), the neighbours' positions, through an imageBuffer view of the
+//                same buffer rather than as an SSBO: llvmpipe loads an SSBO one lane at a
+//                time, with a bounds test per component, and an image with vector gathers
+//                (half the step time at n = 256). The bits read are the same. x(t - dt),
+//                read and written by its own invocation, stays an SSBO.
 //   PASS         which particles this dispatch covers: PASS_ALL (every particle, with
 //                bounds tests), PASS_INTERIOR (2 or more from every edge: all 12 neighbours
 //                exist, no tests) or PASS_BORDER (the 8n - 16 others, with tests).
@@ -22,10 +26,11 @@
 //                LOCAL_SIZE consecutive particles: the kernel shape "wg=WxH"
 //                (clothbench/backends/gl/shapes.py). The operations on a particle are the same.
 //   SELF_COLLISION  (a scene with [self_collision] only) the step leaves the colliders out and
-//                writes x_new; the program with PASS_SELF_COLLISION then reads every particle's
-//                x_new at binding 0 (pos_in), pushes the pairs apart (kernels/self_collision.glsl),
-//                collides, and writes pos_out: the colliders act after the pass, as
-//                docs/semantics.md places them.
+//                writes x_new to binding 2; the program with PASS_SELF_COLLISION then reads every
+//                particle's x_new at binding 0 (pos_in), pushes the pairs apart
+//                (kernels/self_collision.glsl), collides, and writes pos_out (binding 2, there
+//                the x(t - dt) buffer): the colliders act after the pass, as docs/semantics.md
+//                places them.
 
 #define PASS_ALL 0
 #define PASS_INTERIOR 1
@@ -42,16 +47,16 @@ layout(local_size_x = LOCAL_SIZE) in;
 #endif
 
 #ifdef IMAGE_READS
-layout(rgba32f, binding = 0) readonly uniform imageBuffer pos_in;   // x(t)
-layout(rgba32f, binding = 1) readonly uniform imageBuffer prev_in;  // x(t - dt)
+layout(rgba32f, binding = 0) readonly uniform imageBuffer pos_in;  // x(t)
 #define LOAD(buf, i) imageLoad(buf, i)
 #else
-layout(std430, binding = 0) readonly buffer PosIn { vec4 pos_in[]; };    // x(t)
-layout(std430, binding = 1) readonly buffer PrevIn { vec4 prev_in[]; };  // x(t - dt)
+layout(std430, binding = 0) readonly buffer PosIn { vec4 pos_in[]; };  // x(t)
 #define LOAD(buf, i) buf[i]
 #endif
-layout(std430, binding = 2) writeonly buffer PosOut { vec4 pos_out[]; };    // x(t + dt)
-layout(std430, binding = 3) writeonly buffer PrevOut { vec4 prev_out[]; };  // x(t)
+layout(std430, binding = 1) buffer Prev { vec4 prev[]; };  // x(t - dt) in, x(t + dt) out
+#ifdef SELF_COLLISION
+layout(std430, binding = 2) writeonly buffer PosOut { vec4 pos_out[]; };  // step: x_new; pass: x(t + dt)
+#endif
 #ifdef NORMALS
 layout(std430, binding = 4) writeonly buffer NormalOut { vec4 normal_out[]; };
 #endif
@@ -112,10 +117,14 @@ void main()
     pos_out[i] = vec4(x, w);
 #else
     vec4 self = LOAD(pos_in, i);
-    vec3 x = self.xyz;                // step 1
-    vec3 xp = LOAD(prev_in, i).xyz;  // step 2
-    pos_out[i] = vec4(verlet(rc, x, xp, self.w), self.w);  // step 7
-    prev_out[i] = self;                                    // step 8: x(t), w unchanged
+    vec3 x = self.xyz;      // step 1
+    vec3 xp = prev[i].xyz;  // step 2
+    vec4 x_new = vec4(verlet(rc, x, xp, self.w), self.w);
+#ifdef SELF_COLLISION
+    pos_out[i] = x_new;  // the pass pushes it apart, collides it and writes it over x(t - dt)
+#else
+    prev[i] = x_new;  // step 7, over x(t - dt); step 8 is the host's swap of the buffers
+#endif
 #ifdef NORMALS
     normal_out[i] = vec4(normal_at(rc, x), 0.0);
 #endif

@@ -11,8 +11,10 @@
  * defined operation by operation in docs/semantics.md, the normals in docs/normals.md; this
  * file performs those operations in that order and does not restate them; the colliders and
  * their response are collide.cuh's, which vbd_cloth.cu includes too. The launch is in
- * Python (clothbench/backends/cuda/launch.py: PingPong), which owns the two pairs of buffers
- * (pos, pos_prev) x (in, out) and either swaps them or copies out to in after each launch.
+ * Python (clothbench/backends/cuda/launch.py: PingPong), which owns the state buffers: by
+ * default two, x(t) and x(t - dt), a launch writing its last x(t + dt) over x(t - dt) in place
+ * and the host swapping the two's roles (48 bytes a particle a step); with CLOTH_TWO_PAIRS the
+ * chapter's two pairs (pos, pos_prev) x (in, out), the host copying out to in after each launch.
  *
  * The host builds this one file in several ways, with -D switches (verlet.py: kernel_defines):
  *
@@ -39,7 +41,29 @@
  *   CLOTH_SELF_COLLISION   the scene has [self_collision]: self_collision.cuh's kernels, and
  *                  verlet_step leaves the colliders to its pass (docs/cuda.md, "Self-collision").
  *                  Without it there is no self-collision code.
+ *   CLOTH_TWO_PAIRS  (`--transfer copy`) the chapter's buffers: both kernels read (pos,
+ *                  pos_prev) and write (pos_out, pos_prev_out), step 8 a store of x(t).
+ *                  Without it (`--transfer swap`, the default) they take (pos, pos_prev) and
+ *                  write the new state over them: x(t + dt) over x(t - dt) (only the particle's
+ *                  own thread reads that slot; the neighbours are read from pos), and step 8 is
+ *                  the host's swap of the two buffers.
  */
+
+#ifdef CLOTH_TWO_PAIRS
+#define STATE_PARAMS(pos_const)                                                  \
+    const float4* __restrict__ pos,       /* x(t); w = inverse mass, 0 = pinned */ \
+    const float4* __restrict__ pos_prev,  /* x(t - dt) */                          \
+    float4* __restrict__ pos_out,         /* the latest state after the launch */  \
+    float4* __restrict__ pos_prev_out     /* the state before it */
+#define LATEST_OUT pos_out
+#define PREVIOUS_OUT pos_prev_out
+#else
+#define STATE_PARAMS(pos_const)                                                  \
+    pos_const float4* __restrict__ pos,   /* x(t); w = inverse mass, 0 = pinned */ \
+    float4* __restrict__ pos_prev         /* x(t - dt), then the latest state */
+#define LATEST_OUT pos_prev
+#define PREVIOUS_OUT pos
+#endif
 
 #ifndef CLOTH_GENERIC
 #ifndef CLOTH_N
@@ -220,11 +244,9 @@ __device__ __forceinline__ float3 verlet_particle(Positions pos, int row, int co
     return COLLIDE_IN_STEP ? apply_colliders(x_new COLLIDE_ARGS MESH_ARGS ROWS_ARG) : x_new;
 }
 
+// In place (the default): x(t + dt) over pos_prev[i], which the host then reads as x(t).
 extern "C" __global__ void verlet_step(
-    const float4* __restrict__ pos,       // x(t); w = inverse mass, 0 = pinned
-    const float4* __restrict__ pos_prev,  // x(t - dt)
-    float4* __restrict__ pos_out,         // x(t + dt)
-    float4* __restrict__ pos_prev_out     // x(t), the next step's previous position
+    STATE_PARAMS(const)
 #ifdef CLOTH_NORMALS
     , float4* __restrict__ normal_out     // the normal of x(t), w = 0 (docs/normals.md)
 #endif
@@ -239,9 +261,11 @@ extern "C" __global__ void verlet_step(
     const float3 x = make_float3(p.x, p.y, p.z);
     const float3 x_new = verlet_particle(GlobalPositions{pos}, row, col, x, make_float3(q.x, q.y, q.z),
                                          p.w SCENE_ARGS MESH_ARGS STEP_ROWS_ARGS(0));
-    // steps 7-8: the new position, and the current one as the next step's previous
-    pos_out[i] = make_float4(x_new.x, x_new.y, x_new.z, p.w);
+    // step 7: the new position; step 8: x(t) as the next step's previous (in place: the swap)
+    LATEST_OUT[i] = make_float4(x_new.x, x_new.y, x_new.z, p.w);
+#ifdef CLOTH_TWO_PAIRS
     pos_prev_out[i] = p;
+#endif
 #ifdef CLOTH_NORMALS
     const float3 normal = normal_at(GlobalPositions{pos}, row, col, n, x);  // for rendering only
     normal_out[i] = make_float4(normal.x, normal.y, normal.z, 0.0f);
@@ -262,15 +286,14 @@ extern __shared__ float cloth_shared[];
 // memory between steps: `cur` holds x(t) and `old` x(t - dt); a step overwrites each particle's
 // own x(t - dt) slot with its x(t + dt) (only that particle's thread reads that slot), then
 // __syncthreads() and the two swap roles. In and out as verlet_step after `steps` of them:
-// (pos_out, pos_prev_out) = (x(t + steps dt), x(t + (steps - 1) dt)), the normals those of
-// the latter. Launch with one block, steps >= 1, and 6 n*n floats of dynamic shared memory.
+// x(t + steps dt) in LATEST_OUT (pos_out, or in place pos_prev) and x(t + (steps - 1) dt) in
+// PREVIOUS_OUT (pos_prev_out, or pos), the normals those of the latter; in place, a thread
+// reads and writes only its own particles' slots of pos and pos_prev. Launch with one block,
+// steps >= 1, and 6 n*n floats of dynamic shared memory.
 extern "C" __global__ void __launch_bounds__(MULTISTEP_MAX_THREADS) verlet_steps(
-    const float4* __restrict__ pos,       // x(t); w = inverse mass, 0 = pinned
-    const float4* __restrict__ pos_prev,  // x(t - dt)
-    float4* __restrict__ pos_out,         // x(t + steps dt)
-    float4* __restrict__ pos_prev_out     // x(t + (steps - 1) dt)
+    STATE_PARAMS()
 #ifdef CLOTH_NORMALS
-    , float4* __restrict__ normal_out     // the normal of pos_prev_out, w = 0
+    , float4* __restrict__ normal_out     // the normal of PREVIOUS_OUT, w = 0
 #endif
     , int steps                           // steps in this launch, >= 1
     SCENE_PARAMS MESH_PARAMS MOTION_PARAMS)  // motion: the rows of `steps` steps
@@ -304,8 +327,8 @@ extern "C" __global__ void __launch_bounds__(MULTISTEP_MAX_THREADS) verlet_steps
     }
     for (int i = threadIdx.x; i < count; i += blockDim.x) {
         const float w = pos[i].w;
-        pos_out[i] = make_float4(cur_x[i], cur_y[i], cur_z[i], w);
-        pos_prev_out[i] = make_float4(old_x[i], old_y[i], old_z[i], w);
+        LATEST_OUT[i] = make_float4(cur_x[i], cur_y[i], cur_z[i], w);
+        PREVIOUS_OUT[i] = make_float4(old_x[i], old_y[i], old_z[i], w);
 #ifdef CLOTH_NORMALS
         const SharedPositions last{old_x, old_y, old_z};  // what the last step read
         const float3 normal = normal_at(last, i / n, i % n, n, last(i));

@@ -11,8 +11,11 @@
 // reads them (one barrier per step: the half a step writes was last read before the
 // previous barrier). `steps` (a uniform) steps run; the host dispatches K at most at a time.
 // A scene that moves reads step s's rows at motion_step + s of the block the host uploaded.
-// Input: the (pos, prev) pair at bindings 0-1; output: the pair after the last step at
-// bindings 2-3 (and, with NORMALS, the normals of the state the last step read at 4).
+// State: the two buffers of verlet_cloth.comp, x(t) at binding 0 and x(t - dt) at binding 1;
+// after the last step x(t + K dt) is written over binding 1 and x(t + (K - 1) dt) over
+// binding 0 (each invocation reads and writes only its own particles there, and reads them
+// all before the first barrier), and the host swaps the buffers' roles, as after a step of
+// verlet_cloth.comp. With NORMALS, the normals of the state the last step read at binding 4.
 //
 // The host prepends #version 430, the switches of the shared step (STRICT, NORMALS,
 // GENERIC, the constants), LOCAL_SIZE, PPI (particles per invocation), CAPACITY (particles
@@ -21,10 +24,8 @@
 
 layout(local_size_x = LOCAL_SIZE) in;
 
-layout(std430, binding = 0) readonly buffer PosIn { vec4 pos_in[]; };    // x(t)
-layout(std430, binding = 1) readonly buffer PrevIn { vec4 prev_in[]; };  // x(t - dt)
-layout(std430, binding = 2) writeonly buffer PosOut { vec4 pos_out[]; };
-layout(std430, binding = 3) writeonly buffer PrevOut { vec4 prev_out[]; };
+layout(std430, binding = 0) buffer Pos { vec4 pos[]; };    // x(t) in, x(t + (K - 1) dt) out
+layout(std430, binding = 1) buffer Prev { vec4 prev[]; };  // x(t - dt) in, x(t + K dt) out
 #ifdef NORMALS
 layout(std430, binding = 4) writeonly buffer NormalOut { vec4 normal_out[]; };
 #endif
@@ -69,10 +70,10 @@ void main()
     for (int j = 0; j < PPI; ++j) {
         int t = first + j * LOCAL_SIZE;
         if (t < n * n) {
-            vec4 self = pos_in[t];
+            vec4 self = pos[t];
             x[j] = self.xyz;
             w[j] = self.w;
-            xp[j] = prev_in[t].xyz;
+            xp[j] = prev[t].xyz;
             scratch_put(t, x[j]);
         }
     }
@@ -105,8 +106,8 @@ void main()
     for (int j = 0; j < PPI; ++j) {
         int t = first + j * LOCAL_SIZE;
         if (t < n * n) {
-            pos_out[t] = vec4(x[j], w[j]);
-            prev_out[t] = vec4(xp[j], w[j]);
+            prev[t] = vec4(x[j], w[j]);  // the latest state, in the buffer the host reads next as x(t)
+            pos[t] = vec4(xp[j], w[j]);
 #ifdef NORMALS
             normal_out[t] = vec4(normal_at(ivec2(t / n, t % n), xp[j]), 0.0);
 #endif

@@ -120,7 +120,8 @@ def test_bytes_per_step_are_the_kernels_buffers(precision, dtype):
     """Independent count: the buffers a kernel streams once per step, as arrays. Every layout
     reads pos and pos_prev and the inverse mass (its own plane, or the w of float4 state);
     the c kernel writes x(t+dt) over x(t-dt), the specialised OpenCL one writes pos_out and
-    pos_prev_out, float4 state writes both as float4. Colliders add work, not bytes."""
+    pos_prev_out, float4 state writes both as float4, or (in place) x(t+dt) alone. Colliders
+    add work, not bytes."""
     n = 48
     p = n * n
     plane3, plane1, float4 = (np.zeros(shape, dtype).nbytes for shape in ((3, p), p, (p, 4)))
@@ -128,6 +129,7 @@ def test_bytes_per_step_are_the_kernels_buffers(precision, dtype):
         "ping-pong": 2 * plane3 + plane1 + plane3,
         "soa": 2 * plane3 + plane1 + 2 * plane3,
         "float4": 2 * float4 + 2 * float4,
+        "float4-in-place": 2 * float4 + float4,
     }
     assert set(expected) == set(bounds.LAYOUT_ELEMENTS)
     spheres = plain(n).replace(spheres=(Sphere((0.5, 0.5, 0.5), 0.3),) * 3)
@@ -169,7 +171,9 @@ def test_operations_per_step_follow_the_stencil_and_the_colliders(n):
 def test_bad_precision_or_layout_is_one_clear_error():
     with pytest.raises(ClothbenchError, match="precision must be one of f32, f64, got 'f16'"):
         bounds.step_count(plain(8), "f16")
-    with pytest.raises(ClothbenchError, match="layout must be one of ping-pong, soa, float4, got 'aos'"):
+    with pytest.raises(
+        ClothbenchError, match="layout must be one of ping-pong, soa, float4, float4-in-place, got 'aos'"
+    ):
         bounds.step_count(plain(8), layout="aos")
 
 

@@ -31,6 +31,7 @@ import pytest
 
 from clothbench.backends import BackendOptions, availability, create_backend
 from clothbench.backends.cuda import cpu as cpu_build
+from clothbench.backends.cuda import launch
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.cpu import ShimRuntime
 from clothbench.backends.cuda.verlet import PingPong, compile_options
@@ -105,9 +106,9 @@ def variant_id(variant) -> str:
     return f"{mode}-{build}" + ("-normals" if normals else "")
 
 
-def nvcc_build(scene: Scene, strict: bool, generic: bool, normals: bool, out: Path):
+def nvcc_build(scene: Scene, strict: bool, generic: bool, normals: bool, out: Path, transfer: str = "swap"):
     """nvcc -ptx -arch=sm_80 with the backend's options and -D switches: (process, PTX)."""
-    defines = [cuda._nvcc_escaped(d) for d in cuda.kernel_defines(scene, VERLET, normals, generic)]
+    defines = [cuda._nvcc_escaped(d) for d in cuda.kernel_defines(scene, VERLET, normals, generic, transfer=transfer)]
     cmd = ["nvcc", "-ptx", "-arch=sm_80", *compile_options(strict), *defines,
            "-Werror", "all-warnings", "-o", str(out), str(KERNEL)]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -151,10 +152,27 @@ def test_kernel_compiles_for_sm80_without_errors_or_warnings(nvcc_ptx, variant):
         f"nvcc ({variant_id(variant)}): {done.stdout}{done.stderr}"
     )
     assert ".entry verlet_step(" in ptx  # extern "C": the name the host looks up
-    # four state buffers, a normal buffer when asked for, and the scene only when generic
+    # two state buffers (swap: in place), a normal buffer when asked for, and the scene only
+    # when generic
     _, build, normals = variant
-    scene_parameters = 11 + 2 * len(kinds_in("cuda")) if BUILDS[build] else 0  # constants; (rows, count) per kind
-    assert entry_parameters(ptx) == 4 + normals + scene_parameters
+    assert entry_parameters(ptx) == 2 + normals + scene_parameters(BUILDS[build])
+
+
+def scene_parameters(generic: bool) -> int:
+    return 11 + 2 * len(kinds_in("cuda")) if generic else 0  # constants; (rows, count) per kind
+
+
+@ONE_NVCC_WORKER
+def test_the_chapters_two_pairs_compile_for_sm80_with_four_state_buffers(tmp_path):
+    # --transfer copy (CLOTH_TWO_PAIRS), in its largest build: both kernels take (pos, prev)
+    # in and (pos, prev) out
+    if shutil.which("nvcc") is None:
+        pytest.skip("nvcc not found on PATH (CUDA toolkit not installed)")
+    done, ptx = nvcc_build(every_kind(), True, True, True, tmp_path / "copy.ptx", transfer="copy")
+    assert done.returncode == 0 and not (done.stdout + done.stderr).strip(), f"nvcc (copy): {done.stderr}"
+    assert entry_parameters(ptx) == 4 + 1 + scene_parameters(True)
+    steps = ptx[ptx.index(".entry verlet_steps(") :]
+    assert steps[: steps.index(")")].count(".param") == 4 + 1 + 1 + scene_parameters(True)  # and the step count
 
 
 @ONE_NVCC_WORKER
@@ -269,7 +287,7 @@ def test_backend_compiles_the_kernel_the_way_it_loads_it(using):
     specialised = cuda.kernel_defines(every_kind(), VERLET, normals=True)
     strict_ptx = cuda.compile_kernel(True, "80", using, "ptx", specialised).decode()
     assert "fma." not in strict_ptx and "sqrt.rn.f32" in strict_ptx
-    assert entry_parameters(strict_ptx) == 5 and " cylinders[48]" in strict_ptx
+    assert entry_parameters(strict_ptx) == 3 and " cylinders[48]" in strict_ptx  # 2 state buffers, normals
     cubin = cuda.compile_kernel(False, "80", using, "cubin", ("-DCLOTH_GENERIC",))
     assert cubin[:4] == b"\x7fELF"  # a device binary cuModuleLoad accepts
 
@@ -330,14 +348,35 @@ def shim_library():
 
 @pytest.fixture(scope="module")
 def cpu_pingpong(shim_library):
-    """make(scene, strict=True, generic=False, normals=False, **PingPong options) -> a PingPong
-    on a fresh CpuShimRuntime of the CPU build for exactly that scene and those switches."""
+    """make(scene, strict=True, generic=False, normals=False, transfer="swap", **PingPong options)
+    -> a PingPong on a fresh CpuShimRuntime of the CPU build for exactly that scene and those
+    switches."""
 
-    def make(scene: Scene, strict=True, generic=False, normals=False, **options) -> PingPong:
-        lib = shim_library(strict, cuda.kernel_defines(scene, VERLET, normals, generic))
-        return PingPong(CpuShimRuntime(lib), scene, VERLET, generic=generic, normals=normals, **options)
+    def make(scene: Scene, strict=True, generic=False, normals=False, transfer="swap", **options) -> PingPong:
+        lib = shim_library(strict, cuda.kernel_defines(scene, VERLET, normals, generic, transfer=transfer))
+        return PingPong(
+            CpuShimRuntime(lib), scene, VERLET, generic=generic, normals=normals, transfer=transfer, **options
+        )
 
     return make
+
+
+@pytest.mark.parametrize("steps_per_launch", [None, 16])
+def test_swap_writes_the_step_over_x_t_minus_dt_and_leaves_x_t_alone(shim_library, steps_per_launch):
+    # in place: two state buffers, a launch writes its latest state over the older one and the
+    # host swaps them; after one step the buffer that held x(t) holds it still
+    scene = sphere(16)
+    pos, prev = VERLET.initial_state(scene, np.float32)
+    lib = shim_library(True, cuda.kernel_defines(scene, VERLET))
+    kernel = launch.STEP_KERNEL if steps_per_launch is None else launch.STEPS_KERNEL
+    pp = PingPong(CpuShimRuntime(lib, kernel), scene, VERLET, block=64, steps_per_launch=steps_per_launch)
+    assert pp.pos_out is None and pp.prev_out is None
+    pp.upload(pos, prev)
+    first, second = pp.pos_in, pp.prev_in
+    pp.step()
+    assert pp.pos_in is second and pp.prev_in is first
+    assert_bit_exact(pp.runtime.download(first), pos, "x(t), untouched")
+    assert_bit_exact(pp.runtime.download(second), reference(scene, VERLET, 1, "f32")[0], "x(t + dt) over x(t - dt)")
 
 
 @pytest.mark.parametrize("transfer", ["swap", "copy"])
@@ -519,14 +558,15 @@ def test_the_argument_list_is_checked_against_the_kernel(cpu_pingpong):
 
 
 def test_specialised_kernel_takes_only_the_buffers(cpu_pingpong):
-    # the scene is compiled in: four state buffers, a fifth for normals, nothing else; the
-    # generic argument list is refused by it
+    # the scene is compiled in: two state buffers (four with the chapter's copy), one more for
+    # normals, nothing else; the generic argument list is refused by it
     pp = cpu_pingpong(every_kind(8))
-    assert pp.runtime.signature == "pppp" and len(pp.args()) == 4
-    assert cpu_pingpong(every_kind(8), normals=True).runtime.signature == "ppppp"
+    assert pp.runtime.signature == "pp" and len(pp.args()) == 2
+    assert cpu_pingpong(every_kind(8), normals=True).runtime.signature == "ppp"
+    assert cpu_pingpong(every_kind(8), normals=True, transfer="copy").runtime.signature == "ppppp"
     generic = cpu_pingpong(every_kind(8), generic=True)
     # n; dt, dt2, k, b, g (3), rest (3); (rows, count) per collider kind
-    assert generic.runtime.signature == "pppp" + "i" + "f" * 10 + "pi" * len(kinds_in("cuda"))
+    assert generic.runtime.signature == "pp" + "i" + "f" * 10 + "pi" * len(kinds_in("cuda"))
     with pytest.raises(TypeError, match="kernel parameters"):
         pp.runtime.launch(pp.grid, pp.block, generic.args())
 
@@ -757,7 +797,8 @@ def test_cuda_backend_runs_every_collider_kind(cuda_on_cpu, build):
         normals = backend.read_normals()
     assert_bit_exact(pos, reference(scene, VERLET, ALL_KINDS_STEPS, "f32")[0], f"pos, {build}")
     assert_bit_exact(normals[:, :3], grid_normals(prev, 32, np.float32), f"normals, {build}")
-    assert runtime.signature.startswith("ppppp")  # the normal buffer is the fifth argument
+    # two state buffers, then the normal buffer, then (generic) n
+    assert runtime.signature == "ppp" if not BUILDS[build] else runtime.signature.startswith("pppi")
 
 
 def test_cuda_backend_reports_event_times_per_chunk(cuda_on_cpu):
@@ -795,7 +836,7 @@ def test_a_cuda_sweep_row_carries_its_event_time(cuda_on_cpu):
 def test_cuda_backend_generic_mode_says_so(cuda_on_cpu):
     backend, runtime = cuda_on_cpu(sphere(8), generic=True, transfer="copy", local_size=32)
     assert backend.mode == "fast/generic/copy/ls=32/block=32"
-    assert backend.defines == ("-DCLOTH_GENERIC",) and len(runtime.signature) > 4
+    assert backend.defines == ("-DCLOTH_TWO_PAIRS", "-DCLOTH_GENERIC") and runtime.signature.startswith("ppppi")
 
 
 @pytest.mark.parametrize(

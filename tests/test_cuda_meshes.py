@@ -59,7 +59,8 @@ def pingpong(scene, strict=True, generic=False, algorithm="accelerated", steps_p
     steps_per_launch steps a launch in one block."""
     if cpu.gxx() is None:
         pytest.skip("g++ not found: cannot build the CPU shim of the CUDA kernel")
-    lib = cpu.build(strict, cuda.kernel_defines(scene, VERLET, False, generic, algorithm))
+    transfer = options.get("transfer", launch.TRANSFERS[0])  # the build's, as the backend's
+    lib = cpu.build(strict, cuda.kernel_defines(scene, VERLET, False, generic, algorithm, transfer))
     if steps_per_launch is None:
         return PingPong(cpu.ShimRuntime(lib), scene, VERLET, generic=generic, **options)
     return PingPong(
@@ -141,7 +142,8 @@ def parameters(ptx: str, entry: str) -> int:
     return head[: head.index(")")].count(".param")
 
 
-# buffers a launch adds for the scene, after the four state buffers: the mesh rows and ints,
+# buffers a launch adds for the scene, after the two state buffers (swap, the default: in
+# place; copy's two pairs are four): the mesh rows and ints,
 # the step table, the pin slots (generic: also the counts and the table's row count)
 EXTRA_BUFFERS = {"torus": 2, "sweep": 2 + 1, "carried": 1 + 1}
 
@@ -154,8 +156,8 @@ def test_mesh_and_moving_kernels_compile_for_sm80_without_warnings(nvcc_ptx, var
     assert done.returncode == 0 and not (done.stdout + done.stderr).strip(), f"{nvcc_id(variant)}: {done.stderr}"
     name, strict, generic, _ = variant
     if not generic:  # specialised: only buffers, the scene is compiled in
-        assert parameters(ptx, launch.STEP_KERNEL) == 4 + EXTRA_BUFFERS[name]
-        assert parameters(ptx, launch.STEPS_KERNEL) == 4 + 1 + EXTRA_BUFFERS[name]
+        assert parameters(ptx, launch.STEP_KERNEL) == 2 + EXTRA_BUFFERS[name]
+        assert parameters(ptx, launch.STEPS_KERNEL) == 2 + 1 + EXTRA_BUFFERS[name]
     if strict:  # every operation rounded on its own, denormals kept: as NumPy
         assert "fma." not in ptx and ".approx" not in ptx and ".ftz" not in ptx and "rsqrt" not in ptx
         assert "div.rn.f32" in ptx
@@ -427,7 +429,7 @@ def test_cuda_backend_builds_and_names_the_mesh_algorithm(cuda_on_cpu, algorithm
     with backend:
         assert backend.mode.endswith(f"/mesh={algorithm}")
         assert ("-DCLOTH_MESH_BVH" in backend.defines) == (algorithm == "accelerated")
-        assert runtime.signature == "ppppp" + "q"  # the state, then the mesh rows and ints
+        assert runtime.signature == "ppp" + "q"  # the state, then the mesh rows and ints
         backend.upload(*VERLET.initial_state(scene, np.float32))
         backend.advance(1)
         assert_bit_exact(backend.read()[0], reference(scene, VERLET, 1, "f32")[0], f"pos, {algorithm}")

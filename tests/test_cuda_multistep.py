@@ -46,11 +46,14 @@ def needs_gxx() -> None:
         pytest.skip("g++ not found: cannot build the CPU shim of the CUDA kernel")
 
 
-def multistep(scene, steps_per_launch, strict=True, generic=False, normals=False, block=None, **options):
+def multistep(
+    scene, steps_per_launch, strict=True, generic=False, normals=False, block=None, transfer="swap", **options
+):
     """A PingPong on verlet_steps of the CPU build, one block of `block` threads (default: as
     the backend chooses)."""
     needs_gxx()
-    runtime = cpu.ShimRuntime(cpu.build(strict, cuda.kernel_defines(scene, VERLET, normals, generic)), "verlet_steps")
+    defines = cuda.kernel_defines(scene, VERLET, normals, generic, transfer=transfer)
+    runtime = cpu.ShimRuntime(cpu.build(strict, defines), "verlet_steps")
     threads = block or launch.multistep_threads(scene.particles)
     return PingPong(
         runtime,
@@ -60,6 +63,7 @@ def multistep(scene, steps_per_launch, strict=True, generic=False, normals=False
         generic=generic,
         normals=normals,
         steps_per_launch=steps_per_launch,
+        transfer=transfer,
         **options,
     )
 
@@ -164,7 +168,7 @@ def test_advance_makes_full_launches_then_the_remainder():
     scene = sphere(32)
     pp = multistep(scene, 16)
     assert pp.launches(37) == [16, 16, 5] and pp.launches(32) == [16, 16] and pp.launches(3) == [3]
-    assert [int(a[4]) for a in map(pp.args, (16, 5))] == [16, 5]  # the step count follows the buffers
+    assert [int(a[2]) for a in map(pp.args, (16, 5))] == [16, 5]  # the step count follows the buffers
     assert (pp.grid, pp.block, pp.shared_bytes) == (1, 1024, 24 * 32 * 32)
 
 
@@ -405,7 +409,7 @@ def test_backend_names_its_shape_driver_and_refuses_an_unknown_shape(cuda_on_cpu
     driver = backend.driver.split(", ")
     assert driver[0] == "CUDA driver 13.0" and "CUDA 13.0 runtime" in driver, backend.driver
     assert driver[-1] == "CPU build of verlet_cloth.cu", backend.driver
-    assert runtime.signature == "ppppi"
+    assert runtime.signature == "ppi"
     backend, _ = cuda_on_cpu(sphere(32), shape="steps/launch=64", local_size=128)
     assert backend.mode == "fast/swap/ls=128/steps/launch=64"
     with pytest.raises(

@@ -62,7 +62,8 @@ def cpu_run(scene, pos, steps: int, strict=True, generic=False, normals=False, m
     """(pos, prev) after `steps` steps of the CPU build through PingPong, and the PingPong."""
     if cpu.gxx() is None:
         pytest.skip("g++ not found: cannot build the CPU shim of the CUDA kernel")
-    lib = cpu.build(strict, cuda.kernel_defines(scene, VERLET, normals, generic, mesh_collision))
+    transfer = options.get("transfer", "swap")  # the build's, as the backend's
+    lib = cpu.build(strict, cuda.kernel_defines(scene, VERLET, normals, generic, mesh_collision, transfer))
     contact = tuple(ShimRuntime(lib, name) for name in KERNELS)
     pp = PingPong(ShimRuntime(lib), scene, VERLET, generic=generic, normals=normals, self_collision=contact, **options)
     pp.upload(pos, pos)

@@ -336,6 +336,25 @@ def test_dispatches_larger_than_65535_groups_are_spread_over_y():
     assert_matches_numpy_f32("glsl-compute", sphere(260), 2, local_size=1)
 
 
+@pytest.mark.parametrize("shape", ["wg=64", "steps/dispatch=16"])
+def test_compute_writes_the_step_over_x_t_minus_dt_and_leaves_x_t_alone(shape):
+    # in place: two state buffers, a step (or a dispatch of K) writes the new state over the
+    # older one and the two swap roles; the buffer that held x(t) is not written at all
+    require("glsl-compute")
+    scene = sphere(16)
+    pos, prev = VERLET.initial_state(scene, np.float32)
+    with create_backend("glsl-compute", scene, VERLET, BackendOptions(strict=True, shape=shape)) as b:
+        assert len(b.state) == 2
+        b.upload(pos, prev)
+        first, second = b.state[b.current], b.state[1 - b.current]
+        b.advance(1)
+        assert b.state[b.current] is second and b.state[1 - b.current] is first
+        with b.gl:
+            after = b._read_buffer(first), b._read_buffer(second)
+        assert_bit_exact(after[0], pos, f"{shape}: x(t), untouched")
+        assert_bit_exact(after[1], f32_reference(scene, 1)[0], f"{shape}: x(t + dt) over x(t - dt)")
+
+
 @pytest.mark.parametrize("local_size", [7, 100, 1024])
 def test_any_work_group_size_up_to_the_limit_is_exact(local_size):
     require("glsl-compute")

@@ -260,8 +260,12 @@ LAYOUT_ELEMENTS = {
     # kernels/verlet_cloth.cl specialised, its split shape (its rows and steps shapes write in
     # place: ping-pong): the same reads, pos_out and pos_prev_out written
     "soa": 13,
-    # float4 state (the generic kernel, GL textures): pos, prev read, both outputs written
+    # float4 state, the chapter's ping-pong (OpenCL's generic kernel, the GL textures, CUDA's
+    # --transfer copy): pos, prev read, both outputs written
     "float4": 16,
+    # float4 state in place (glsl-compute, CUDA's default swap): pos, prev read, x(t+dt)
+    # written over x(t-dt)
+    "float4-in-place": 12,
 }
 BOUND_LAYOUT = "ping-pong"
 NORMAL_ELEMENTS = 3  # normal_out x y z

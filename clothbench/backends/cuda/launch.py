@@ -251,7 +251,7 @@ class MotionWindow:
 
 
 class PingPong:
-    """The chapter's two pairs of buffers and the launches on them, for any runtime that has
+    """The state buffers and the launches on them, for any runtime that has
 
         alloc(host array) -> buffer       upload(buffer, host array)   download(buffer) -> array
         copy(dst, src)  (device to device)       launch(grid, block, args, shared_bytes)
@@ -260,7 +260,10 @@ class PingPong:
     in blocks of `block` threads), else verlet_steps (one block of `block` threads, up to
     steps_per_launch steps a launch). CudaBackend's runtime is CuPy; cpu.py's is the CPU build
     of the same kernels, so both launch them with the argument list built here, in this order.
-    `generic` and `normals` must be those the kernels were built with (kernel_defines).
+    `generic` and `normals` must be those the kernels were built with (kernel_defines), and
+    the transfer too: `swap` (the default) holds two buffers, x(t) and x(t - dt), a launch writes
+    its latest state over the second and the host swaps their roles; `copy` (CLOTH_TWO_PAIRS)
+    the chapter's two pairs (in, out), copied out to in after each launch.
     A scene with [self_collision] needs verlet_step and `self_collision`: a runtime for each of
     the pass's kernels (self_contact.KERNELS).
     """
@@ -321,8 +324,10 @@ class PingPong:
             self.pin_args = (runtime.alloc(pin_slots(scene)),) if with_pins else ()
             self.generic = generic
         empty = np.zeros((scene.particles, 4), dtype=np.float32)
-        self.pos_in, self.prev_in = runtime.alloc(empty), runtime.alloc(empty)
-        self.pos_out, self.prev_out = runtime.alloc(empty), runtime.alloc(empty)
+        self.pos_in, self.prev_in = runtime.alloc(empty), runtime.alloc(empty)  # x(t), x(t - dt)
+        self.pos_out = self.prev_out = None  # in place: the launch writes over the input pair
+        if transfer == "copy":
+            self.pos_out, self.prev_out = runtime.alloc(empty), runtime.alloc(empty)
         self.normals = runtime.alloc(empty) if normals else None  # written, never read back in
         self.contact = SelfContact(scene, self_collision, block) if scene.self_collision is not None else None
         self.has_normals = False  # whether the last launch since upload() wrote them
@@ -348,7 +353,9 @@ class PingPong:
         """The kernel's arguments, in its parameter order; `steps` is verlet_steps' count (and,
         in a moving scene, how many steps of rows the launch reads from the step count on);
         `motion`, motion_args(steps) where the caller has them already."""
-        buffers = (self.pos_in, self.prev_in, self.pos_out, self.prev_out)
+        buffers = (self.pos_in, self.prev_in)
+        if self.transfer == "copy":
+            buffers += (self.pos_out, self.prev_out)
         if self.normals is not None:
             buffers += (self.normals,)
         if self.steps_per_launch is not None:
@@ -368,15 +375,17 @@ class PingPong:
         for count in self.launches(steps):
             motion = self.motion_args(count)
             self.runtime.launch(self.grid, self.block, self.args(count, motion), self.shared_bytes)
-            if self.contact is not None:  # x_new pushed apart and collided, at the step's rows
-                self.pos_out = self.contact.push(self.pos_out, (*self.pass_args, *self.mesh_args, *motion[:1]))
-            self.steps_done += count
+            tail = (*self.pass_args, *self.mesh_args, *motion[:1])
             if self.transfer == "copy":  # the chapter: cudaMemcpy(in, out, DeviceToDevice), per launch
+                if self.contact is not None:  # x_new pushed apart and collided, at the step's rows
+                    self.pos_out = self.contact.push(self.pos_out, tail)
                 self.runtime.copy(self.pos_in, self.pos_out)
                 self.runtime.copy(self.prev_in, self.prev_out)
-            else:  # the output becomes the next input: swap the pointers, move no data
-                self.pos_in, self.pos_out = self.pos_out, self.pos_in
-                self.prev_in, self.prev_out = self.prev_out, self.prev_in
+            else:  # the latest state is over x(t - dt): swap the two's roles, move no data
+                if self.contact is not None:
+                    self.prev_in = self.contact.push(self.prev_in, tail)
+                self.pos_in, self.prev_in = self.prev_in, self.pos_in
+            self.steps_done += count
             self.has_normals = self.normals is not None
 
     def step(self) -> None:

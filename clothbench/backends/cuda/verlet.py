@@ -3,8 +3,10 @@
 Host code only; the step itself is docs/semantics.md, performed by the kernels, and how they
 are launched is launch.py (the kernel shapes and PingPong). The chapter keeps two pairs of
 device buffers, (pos, pos_prev) x (in, out), and copies each output to its input with
-cudaMemcpyDeviceToDevice after every launch; `--transfer copy` does exactly that, and the
-default `swap` exchanges the pointers instead, so the harness shows what the copy costs.
+cudaMemcpyDeviceToDevice after every launch; `--transfer copy` does exactly that. The
+default, `swap`, keeps two buffers, x(t) and x(t - dt): a launch writes its latest state over
+x(t - dt) in place and the host exchanges the two pointers, moving 48 bytes a particle a step
+where the chapter's pairs move 64 (and the copies 64 more), so the harness shows what both cost.
 
 Kernel shapes (docs/cuda.md): one step a launch in blocks of 64..512 threads ("block=N"), or,
 where the grid fits one block's shared memory, K steps a launch ("steps/launch=K"). The
@@ -99,10 +101,16 @@ def compile_options(strict: bool) -> tuple[str, ...]:
 
 
 def kernel_defines(
-    scene: Scene, solver: Solver, normals: bool = False, generic: bool = False, mesh_collision: str | None = None
+    scene: Scene,
+    solver: Solver,
+    normals: bool = False,
+    generic: bool = False,
+    mesh_collision: str | None = None,
+    transfer: str = TRANSFERS[0],
 ) -> tuple[str, ...]:
     """The -D switches that build verlet_cloth.cu for this scene and solver: the
-    specialisation key.
+    specialisation key. `transfer` copy adds CLOTH_TWO_PAIRS (the chapter's four buffers);
+    swap, the default, builds the kernels that write in place.
 
     Generic: only CLOTH_GENERIC (and CLOTH_NORMALS), so every scene shares one kernel; a
     scene with meshes adds CLOTH_MESHES (every mesh scene shares one), a moving one CLOTH_MOTION.
@@ -110,7 +118,10 @@ def kernel_defines(
     A scene with [self_collision] adds CLOTH_SELF_COLLISION in either build (its numbers are
     kernel arguments).
     """
+    if transfer not in TRANSFERS:
+        raise ValueError(f"transfer must be one of {', '.join(TRANSFERS)}, got {transfer!r}")
     defines = ["-DCLOTH_NORMALS"] if normals else []
+    defines += ["-DCLOTH_TWO_PAIRS"] if transfer == "copy" else []
     defines += self_collision_defines(scene)
     if generic:
         return (*defines, "-DCLOTH_GENERIC", *scene_defines(scene, mesh_collision, generic=True))
@@ -489,7 +500,7 @@ class CudaBackend(CudaDevice):
     def __init__(self, scene: Scene, solver: Solver, options: BackendOptions):
         super().__init__(scene, solver, options)
         self.transfer = options.transfer or TRANSFERS[0]
-        defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision)
+        defines = kernel_defines(scene, solver, options.normals, options.generic, self.mesh_collision, self.transfer)
         module = self._open_device(options, defines)
         names = (launch.STEP_KERNEL, launch.STEPS_KERNEL, *(SELF_KERNELS if scene.self_collision is not None else ()))
         self._kernels = {name: module.get_function(name) for name in names}

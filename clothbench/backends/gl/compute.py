@@ -1,11 +1,12 @@
 """GLSL compute-shader backend: the same step as `glsl`, as a GL 4.3 compute shader on SSBOs.
 
 Kernel: kernels/verlet_cloth.comp, with the step and colliders it shares with `glsl`
-(kernels/verlet_cloth_step.glsl, kernels/collide_*.glsl). The state is two (pos, prev)
-pairs of std430 vec4 storage buffers; a step reads one pair and writes the other
-(bindings 2-3), then the pairs swap roles: no copy. The input pair is read through
-imageBuffer views of the same buffers (no copy either): llvmpipe loads SSBOs one lane at a
-time, images with vector gathers.
+(kernels/verlet_cloth_step.glsl, kernels/collide_*.glsl). The state is two std430 vec4
+storage buffers, x(t) and x(t - dt); a step writes x(t + dt) over x(t - dt), in place, and the
+two swap roles: no copy, and 48 bytes a particle a step where the chapter's two (pos, prev)
+pairs move 64. x(t), which the neighbours read, is read through an imageBuffer view of the
+same buffer (no copy either): llvmpipe loads SSBOs one lane at a time, images with vector
+gathers.
 Each step is two dispatches, the interior (every neighbour present, no bounds tests) and
 the border, then a memory barrier before the next step reads what this one wrote.
 
@@ -17,7 +18,7 @@ before the dispatches that read them (uniform motion_step: a step's place in the
 Self-collision ([self_collision], docs/semantics.md), only where the scene has it: the step
 leaves the colliders out and writes x_new to a buffer of its own; then per step its cells are
 keyed and sorted (gl/self_contact.py, kernels/self_collision.comp) and the PASS_SELF_COLLISION
-program reads x_new, pushes the pairs apart, collides, and writes the output pair's positions.
+program reads x_new, pushes the pairs apart, collides, and writes x(t + dt) over x(t - dt).
 Only the default shape runs it (shapes.candidates).
 
 Kernel shapes (gl/shapes.py): the work-group size or 2-D tile of those dispatches, or, on
@@ -41,7 +42,7 @@ from clothbench.backends.gl.self_contact import GLSelfContact
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 
 PASS_ALL, PASS_INTERIOR, PASS_BORDER, PASS_SELF_COLLISION = 0, 1, 2, 3  # as in the kernel
-# Read the input pair through imageBuffer views where the driver allows a view that large:
+# Read x(t) through imageBuffer views where the driver allows a view that large:
 # half the step time of SSBO loads on llvmpipe. Tests turn it off to check the SSBO path.
 PREFER_IMAGE_READS = True
 
@@ -79,12 +80,11 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         size = scene.particles * 16  # one vec4 per particle
         with self.gl:
             ctx = self.gl.ctx
-            self.pairs = [(ctx.buffer(reserve=size), ctx.buffer(reserve=size)) for _ in range(2)]
+            # x(t) and x(t - dt), in either order: self.current is the index of x(t)
+            self.state = [ctx.buffer(reserve=size), ctx.buffer(reserve=size)]
             self.normals = ctx.buffer(reserve=size) if options.normals else None
-            # imageBuffer views of each pair, for the reads (IMAGE_READS), sharing its storage
-            self.views = []
-            if self.image_reads:
-                self.views = [tuple(map(self.gl.buffer_texture, pair)) for pair in self.pairs]
+            # imageBuffer views of each, for the reads of x(t) (IMAGE_READS), sharing its storage
+            self.views = [self.gl.buffer_texture(buf) for buf in self.state] if self.image_reads else []
         # meshes, per-step rows of moving bodies, attached-pin slots (none without them)
         self.bodies = gl_context.GLBodies(self.gl, scene, solver.dt, self.mesh_collision)
         # [self_collision]: its defines, sort buffers and search programs, and x_new's buffer
@@ -95,7 +95,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
             with self.gl:
                 self.x_new = self.gl.ctx.buffer(reserve=size)
                 self.x_new_view = self.gl.buffer_texture(self.x_new) if self.image_reads else None
-        self.current = 0  # index of the pair holding the latest state
+        self.current = 0  # index of the buffer holding x(t), the latest state
         self.has_normals = False
         if options.local_size is not None:  # the 1-D shape of that size, not tuned
             self.plan = self.build_plan(f"wg={self.local_size}")
@@ -169,9 +169,8 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
 
     def upload(self, pos: np.ndarray, prev: np.ndarray) -> None:
         with self.gl:
-            pos_buf, prev_buf = self.pairs[self.current]
-            pos_buf.write(np.ascontiguousarray(pos, dtype=np.float32))
-            prev_buf.write(np.ascontiguousarray(prev, dtype=np.float32))
+            self.state[self.current].write(np.ascontiguousarray(pos, dtype=np.float32))
+            self.state[1 - self.current].write(np.ascontiguousarray(prev, dtype=np.float32))
         self.has_normals = False
         self.steps_done = 0  # the uploaded state is at t = 0: moving bodies start over
 
@@ -200,7 +199,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                     self._run_steps(plan, block)
                 else:
                     for step in range(block):
-                        self._bind_pairs(image_reads=self.image_reads)
+                        self._bind_state(image_reads=self.image_reads)
                         if plan.self_collision is not None:  # the step writes x_new for the pass
                             self.x_new.bind_to_storage_buffer(2)
                         for program, groups in plan.passes:
@@ -210,32 +209,28 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                         self.gl.ctx.memory_barrier()  # the next step reads what this one wrote
                         if plan.self_collision is not None:
                             self._self_collision(plan, step)
-                        self.current = 1 - self.current  # ping-pong: swap the pairs' roles
+                        self.current = 1 - self.current  # x(t + dt) is x(t) now: swap the roles
                 done += block
                 self.steps_done += block
         self.has_normals = self.options.normals
 
     def _self_collision(self, plan: "Plan", step: int) -> None:
-        """x_new -> the output pair's positions: keyed, sorted, pushed apart and collided."""
+        """x_new -> x(t + dt) over x(t - dt): keyed, sorted, pushed apart and collided."""
         for launch in self.contact.search(self.x_new):
             gl_context.dispatch(self.gl, launch)
         program, groups = plan.self_collision
         reads = ((), ((0, self.x_new_view),)) if self.image_reads else (((0, self.x_new),), ())
-        ssbos = (*reads[0], (2, self.pairs[1 - self.current][0]), *self.contact.bindings)
+        ssbos = (*reads[0], (2, self.state[1 - self.current]), *self.contact.bindings)
         uniforms = ((program["motion_step"], step),) if "motion_step" in program else ()
         gl_context.dispatch(self.gl, (program, groups, ssbos, reads[1], uniforms))
 
-    def _bind_pairs(self, image_reads: bool) -> None:
-        """The current pair as the input (images 0-1 or SSBOs 0-1), the other as the output."""
-        source, target = self.current, 1 - self.current
+    def _bind_state(self, image_reads: bool) -> None:
+        """x(t) as binding 0 (image unit or SSBO), x(t - dt), written over, as SSBO 1."""
         if image_reads:
-            for unit, view in enumerate(self.views[source]):
-                self.gl.bind_image_read(unit, view)
+            self.gl.bind_image_read(0, self.views[self.current])
         else:
-            for binding, buf in enumerate(self.pairs[source]):
-                buf.bind_to_storage_buffer(binding)
-        for binding, buf in enumerate(self.pairs[target], start=2):
-            buf.bind_to_storage_buffer(binding)
+            self.state[self.current].bind_to_storage_buffer(0)
+        self.state[1 - self.current].bind_to_storage_buffer(1)
 
     def _run_steps(self, plan: "Plan", steps: int) -> None:
         """steps/dispatch=K: dispatches of K steps each and one of the remainder."""
@@ -245,7 +240,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         done = 0
         while done < steps:
             chunk = min(plan.shape.steps, steps - done)
-            self._bind_pairs(image_reads=False)
+            self._bind_state(image_reads=False)
             program["steps"].value = chunk
             if "motion_step" in program:
                 program["motion_step"].value = done  # this dispatch's first step in the block
@@ -259,8 +254,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         with self.gl:
-            pos_buf, prev_buf = self.pairs[self.current]
-            return self._read_buffer(pos_buf), self._read_buffer(prev_buf)
+            return self._read_buffer(self.state[self.current]), self._read_buffer(self.state[1 - self.current])
 
     def read_normals(self) -> np.ndarray | None:
         """Normals of the positions the last step read (read()[1]), see docs/normals.md."""
@@ -273,12 +267,12 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
         """x(t) (read()[1]) and its normals as this backend's own storage buffers, for drawing."""
         if not self.has_normals:
             raise ClothbenchError("glsl-compute: no normals to draw; create the backend with normals=True and step")
-        return gl_context.DrawableState(self.gl, self.pairs[self.current][1], self.normals)
+        return gl_context.DrawableState(self.gl, self.state[1 - self.current], self.normals)
 
     def close(self) -> None:
         with self.gl:  # the context is shared (gl_context), so only our objects go
-            self.gl.delete_textures([view for pair in self.views for view in pair])
-            for buf in [b for pair in self.pairs for b in pair] + [self.normals]:
+            self.gl.delete_textures(self.views)
+            for buf in self.state + [self.normals]:
                 if buf is not None:
                     buf.release()
             if self._scratch is not None:
@@ -288,7 +282,7 @@ class GLSLComputeBackend(gl_context.GLDeviceMixin, Backend):
                 self.x_new.release()
                 self.contact.release()
         self.bodies.release()
-        self.views, self.pairs, self.normals, self._scratch = [], [], None, None
+        self.views, self.state, self.normals, self._scratch = [], [], None, None
 
 
 @dataclass(frozen=True)
