@@ -24,7 +24,7 @@ from clothbench import environment
 from clothbench.backends import BackendOptions
 from clothbench.cli import main
 from clothbench.harness import simulate
-from clothbench.harness.energy import energy_problem, total_energy
+from clothbench.harness.energy import energy_problem, total_energy, watched_energy
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.model.scene import OFFSETS, Scene, load_scene
 from clothbench.model.solver import Pbd
@@ -144,6 +144,11 @@ def test_the_energy_is_its_sum_over_particles_and_springs_written_out():
                     spring += 0.25 * k * stretch * stretch_prev
     e = total_energy(pos, prev, scene, dt)
     assert (e.kinetic, e.gravity, e.spring) == pytest.approx((kinetic, gravity, spring), rel=1e-12)
+    # the check's energy: every term for Verlet; PBD's leaves the springs out (not computed)
+    assert watched_energy(pos, prev, scene, VERLET) == e
+    unwatched = watched_energy(pos, prev, scene, Pbd(dt=dt))
+    assert (unwatched.kinetic, unwatched.gravity) == (e.kinetic, e.gravity) and math.isnan(unwatched.spring)
+    assert unwatched.watched(Pbd(dt=dt)) == e.watched(Pbd(dt=dt))
 
 
 def _assert_measured_here(rows: list[dict], since: str) -> None:

@@ -66,12 +66,7 @@ def reference_states(
             prev.setflags(write=False)
             keep[count] = (pos, prev)
 
-    if (
-        precision == "f64"
-        and solver.name in C_REFERENCE_SOLVERS
-        and availability("c").usable
-        and c_takes(scene, solver)
-    ):
+    if precision == "f64" and c_gives_numpy_bits(scene, solver):
         try:
             _states("c", scene, solver, counts, BackendOptions(precision="f64", strict=True), on_state)
             return keep
@@ -79,6 +74,14 @@ def reference_states(
             pass
     _states("numpy", scene, solver, counts, BackendOptions(precision=precision), on_state)
     return keep
+
+
+def c_gives_numpy_bits(scene: Scene, solver: Solver) -> bool:
+    """Whether the `c` backend's strict run of `scene` is NumPy's, bit for bit, in float32 and
+    float64 (the contract and tests/test_c_backend.py, tests/test_c_vbd.py hold it to that), so
+    that it may step a run whose bits are NumPy's at a fraction of NumPy's time: the float64
+    references, the strict watch's float32 twin (strict_watch.py)."""
+    return solver.name in C_REFERENCE_SOLVERS and availability("c").usable and c_takes(scene, solver)
 
 
 def _states(backend: str, scene: Scene, solver: Solver, counts, options: BackendOptions, on_state) -> None:

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from clothbench.backends import create_backend
-from clothbench.harness import reference, run_timed, simulate
-from clothbench.model.scene import Scene
+from clothbench.harness import reference, run_timed, simulate, strict_watch
+from clothbench.model.scene import Scene, load_scene
+from clothbench.model.solver import Pbd
 
-from conftest import VERLET, assert_bit_exact
+from conftest import VERLET, assert_bit_exact, require
 from registry_variants import backend_params, options, usable
 
 FLOAT32_TINY = np.finfo(np.float32).tiny  # the smallest normal float32, 1.2e-38
@@ -71,6 +72,19 @@ def test_strict_on_subnormals_is_exact_or_the_run_says_where_it_parts(param, chu
     # the timed run carried on from the backend's own state
     alone = simulate(name, scene, VERLET, WEIGHTLESS_STEPS, strict)[0]
     assert_bit_exact(result.pos, alone, f"{name}: the run after parting")
+
+
+def test_the_watch_steps_its_float32_twin_on_c_where_c_gives_numpys_bits():
+    # the twin stepped beside a flushing backend's strict run is c's strict float32 (the
+    # contract holds it to NumPy's bits, and above it must give the step NumPy's would), a
+    # fiftieth of NumPy's time at 2048^2; NumPy's own where c refuses the scene (a mesh) or the
+    # solver (PBD)
+    require("c")
+    with strict_watch.twin(weightless_scene(), VERLET) as twin:
+        assert (twin.name, twin.options.strict, twin.options.precision) == ("c", True, "f32")
+    for scene, solver in ((load_scene("torus").replace(grid=8), VERLET), (weightless_scene(), Pbd())):
+        with strict_watch.twin(scene, solver) as twin:
+            assert twin.name == "numpy", (scene.name, solver.name)
 
 
 @pytest.mark.parametrize("param", backend_params())
