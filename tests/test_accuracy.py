@@ -24,6 +24,7 @@ from clothbench import environment
 from clothbench.backends import BackendOptions
 from clothbench.cli import main
 from clothbench.harness import simulate
+from clothbench.harness import energy
 from clothbench.harness.energy import energy_problem, total_energy, watched_energy
 from clothbench.harness.plan import Variant, plan_variants
 from clothbench.model.scene import OFFSETS, Scene, load_scene
@@ -120,11 +121,14 @@ def test_energy_of_free_fall_is_constant_and_a_blow_up_is_caught():
     assert "total energy grew" in energy_problem(pos, prev, scene, VERLET, 300)
 
 
-def test_the_energy_is_its_sum_over_particles_and_springs_written_out():
+@pytest.mark.parametrize("block_rows", [64, 4, 1])
+def test_the_energy_is_its_sum_over_particles_and_springs_written_out(block_rows, monkeypatch):
     # the definitions of harness/energy.py, one particle and one spring at a time, on a random
     # state with a pinned row (pins hold no kinetic or gravitational energy; their springs
-    # count): the vectorised sums agree to float64 rounding
-    scene = Scene(grid=6, pin_edge="top")
+    # count): the vectorised sums, over blocks of rows (one block; blocks whose springs reach
+    # into the next two; a row each), agree to float64 rounding
+    monkeypatch.setattr(energy, "BLOCK_ROWS", block_rows)
+    scene = Scene(grid=9, pin_edge="top")
     rng = np.random.default_rng(3)
     pos, prev = VERLET.initial_state(scene)
     free = pos[:, 3] != 0

@@ -57,12 +57,19 @@ class Energy:
         return self.total if solver.name not in ITERATIVE else self.kinetic + self.gravity
 
 
-# Every array below is planar, (3, n, n) in float64: x, y and z each contiguous. The state's
-# (n*n, 4) rows made the sums over a component axis of length 3 strided, and those took 1.4 s
-# a state at 2048^2, after every timed chunk of a sweep's row (harness/health.py), 15 s a row;
-# planar, 0.6 s, the same bits (docs/timing.md, "What a row costs besides its timed steps").
+# Every array below is planar, (3, rows, n) in float64: x, y and z each contiguous, and the
+# sums go over blocks of BLOCK_ROWS rows of particles. The state's (n*n, 4) rows made the sums
+# over a component axis of length 3 strided (1.4 s a state at 2048^2); whole planar arrays
+# took 0.6 s, and 1.5-6 s in a sweep's row process, where each temporary of 34-100 MB was a
+# fresh mapping of memory the VM's host had taken back (docs/timing.md, "What a row costs
+# besides its timed steps"). A block's temporaries are a few MiB: they stay in the caches and
+# in the process's heap.
+BLOCK_ROWS = 64
+REACH = max(dr for dr, _ in FORWARD)  # rows past a block that its springs reach
+
+
 def _grid(a: np.ndarray, n: int) -> np.ndarray:
-    return np.ascontiguousarray(a[:, :3].T, dtype=np.float64).reshape(3, n, n)
+    return np.ascontiguousarray(a[:, :3].T, dtype=np.float64).reshape(3, -1, n)
 
 
 def _squares(d: np.ndarray) -> np.ndarray:
@@ -73,32 +80,42 @@ def _squares(d: np.ndarray) -> np.ndarray:
     return total
 
 
-def _lengths(x: np.ndarray, dr: int, dc: int) -> np.ndarray:
-    n = x.shape[1]
-    a = x[:, max(0, -dr) : n - max(0, dr), max(0, -dc) : n - max(0, dc)]
-    b = x[:, max(0, dr) : n + min(0, dr), max(0, dc) : n + min(0, dc)]
+def _lengths(x: np.ndarray, dr: int, dc: int, rows: int) -> np.ndarray:
+    """Lengths of the springs (dr >= 0, dc) from the first `rows` rows of the block x."""
+    n = x.shape[2]
+    a = x[:, :rows, max(0, -dc) : n - max(0, dc)]
+    b = x[:, dr : dr + rows, max(0, dc) : n + min(0, dc)]
     lengths = _squares(b - a)
     return np.sqrt(lengths, out=lengths)
 
 
 def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float, springs: bool = True) -> Energy:
     """Kinetic, spring and gravitational energy (J) of the state (pos, prev) of `scene`,
-    prev taken dt before pos. With `springs` false the spring term, two thirds of the work, is
+    prev taken dt before pos. With `springs` false the spring term, four fifths of the work, is
     not computed (NaN): for a check that does not watch it (watched_energy)."""
     n, m, k = scene.grid, scene.mass, scene.stiffness
-    free = pos[:, 3] != 0
-    x, xp = _grid(pos, n), _grid(prev, n)
-    v = (x - xp) / dt
-    kinetic = 0.5 * m * float(_squares(v).reshape(-1)[free].sum())
     g = scene.gravity
-    mid = 0.5 * (x + xp)
-    gravity = -m * float(((mid[0] * g[0] + mid[1] * g[1]) + mid[2] * g[2]).reshape(-1)[free].sum())
-    spring = 0.0 if springs else math.nan
     rest = dict(zip(OFFSETS, scene.rest_lengths()))
-    for dr, dc in FORWARD if springs else ():
-        s_now = _lengths(x, dr, dc) - rest[(dr, dc)]
-        s_prev = _lengths(xp, dr, dc) - rest[(dr, dc)]
-        spring += 0.5 * k * float((s_now * s_prev).sum())
+    kinetic = gravity = 0.0
+    spring = 0.0 if springs else math.nan
+    for r0 in range(0, n, BLOCK_ROWS):
+        r1 = min(n, r0 + BLOCK_ROWS)
+        end = min(n, r1 + REACH) if springs else r1  # the rows the block's springs reach
+        x, xp = _grid(pos[r0 * n : end * n], n), _grid(prev[r0 * n : end * n], n)
+        rows = r1 - r0
+        free = pos[r0 * n : r1 * n, 3] != 0
+        own, own_prev = x[:, :rows], xp[:, :rows]
+        v = (own - own_prev) / dt
+        kinetic += 0.5 * m * float(_squares(v).reshape(-1)[free].sum())
+        mid = 0.5 * (own + own_prev)
+        gravity -= m * float(((mid[0] * g[0] + mid[1] * g[1]) + mid[2] * g[2]).reshape(-1)[free].sum())
+        for dr, dc in FORWARD if springs else ():
+            count = min(rows, n - dr - r0)  # the block's rows whose spring (dr, dc) ends in the grid
+            if count <= 0:
+                continue
+            s_now = _lengths(x, dr, dc, count) - rest[(dr, dc)]
+            s_prev = _lengths(xp, dr, dc, count) - rest[(dr, dc)]
+            spring += 0.5 * k * float((s_now * s_prev).sum())
     return Energy(kinetic, spring, gravity)
 
 
