@@ -140,3 +140,33 @@ def test_a_blow_up_is_detected_with_its_step():
     # the named step is the first bad one: the step before it is still healthy
     pos, prev = simulate("numpy", s, solver, err.value.step - 1, F32)
     assert state_problem(pos, prev, s, solver, err.value.step - 1) is None
+
+
+@pytest.mark.parametrize("block", [7, 1])
+def test_the_checks_that_go_particle_by_particle_give_the_whole_sheets_answer_in_blocks(block, monkeypatch):
+    # max_step_displacement and max_penetration take the sheet in blocks of particles (their
+    # temporaries stay small): the largest displacement and its particle (the first of equals,
+    # or the first NaN, as np.argmax over the sheet) and the deepest penetration are the sheet's
+    from clothbench.harness import energy, health
+
+    from conftest import every_collider_scene
+
+    scene = every_collider_scene(12)
+    pos, prev = simulate("numpy", scene, VERLET, 150)
+    prev[90, :3] = prev[20, :3]
+    pos[[20, 90], :3] = prev[20, :3] + np.float32(0.05)  # two equal largest steps: the first is named
+
+    def whole_sheet(p, q):
+        d = np.sqrt(((p[:, :3].astype(np.float64) - q[:, :3]) ** 2).sum(axis=1))
+        d[p[:, 3] == 0] = 0.0
+        return float(d[np.argmax(d)]), int(np.argmax(d))
+
+    monkeypatch.setattr(health, "PARTICLES_PER_BLOCK", len(pos))
+    deepest = max_penetration(pos, scene)
+    monkeypatch.setattr(energy, "PARTICLES_PER_BLOCK", block)
+    monkeypatch.setattr(health, "PARTICLES_PER_BLOCK", block)
+    assert energy.max_step_displacement(pos, prev) == whole_sheet(pos, prev) == (pytest.approx(0.05 * 3**0.5), 20)
+    assert max_penetration(pos, scene) == pytest.approx(deepest, rel=1e-12, abs=0.0) and deepest > 0
+    pos[[100, 130], 0] = np.nan  # a NaN after the largest step: the first NaN is named
+    d, i = energy.max_step_displacement(pos, prev)
+    assert np.isnan(d) and i == whole_sheet(pos, prev)[1] == 100

@@ -16,7 +16,7 @@ from clothbench.model.colliders.motion import euler_degrees
 from clothbench.model.colliders.self_contact import contact_measure
 from clothbench.model.scene import OFFSETS, Scene
 from clothbench.model.solver import Solver
-from clothbench.harness.energy import energy_problem
+from clothbench.harness.energy import PARTICLES_PER_BLOCK, energy_problem
 
 
 def state_problem(pos: np.ndarray, prev: np.ndarray, scene: Scene, solver: Solver, step: int) -> str | None:
@@ -41,8 +41,16 @@ def self_contact(pos: np.ndarray, scene: Scene) -> tuple[int, float] | None:
 
 
 def max_penetration(pos: np.ndarray, scene: Scene) -> float:
-    """Deepest penetration of a free particle into any collider (m); 0 when none."""
-    xyz = pos[pos[:, 3] != 0, :3].astype(np.float64)
+    """Deepest penetration of a free particle into any collider (m); 0 when none. In blocks
+    of particles, as the energy (harness/energy.py, BLOCK_ROWS, says why)."""
+    worst = 0.0
+    for start in range(0, len(pos), PARTICLES_PER_BLOCK):
+        block = pos[start : start + PARTICLES_PER_BLOCK]
+        worst = max(worst, _max_penetration(block[block[:, 3] != 0, :3].astype(np.float64), scene))
+    return worst
+
+
+def _max_penetration(xyz: np.ndarray, scene: Scene) -> float:
     worst = 0.0
     if not len(xyz):
         return worst
