@@ -31,12 +31,12 @@ _COMMON_CUTS = [
     ("without the 12 neighbour loads", r"for \(int o = 0; o < 12; \+\+o\)", "for (int o = 0; o < 0; ++o)"),
 ]
 COMPUTE_CUTS = _COMMON_CUTS + [
-    ("copy: no step at all", re.escape("pos_out[i] = vec4(verlet(rc, x, xp, self.w), self.w);"), "pos_out[i] = self;"),
+    ("copy: no step at all", re.escape("vec4 x_new = vec4(verlet(rc, x, xp, self.w), self.w);"), "vec4 x_new = self;"),
     (
         "stores only (constants)",
         r"void main\(\)\n\{",
         r"\g<0> { ivec2 r0 = particle(); if (r0.x < 0) return; int i0 = r0.x * n + r0.y;"
-        r" pos_out[i0] = vec4(1.0); prev_out[i0] = vec4(2.0); return; }",
+        r" prev[i0] = vec4(1.0); return; }",
     ),
     ("empty dispatch", r"void main\(\)\n\{", r"\g<0> return;"),
 ]
@@ -88,7 +88,7 @@ def compute_rows(n: int, reps: int) -> list[tuple[str, float, float]]:
         ctx = backend.gl.ctx
         for label, source in variants(backend.sources[(PASS_INTERIOR, "wg=64")], COMPUTE_CUTS):
             program = ctx.compute_shader(source)
-            backend._bind_pairs(image_reads=backend.image_reads)
+            backend._bind_state(image_reads=backend.image_reads)
 
             def call(program=program):
                 program.run(*groups)
