@@ -128,8 +128,9 @@ def test_multistep_kernel_compiles_for_sm80_and_fits_a_block_of_1024(nvcc_builds
     report, ptx = nvcc_builds[variant]
     body = entry(ptx, launch.STEPS_KERNEL)
     strict, generic, normals = variant
-    # four state buffers, the normal buffer when asked for, the step count, the scene if generic
-    assert body[: body.index(")")].count(".param") == 4 + normals + 1 + (11 + 2 * len(kinds_in("cuda"))) * generic
+    # two state buffers (swap: in place), the normal buffer when asked for, the step count, the
+    # scene if generic
+    assert body[: body.index(")")].count(".param") == 2 + normals + 1 + (11 + 2 * len(kinds_in("cuda"))) * generic
     assert "bar.sync" in body and ".shared" in ptx  # __syncthreads() and the dynamic shared state
     if strict:
         assert "fma." not in body and ".approx" not in body and ".ftz" not in body
