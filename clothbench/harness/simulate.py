@@ -66,22 +66,28 @@ def reference_states(
             prev.setflags(write=False)
             keep[count] = (pos, prev)
 
-    if precision == "f64" and c_gives_numpy_bits(scene, solver):
-        try:
-            _states("c", scene, solver, counts, BackendOptions(precision="f64", strict=True), on_state)
-            return keep
-        except ClothbenchError:  # a compiler that cannot build it: NumPy gives the same bits
-            pass
-    _states("numpy", scene, solver, counts, BackendOptions(precision=precision), on_state)
+    def run(name: str, options: BackendOptions) -> None:
+        _states(name, scene, solver, counts, options, on_state)
+
+    if precision == "f64":
+        with_numpy_bits(scene, solver, precision, run)
+    else:
+        run("numpy", BackendOptions(precision=precision))
     return keep
 
 
-def c_gives_numpy_bits(scene: Scene, solver: Solver) -> bool:
-    """Whether the `c` backend's strict run of `scene` is NumPy's, bit for bit, in float32 and
-    float64 (the contract and tests/test_c_backend.py, tests/test_c_vbd.py hold it to that), so
-    that it may step a run whose bits are NumPy's at a fraction of NumPy's time: the float64
-    references, the strict watch's float32 twin (strict_watch.py)."""
-    return solver.name in C_REFERENCE_SOLVERS and availability("c").usable and c_takes(scene, solver)
+def with_numpy_bits(scene: Scene, solver: Solver, precision: str, use: Callable):
+    """use(name, options) with the backend whose strict run of `scene` in `precision` is
+    NumPy's, bit for bit, at a fraction of NumPy's time: `c` where its class takes the scene and
+    solver (the contract and tests/test_c_backend.py, tests/test_c_vbd.py hold its bits to
+    NumPy's, float32 and float64) and it builds here, else NumPy itself. For the float64
+    references and the strict watch's float32 twin (strict_watch.py)."""
+    if solver.name in C_REFERENCE_SOLVERS and availability("c").usable and c_takes(scene, solver):
+        try:
+            return use("c", BackendOptions(precision=precision, strict=True))
+        except ClothbenchError:  # a compiler that cannot build it: NumPy gives the same bits
+            pass
+    return use("numpy", BackendOptions(precision=precision))
 
 
 def _states(backend: str, scene: Scene, solver: Solver, counts, options: BackendOptions, on_state) -> None:

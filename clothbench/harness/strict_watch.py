@@ -9,7 +9,7 @@ it, compares the bits after every chunk (outside the timed region) and names the
 where the two part, then compares no more.
 
 The twin run is the `c` backend's strict float32 where it gives NumPy's bits
-(simulate.c_gives_numpy_bits: the same operations in the same order, subnormals kept), else
+(simulate.with_numpy_bits: the same operations in the same order, subnormals kept), else
 NumPy's own: at 2048^2 NumPy takes 0.6 s a step and `c` 12 ms (AMD EPYC Zen 4, 2 cores); the
 default sweep's four strict llvmpipe and Taichi rows at 1024^2 and 2048^2 took 540 s with the
 NumPy twin and 104 s with c's (docs/timing.md).
@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothbench.backends import BackendOptions, create_backend
-from clothbench.errors import ClothbenchError
-from clothbench.harness.simulate import c_gives_numpy_bits
+from clothbench.backends import create_backend
+from clothbench.harness.simulate import with_numpy_bits
 
 AXES = "xyzw"
 STATE = ("pos", "prev")
@@ -35,12 +34,7 @@ def needs_watch(backend) -> bool:
 def twin(scene, solver):
     """A backend whose strict float32 run of `scene` is NumPy float32's, bit for bit: `c` where
     it gives NumPy's bits (and builds here), else NumPy."""
-    if c_gives_numpy_bits(scene, solver):
-        try:
-            return create_backend("c", scene, solver, BackendOptions(precision="f32", strict=True))
-        except ClothbenchError:  # a compiler that cannot build it: NumPy gives the same bits
-            pass
-    return create_backend("numpy", scene, solver, BackendOptions(precision="f32"))
+    return with_numpy_bits(scene, solver, "f32", lambda name, options: create_backend(name, scene, solver, options))
 
 
 def _bits(state) -> tuple[np.ndarray, ...]:

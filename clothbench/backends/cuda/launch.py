@@ -375,15 +375,16 @@ class PingPong:
         for count in self.launches(steps):
             motion = self.motion_args(count)
             self.runtime.launch(self.grid, self.block, self.args(count, motion), self.shared_bytes)
-            tail = (*self.pass_args, *self.mesh_args, *motion[:1])
-            if self.transfer == "copy":  # the chapter: cudaMemcpy(in, out, DeviceToDevice), per launch
-                if self.contact is not None:  # x_new pushed apart and collided, at the step's rows
+            if self.contact is not None:  # x_new pushed apart and collided, at the step's rows
+                tail = (*self.pass_args, *self.mesh_args, *motion[:1])
+                if self.transfer == "copy":
                     self.pos_out = self.contact.push(self.pos_out, tail)
+                else:  # in place: x_new is over x(t - dt)
+                    self.prev_in = self.contact.push(self.prev_in, tail)
+            if self.transfer == "copy":  # the chapter: cudaMemcpy(in, out, DeviceToDevice), per launch
                 self.runtime.copy(self.pos_in, self.pos_out)
                 self.runtime.copy(self.prev_in, self.prev_out)
             else:  # the latest state is over x(t - dt): swap the two's roles, move no data
-                if self.contact is not None:
-                    self.prev_in = self.contact.push(self.prev_in, tail)
                 self.pos_in, self.prev_in = self.prev_in, self.pos_in
             self.steps_done += count
             self.has_normals = self.normals is not None
