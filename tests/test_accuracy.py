@@ -155,6 +155,28 @@ def test_the_energy_is_its_sum_over_particles_and_springs_written_out(block_rows
     assert unwatched.watched(Pbd(dt=dt)) == e.watched(Pbd(dt=dt))
 
 
+def test_the_blow_up_check_weighs_a_float32_state_in_float32_to_a_millionth():
+    # the check's energy (watched_energy) is computed in the state's precision, its sums in
+    # float64: a float32 state's is float32 arithmetic, measured here against the float64
+    # evaluation of the same bits on a moving, stretched 64^2 sheet: each term within 1e-6 of
+    # the energy the state holds (|kinetic| + |spring| + |gravity|; 8.5e-8 measured). Near the
+    # check's limit that is of the order of its margin, one energy scale (ENERGY_GROWTH), so the
+    # verdict moves only for a state within a millionth of the limit
+    scene = Scene(grid=64, pin_edge="top")
+    rng = np.random.default_rng(5)
+    pos, prev = VERLET.initial_state(scene, np.float32)
+    free = pos[:, 3] != 0
+    pos[free, :3] += (0.002 * rng.standard_normal((int(free.sum()), 3))).astype(np.float32)
+    prev[free, :3] += (0.002 * rng.standard_normal((int(free.sum()), 3))).astype(np.float32)
+    exact = total_energy(pos, prev, scene, VERLET.dt)
+    checked = watched_energy(pos, prev, scene, VERLET)
+    assert checked != exact  # float32 arithmetic: not the float64 bits
+    held = abs(exact.kinetic) + abs(exact.spring) + abs(exact.gravity)
+    for a, b in zip((checked.kinetic, checked.spring, checked.gravity), (exact.kinetic, exact.spring, exact.gravity)):
+        assert abs(a - b) < 1e-6 * held
+    assert watched_energy(pos.astype(np.float64), prev.astype(np.float64), scene, VERLET) == exact
+
+
 def _assert_measured_here(rows: list[dict], since: str) -> None:
     """Every row of a study's CSV records this machine and commit, as a sweep row does, and
     when: between `since` (a timestamp before the study) and now."""

@@ -11,6 +11,7 @@ GL renderer and version.
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -283,3 +284,40 @@ def test_an_edit_to_any_file_the_step_includes_is_a_new_tuning_key(monkeypatch):
     edited = {"verlet_cloth_step.glsl": "// a comment\n"}
     monkeypatch.setattr(kernel_source, "read_kernel", lambda name: original(name) + edited.get(name, ""))
     assert kernel_source.kernel_hash(*shapes.VERLET_KERNELS) != before
+
+
+class _PlanRecorder:
+    """What time_shape asks of a backend, without a GL context: the steps of each timed run."""
+
+    def __init__(self, scene):
+        self.scene, self.runs = scene, []
+
+    def build_plan(self, name):
+        return SimpleNamespace(shape=shapes.parse(name, self.scene, 1024))
+
+    def initial_state(self):
+        return None, None
+
+    def upload(self, pos, prev):
+        pass
+
+    def run_plan(self, plan, steps):
+        self.runs.append(steps)
+
+    def synchronize(self):
+        pass
+
+
+@pytest.mark.parametrize("grid, steps", [(64, shapes.TUNING_STEPS), (1024, 1), (2048, 1)])
+def test_a_shape_is_timed_over_fewer_steps_on_a_larger_grid(grid, steps):
+    # a turn is about tuning.TURN_PARTICLE_STEPS of work: 8 steps of 2048^2 took 0.44 s a turn
+    # on llvmpipe, 60 turns a row; one is 55 ms, still long against a dispatch
+    backend = _PlanRecorder(sphere(grid))
+    shapes.time_shape(backend, "wg=64")
+    assert set(backend.runs) == {steps} and len(backend.runs) == 1 + shapes.TUNING_REPEATS
+
+
+def test_the_one_group_shape_is_timed_over_its_steps_per_dispatch_at_least():
+    backend = _PlanRecorder(sphere(64))
+    shapes.time_shape(backend, "steps/dispatch=64", steps=1)
+    assert set(backend.runs) == {64}

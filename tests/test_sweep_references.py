@@ -100,3 +100,23 @@ def test_rows_without_the_f64_row_share_one_reference_run_in_a_worker(tmp_path, 
     assert runs == [0]  # nothing left for the end of the grid
     assert "; 1 float64 reference runs beside the rows" in capsys.readouterr().err
     assert all(r["status"] == "ok" and float(r["err_rms_m"]) < 1e-6 for r in rows), [r["note"] for r in rows]
+
+
+def test_a_rows_process_checks_its_energy_from_the_start_the_sweep_gives_it(monkeypatch):
+    """The sweep computes each scene's float64 start energy once (energy.start_energy) and gives
+    it to every row's process, which would otherwise compute it again (1.5-2 s at 2048^2): the
+    row's blow-up check measures from the given start, and computes none of its own."""
+    from clothbench.harness import energy, sweep
+
+    s = setup("sphere", 10)
+    row = next(r for r in plan_sweep(["numpy"], [10], [s.solver]).rows if not r.variant.is_reference)
+    given = sweep._start_energy(s.scene, row.solver)
+    assert given == energy._start(s.scene, row.solver)
+    monkeypatch.setattr(energy, "_given", {})
+    monkeypatch.setattr(energy, "_start", lambda *a: pytest.fail("the row computed its own start"))
+    out, _, _ = sweep._measure_in_child(row, s, 4, 2, None, start=given)
+    assert out["status"] == "ok"
+    monkeypatch.setattr(energy, "_given", {})
+    # a start a gigajoule below the real one, and a scale of 1 J: the run is past its bound
+    out, _, _ = sweep._measure_in_child(row, s, 4, 2, None, start=(given[0] - 1e9, 1.0))
+    assert out["status"] != "ok" and "total energy grew" in out["note"]

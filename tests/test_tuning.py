@@ -347,3 +347,15 @@ def test_the_tuning_listing_refuses_an_unknown_backend_in_one_line(tuning_on, ca
     assert main(["tuning", "--backend", "nosuch"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no cached choice for 'nosuch'" in err
+
+
+def test_a_timed_turn_is_a_fixed_amount_of_work_within_its_limits():
+    # about TURN_PARTICLE_STEPS particle-steps: fewer steps as the grid grows, never below
+    # `least` nor above `most`, and a whole number of multi-step launches
+    work = tuning.TURN_PARTICLE_STEPS
+    assert tuning.turn_steps(256 * 256) == work // (256 * 256) < 50
+    assert tuning.turn_steps(2048 * 2048) == 1 and tuning.turn_steps(2048 * 2048, least=2) == 2
+    assert tuning.turn_steps(32 * 32) == 50 and tuning.turn_steps(32 * 32, most=256) == 256
+    assert tuning.turn_steps(64 * 64, most=8) == 8
+    steps = tuning.turn_steps(128 * 128, most=256, multiple=16)
+    assert steps % 16 == 0 and work // (128 * 128) <= steps < work // (128 * 128) + 16

@@ -84,6 +84,21 @@ def sweeps_key(solver) -> dict[str, str]:
     }
 
 
+# A timed turn of a candidate is about this many particle-steps: a few milliseconds on every
+# CPU backend at every grid (c's 2-thread step ~0.25 ms at 256^2, 65,536 particles), so that a
+# turn is long against the clock and a launch, and short against the row it tunes. A fixed step
+# count per turn instead made the largest grids' tuning the slowest part of a sweep: 8 steps of
+# glsl-compute at 2048^2 on llvmpipe are 0.44 s a turn, 60 turns a row (docs/timing.md).
+TURN_PARTICLE_STEPS = 2_000_000
+
+
+def turn_steps(particles: int, least: int = 1, most: int = 50, multiple: int = 1) -> int:
+    """Steps of a timed turn while tuning: about TURN_PARTICLE_STEPS particle-steps, within
+    [least, most], rounded up to a whole number of `multiple` (a multi-step launch's steps)."""
+    steps = max(least, min(most, TURN_PARTICLE_STEPS // max(1, particles)))
+    return -(-steps // multiple) * multiple
+
+
 def tuning_enabled() -> bool:
     value = os.environ.get(TUNING_ENV, "on").strip().lower()
     if value not in ("on", "off"):

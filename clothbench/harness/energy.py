@@ -1,7 +1,8 @@
 """Total energy of a state, and the energy-growth bound every command shares.
 
 Verlet keeps two positions, x(t) and x(t - dt), so the energy is measured as the scheme
-sees it, at the half step between them (all in float64, whatever the working precision):
+sees it, at the half step between them (in float64, whatever the working precision, except
+in the blow-up check: see watched_energy):
 
 - kinetic: sum of m |v|^2 / 2 with the Verlet velocity estimate v = (x - x_prev) / dt;
 - gravitational: sum of -m g . x, averaged over x and x_prev (for a constant force this
@@ -69,8 +70,8 @@ PARTICLES_PER_BLOCK = 1 << 17  # the same for the checks that go particle by par
 REACH = max(dr for dr, _ in FORWARD)  # rows past a block that its springs reach
 
 
-def _grid(a: np.ndarray, n: int) -> np.ndarray:
-    return np.ascontiguousarray(a[:, :3].T, dtype=np.float64).reshape(3, -1, n)
+def _grid(a: np.ndarray, n: int, dtype) -> np.ndarray:
+    return np.ascontiguousarray(a[:, :3].T, dtype=dtype).reshape(3, -1, n)
 
 
 def _squares(d: np.ndarray) -> np.ndarray:
@@ -90,10 +91,13 @@ def _lengths(x: np.ndarray, dr: int, dc: int, rows: int) -> np.ndarray:
     return np.sqrt(lengths, out=lengths)
 
 
-def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float, springs: bool = True) -> Energy:
+def total_energy(
+    pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float, springs: bool = True, dtype=np.float64
+) -> Energy:
     """Kinetic, spring and gravitational energy (J) of the state (pos, prev) of `scene`,
     prev taken dt before pos. With `springs` false the spring term, four fifths of the work, is
-    not computed (NaN): for a check that does not watch it (watched_energy)."""
+    not computed (NaN): for a check that does not watch it (watched_energy). `dtype` is the
+    arithmetic's precision; every sum is accumulated in float64 either way."""
     n, m, k = scene.grid, scene.mass, scene.stiffness
     g = scene.gravity
     rest = dict(zip(OFFSETS, scene.rest_lengths()))
@@ -102,28 +106,34 @@ def total_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, dt: float, spr
     for r0 in range(0, n, BLOCK_ROWS):
         r1 = min(n, r0 + BLOCK_ROWS)
         end = min(n, r1 + REACH) if springs else r1  # the rows the block's springs reach
-        x, xp = _grid(pos[r0 * n : end * n], n), _grid(prev[r0 * n : end * n], n)
+        x, xp = _grid(pos[r0 * n : end * n], n, dtype), _grid(prev[r0 * n : end * n], n, dtype)
         rows = r1 - r0
         free = pos[r0 * n : r1 * n, 3] != 0
         own, own_prev = x[:, :rows], xp[:, :rows]
         v = (own - own_prev) / dt
-        kinetic += 0.5 * m * float(_squares(v).reshape(-1)[free].sum())
+        kinetic += 0.5 * m * float(_squares(v).reshape(-1)[free].sum(dtype=np.float64))
         mid = 0.5 * (own + own_prev)
-        gravity -= m * float(((mid[0] * g[0] + mid[1] * g[1]) + mid[2] * g[2]).reshape(-1)[free].sum())
+        lift = ((mid[0] * g[0] + mid[1] * g[1]) + mid[2] * g[2]).reshape(-1)[free]
+        gravity -= m * float(lift.sum(dtype=np.float64))
         for dr, dc in FORWARD if springs else ():
             count = min(rows, n - dr - r0)  # the block's rows whose spring (dr, dc) ends in the grid
             if count <= 0:
                 continue
             s_now = _lengths(x, dr, dc, count) - rest[(dr, dc)]
             s_prev = _lengths(xp, dr, dc, count) - rest[(dr, dc)]
-            spring += 0.5 * k * float((s_now * s_prev).sum())
+            spring += 0.5 * k * float((s_now * s_prev).sum(dtype=np.float64))
     return Energy(kinetic, spring, gravity)
 
 
 def watched_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, solver: Solver) -> Energy:
     """total_energy with the terms Energy.watched(solver) and energy_scale read: no spring
-    term for PBD and VBD (ITERATIVE), which the check leaves out."""
-    return total_energy(pos, prev, scene, solver.dt, springs=solver.name not in ITERATIVE)
+    term for PBD and VBD (ITERATIVE), which the check leaves out. Computed in the state's own
+    precision (float32 for a float32 run, sums in float64): the check compares it with a bound
+    a whole energy scale above the start (ENERGY_GROWTH), and float32's error in it is about
+    1e-6 of that scale, while at 2048^2 it costs a third of float64's (0.14 s against 0.42 a
+    state on the Zen 4: ten checks a row, docs/timing.md)."""
+    dtype = np.promote_types(pos.dtype, np.float32)
+    return total_energy(pos, prev, scene, solver.dt, springs=solver.name not in ITERATIVE, dtype=dtype)
 
 
 def energy_scale(
@@ -140,12 +150,30 @@ def energy_scale(
         pos, prev = solver.initial_state(scene, np.float64)
     free_mass = scene.mass * int((pos[:, 3] != 0).sum())
     g = math.sqrt(sum(c * c for c in scene.gravity))
-    xyz = pos[:, :3].astype(np.float64)
-    extent = max(scene.size, float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0))))
+    xyz = pos[:, :3]  # a maximum and a minimum are exact in any precision: no float64 copy
+    extent = max(scene.size, float(np.linalg.norm(xyz.max(axis=0).astype(np.float64) - xyz.min(axis=0))))
     if e is None:
         e = watched_energy(pos, prev, scene, solver)
     spring = abs(e.spring) if solver.name not in ITERATIVE else 0.0
     return free_mass * g * extent + abs(e.kinetic) + spring + 0.5 * free_mass * FLOOR_SPEED**2
+
+
+# (E0, scale) of starts given by another process (remember_start): a sweep row's process is
+# fresh, and the float64 start of 2048^2 is 1.5-2 s of it (mostly fresh memory, docs/timing.md)
+_given: dict[tuple[Scene, Solver], tuple[float, float]] = {}
+
+
+def start_energy(scene: Scene, solver: Solver) -> tuple[float, float]:
+    """(E0, scale): the watched energy of the solver's float64 start of `scene` and its
+    energy_scale, what energy_bound measures a run from; once a process."""
+    given = _given.get((scene, solver))
+    return given if given is not None else _start(scene, solver)
+
+
+def remember_start(scene: Scene, solver: Solver, values: tuple[float, float]) -> None:
+    """Take start_energy(scene, solver) as `values`, computed by another process (the sweep's,
+    once a grid, for each row's own process)."""
+    _given[(scene, solver)] = values
 
 
 @lru_cache(maxsize=32)
@@ -162,7 +190,7 @@ def energy_bound(
 
     `start` is the initial (pos, prev) when the run did not start from solver.initial_state()."""
     if start is None:
-        e0, scale = _start(scene, solver)
+        e0, scale = start_energy(scene, solver)
     else:
         e = watched_energy(*start, scene, solver)
         e0, scale = e.watched(solver), energy_scale(scene, solver, *start, e)
@@ -276,6 +304,8 @@ __all__ = [
     "total_energy",
     "energy_scale",
     "energy_bound",
+    "start_energy",
+    "remember_start",
     "energy_problem",
     "max_step_displacement",
     "fast_impact_warning",

@@ -32,7 +32,7 @@ import numpy as np
 from clothbench import environment, machine_fitness, machine_load
 from clothbench.backends import BackendOptions, availability, create_backend, tuning
 from clothbench.errors import ClothbenchError
-from clothbench.harness import faults, noise
+from clothbench.harness import energy, faults, noise
 from clothbench.harness.health import self_contact
 from clothbench.harness.executor import Outcome, fork_safe, run_isolated, start_method
 from clothbench.harness.plan import SceneVariant, Variant, plan_variants
@@ -307,9 +307,12 @@ def self_contact_cells(contact: tuple[int, float] | None) -> dict[str, str]:
     return {"self_pairs": fmt(contact[0]), "self_min_distance_m": fmt(contact[1])}
 
 
-def _measure_in_child(row, setup, steps, repeats, known, on_progress=None, budget_s=None, defer=False):
+def _measure_in_child(row, setup, steps, repeats, known, start=None, on_progress=None, budget_s=None, defer=False):
     """measure_row in a worker process: the row, the reference state it found (if it is the
-    reference row) and, with `defer`, its final state where its error is left to the parent."""
+    reference row) and, with `defer`, its final state where its error is left to the parent.
+    `start`: energy.start_energy of the row's scene and solver where the parent has it."""
+    if start is not None:
+        energy.remember_start(setup.scene, row.solver, start)
     key = (setup.scene, row.solver, steps * repeats)
     references = {} if known is None else {key: known}
     unchecked = {} if defer else None
@@ -367,13 +370,22 @@ def _measure(row: PlannedRow, settings, references: dict, report, fork_safe: boo
     known = references.get((setup.scene, row.solver, settings.steps * settings.repeats))
     outcome = run_isolated(
         _measure_in_child,
-        (row, setup, settings.steps, settings.repeats, known),
+        (row, setup, settings.steps, settings.repeats, known, _start_energy(setup.scene, row.solver)),
         kwargs={"budget_s": settings.row_budget, "defer": True},
         timeout=settings.row_timeout,
         on_progress=report or (lambda done: None),
         method=start_method(fork_safe),
     )
     return _row_of(outcome, row, settings, references)
+
+
+def _start_energy(scene, solver) -> tuple[float, float] | None:
+    """energy.start_energy, here once a scene and solver for every row's own process; None
+    where it fails (the row's own check then says why)."""
+    try:
+        return energy.start_energy(scene, solver)
+    except Exception:
+        return None
 
 
 def check_errors(waiting: list[tuple[dict, dict]], references: dict, settings) -> int:

@@ -35,7 +35,7 @@ from clothbench.model.scene import Scene
 from clothbench.model.solver import Verlet
 from clothbench.backends.base import Availability, Backend, BackendOptions, Capabilities
 from clothbench.model.kernel_inputs import SelfCollisionConstants, VerletConstants, collider_rows
-from clothbench.backends.tuning import median_seconds
+from clothbench.backends.tuning import median_seconds, turn_steps
 from clothbench.kernel_source import kernel_hash
 
 KERNEL_FILE = "verlet_cloth.c"
@@ -269,7 +269,7 @@ class CBackend(Backend):
         """Seconds per step of `name` on the scene's start: a few ms of steps, median of 5."""
         self.threads = thread_count(name)
         self.upload(*self.initial_state())  # the harness uploads its own state afterwards
-        steps = max(1, min(50, 2_000_000 // self.n2))
+        steps = turn_steps(self.n2)
         return median_seconds(lambda: self.advance(steps), lambda: None) / steps
 
     @property

@@ -28,7 +28,7 @@ from clothbench.errors import ClothbenchError
 from clothbench.kernel_source import kernel_hash
 from clothbench.model.scene import Scene
 from clothbench.backends.base import BackendOptions
-from clothbench.backends.tuning import median_seconds
+from clothbench.backends.tuning import median_seconds, turn_steps
 
 # the Verlet shapes' kernel files (gl/compute.py), whose text a choice was measured on
 VERLET_KERNELS = ("verlet_cloth.comp", "verlet_cloth_steps.comp")
@@ -43,7 +43,7 @@ STEPS_PER_DISPATCH = (16, 64)
 # the other shapes use is worth more than the dispatches saved (docs/llvmpipe.md).
 MULTI_STEP_MAX_PARTICLES = 64 * 64
 SCRATCH_BYTES_PER_PARTICLE = 2 * 3 * 4  # two halves of x, y, z floats
-TUNING_STEPS = 8  # steps per timed run of a shape (at least K for steps/dispatch=K)
+TUNING_STEPS = 8  # the most steps of a timed run of a shape (tuning.turn_steps; at least K for steps/dispatch=K)
 TUNING_REPEATS = 3
 _GL_MAX_COMPUTE_SHARED_MEMORY_SIZE = 0x8262
 
@@ -161,18 +161,18 @@ def collider_counts(scene) -> str:
     return "".join(f"{count}{kind.name[0]}" for kind, count in counts if count or kind.capability is None)
 
 
-def time_shape(backend, name: str, steps: int = TUNING_STEPS) -> float:
+def time_shape(backend, name: str, steps: int | None = None) -> float:
     """Seconds per step of shape `name` on `backend`'s own buffers (its build_plan(name), then
-    run_plan(plan, steps) timed), from its initial state (the caller uploads the real state
-    afterwards). A shape the driver cannot build is dropped by the tuner, with the compiler's
-    first line (a ClothbenchError)."""
+    run_plan(plan, steps) timed; by default tuning.turn_steps, at most TUNING_STEPS), from its
+    initial state (the caller uploads the real state afterwards). A shape the driver cannot
+    build is dropped by the tuner, with the compiler's first line (a ClothbenchError)."""
     import moderngl
 
     try:
         plan = backend.build_plan(name)
     except moderngl.Error as e:
         raise ClothbenchError(f"glsl-compute: {name} does not build: {str(e).strip().splitlines()[0]}") from None
-    steps = max(steps, plan.shape.steps or 0)
+    steps = max(steps or turn_steps(backend.scene.particles, most=TUNING_STEPS), plan.shape.steps or 0)
     backend.upload(*backend.initial_state())
     seconds = median_seconds(lambda: backend.run_plan(plan, steps), backend.synchronize, TUNING_REPEATS)
     return seconds / steps

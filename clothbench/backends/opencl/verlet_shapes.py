@@ -22,6 +22,7 @@ import re
 from dataclasses import dataclass
 
 from clothbench.errors import ClothbenchError
+from clothbench.backends.tuning import turn_steps
 from clothbench.backends.opencl.bodies import collider_counts
 
 # Floats before and after the x, y, z planes of a state buffer (CLOTH_PAD in the kernel): the
@@ -147,7 +148,6 @@ def tuning_key(device, scene, options, source: str, mesh_collision: str | None =
 
 
 def timing_steps(n: int, steps_per_launch: int) -> int:
-    """Steps per timed call while tuning: a few milliseconds of work at every grid (the whole
-    tuning well under a second at 256^2), a whole number of multi-step launches."""
-    steps = min(256, max(8, (1 << 19) // (n * n)))
-    return -(-steps // steps_per_launch) * steps_per_launch if steps_per_launch > 1 else steps
+    """Steps per timed call while tuning (tuning.turn_steps: a few milliseconds of work at every
+    grid), at least two, at most 256, a whole number of multi-step launches."""
+    return turn_steps(n * n, least=2, most=256, multiple=steps_per_launch)
