@@ -57,3 +57,24 @@ def test_the_rule_predicted_from_a_scene():
     # dropped from 100 m onto a 1 cm ball: 44 m/s, 2.2 cm per step at dt = 0.5 ms
     far = Scene(height=100.0, spheres=(Sphere((0.5, 0.0, 0.5), 0.01),))
     assert "fast impact" in predicted_fast_impact(far, VERLET)
+
+
+def test_the_float32_screen_passes_on_every_step_at_the_radius_to_the_exact_scan():
+    # fast_impact_warning first screens the state in its own precision (largest_step_squared)
+    # and runs the float64 scan only where some step comes within SCREEN_MARGIN of the radius:
+    # a float32 particle whose step is the radius to within float32's rounding, just over or
+    # just under it, must get the exact scan's verdict, and the screen must see it
+    from clothbench.harness import energy
+
+    scene = SCENE.replace(height=0.55)
+    r = BALL.radius
+    for factor, flagged in ((1.0 + 1e-6, True), (1.0 - 1e-6, False), (1.0 - 1e-2, False)):
+        pos, prev = SOLVER.initial_state(scene, np.float32)
+        prev[40, :3] = pos[40, :3] + np.float32(factor * r / np.sqrt(3.0))
+        d, i = energy.max_step_displacement(pos, prev)
+        assert i == 40 and (d >= r) == flagged, factor
+        assert (energy.largest_step_squared(pos, prev) >= (1 - energy.SCREEN_MARGIN) * r * r) == (factor > 0.99)
+        assert (fast_impact_warning(pos, prev, scene, SOLVER.dt) is not None) == flagged, factor
+    pos[[3, 7], 0] = np.nan  # a NaN is passed over by the screen: it never hides a finite step
+    prev[40, :3] = pos[40, :3] + np.float32(2 * r)
+    assert energy.largest_step_squared(pos, prev) >= 12 * r * r
