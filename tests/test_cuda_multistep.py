@@ -26,7 +26,6 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.backends.cuda import cpu, launch
 from clothbench.backends.cuda import verlet as cuda
 from clothbench.backends.cuda.launch import PingPong
-from clothbench.model.colliders.kinds import kinds_in
 from clothbench.errors import ClothbenchError
 from clothbench.harness import reference, simulate
 from clothbench.harness.normals import grid_normals
@@ -34,7 +33,7 @@ from clothbench.kernel_source import kernel_path
 from clothbench.model.scene import load_scene
 
 from conftest import VERLET, assert_bit_exact, every_collider_scene, require, sphere
-from test_cuda import SPHERE_STEPS, assert_as_accurate_as_float32
+from test_cuda import SPHERE_STEPS, assert_as_accurate_as_float32, scene_parameters
 from test_cuda import ONE_NVCC_WORKER, cuda_on_cpu, shim_library  # noqa: F401  (fixtures: the stand-in cupy)
 
 SCENES = {"sphere": sphere, "every-collider": every_collider_scene}
@@ -130,7 +129,7 @@ def test_multistep_kernel_compiles_for_sm80_and_fits_a_block_of_1024(nvcc_builds
     strict, generic, normals = variant
     # two state buffers (swap: in place), the normal buffer when asked for, the step count, the
     # scene if generic
-    assert body[: body.index(")")].count(".param") == 2 + normals + 1 + (11 + 2 * len(kinds_in("cuda"))) * generic
+    assert body[: body.index(")")].count(".param") == 2 + normals + 1 + scene_parameters(generic)
     assert "bar.sync" in body and ".shared" in ptx  # __syncthreads() and the dynamic shared state
     if strict:
         assert "fma." not in body and ".approx" not in body and ".ftz" not in body
