@@ -155,6 +155,13 @@ def run_isolated(
     """fn(*args, **kwargs) in a child process (see the module's doc). `on_progress`, when
     given, is passed to fn as its on_progress keyword, and called here with what it reports."""
     ctx = multiprocessing.get_context(method or start_method())
+    if ctx.get_start_method() == "forkserver" and fn.__module__.startswith("clothbench."):
+        # the server, started by the first such call, imports fn's module once (0.2 s for the
+        # sweep's: clothbench, numpy), which every child it forks then has: a sweep starts a
+        # child per row (38 rows at 32-64^2: 62 and 58 s before, 59 and 52 after). None of a
+        # driver: a backend imports its own in the child, on use. clothbench's modules only:
+        # the server dies on any import error but ImportError, and a test module may skip
+        ctx.set_forkserver_preload([fn.__module__])
     receive, send = ctx.Pipe(duplex=False)
     process = ctx.Process(target=_child, args=(send, fn, args, kwargs or {}, on_progress is not None), daemon=True)
     t0 = time.monotonic()
