@@ -130,8 +130,9 @@ def watched_energy(pos: np.ndarray, prev: np.ndarray, scene: Scene, solver: Solv
     term for PBD and VBD (ITERATIVE), which the check leaves out. Computed in the state's own
     precision (float32 for a float32 run, sums in float64): the check compares it with a bound
     a whole energy scale above the start (ENERGY_GROWTH), and float32's error in it is about
-    1e-6 of that scale, while at 2048^2 it costs a third of float64's (0.14 s against 0.42 a
-    state on the Zen 4: ten checks a row, docs/timing.md)."""
+    1e-7 of the energy the state holds (tests/test_accuracy.py holds it under 1e-6), while at
+    2048^2 it costs under half of float64's (0.16 s against 0.37 a state on the Zen 4: ten
+    checks a row, docs/timing.md)."""
     dtype = np.promote_types(pos.dtype, np.float32)
     return total_energy(pos, prev, scene, solver.dt, springs=solver.name not in ITERATIVE, dtype=dtype)
 
