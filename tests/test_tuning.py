@@ -357,5 +357,6 @@ def test_a_timed_turn_is_a_fixed_amount_of_work_within_its_limits():
     assert tuning.turn_steps(2048 * 2048) == 1 and tuning.turn_steps(2048 * 2048, least=2) == 2
     assert tuning.turn_steps(32 * 32) == 50 and tuning.turn_steps(32 * 32, most=256) == 256
     assert tuning.turn_steps(64 * 64, most=8) == 8
+    assert tuning.turn_steps(64 * 64, least=2, most=64, work=1 << 16) == 16  # OpenCL PBD's own work
     steps = tuning.turn_steps(128 * 128, most=256, multiple=16)
     assert steps % 16 == 0 and work // (128 * 128) <= steps < work // (128 * 128) + 16

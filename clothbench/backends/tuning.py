@@ -92,10 +92,13 @@ def sweeps_key(solver) -> dict[str, str]:
 TURN_PARTICLE_STEPS = 2_000_000
 
 
-def turn_steps(particles: int, least: int = 1, most: int = 50, multiple: int = 1) -> int:
-    """Steps of a timed turn while tuning: about TURN_PARTICLE_STEPS particle-steps, within
-    [least, most], rounded up to a whole number of `multiple` (a multi-step launch's steps)."""
-    steps = max(least, min(most, TURN_PARTICLE_STEPS // max(1, particles)))
+def turn_steps(
+    per_step: int, least: int = 1, most: int = 50, multiple: int = 1, work: int = TURN_PARTICLE_STEPS
+) -> int:
+    """Steps of a timed turn while tuning: about `work` units of what a step does `per_step` of
+    (particles; particle-sweeps for VBD), within [least, most], rounded up to a whole number of
+    `multiple` (a multi-step launch's steps)."""
+    steps = max(least, min(most, work // max(1, per_step)))
     return -(-steps // multiple) * multiple
 
 

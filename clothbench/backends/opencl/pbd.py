@@ -45,7 +45,7 @@ from clothbench.backends.opencl.device import (
     shape_options,
 )
 from clothbench.backends.opencl.verlet_shapes import tuning_key
-from clothbench.backends.tuning import sweeps_key
+from clothbench.backends.tuning import sweeps_key, turn_steps
 from clothbench.backends.pbd_device import PbdDeviceBackend
 
 KERNEL_FILE = "pbd_cloth.cl"
@@ -228,7 +228,7 @@ class OpenCLPbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, PbdDeviceBackend):
     timing_repeats = 3
 
     def _timing_steps(self) -> int:
-        return max(2, min(64, (1 << 16) // self.n2))
+        return turn_steps(self.n2, least=2, most=64, work=1 << 16)
 
     def _split_jacobi(self) -> None:
         """The Jacobi pass's two launches: the interior (rows and columns 2 .. n-3) in vectors

@@ -42,7 +42,7 @@ from clothbench.model.kernel_inputs import VbdConstants
 from clothbench.backends.opencl.bodies import OpenCLBodiesMixin
 from clothbench.backends.opencl.self_contact import SelfContact, include_text
 from clothbench.backends.opencl.verlet_shapes import tuning_key
-from clothbench.backends.tuning import sweeps_key
+from clothbench.backends.tuning import sweeps_key, turn_steps
 from clothbench.backends.pbd_device import position_state, velocity_state
 from clothbench.backends.opencl.device import (
     OpenCLDeviceMixin,
@@ -187,7 +187,7 @@ class OpenCLVbdBackend(OpenCLBodiesMixin, OpenCLDeviceMixin, Backend):
     def _timing_steps(self) -> int:
         """A few milliseconds of sweeps at every grid (10 sweeps, one substep: 12 steps at 64^2)."""
         sweeps = self.n2 * max(self.solver.iterations, 1) * self.solver.substeps
-        return max(2, min(64, (1 << 19) // sweeps))
+        return turn_steps(sweeps, least=2, most=64, work=1 << 19)
 
     def build_options(self, width: int = SCALAR) -> tuple[str, ...]:
         """`width`: the planes shape's lanes (CLOTH_VECTOR_WIDTH), which no other kernel reads."""
