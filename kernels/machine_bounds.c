@@ -16,17 +16,20 @@
  * Arithmetic: many independent chains (8 vectors of 16 floats, or 16 of 8 doubles, per
  *   thread) so the rate is the unit's throughput, not an operation's latency. Each chain
  *   stays at a fixed normal value (never 0, 1 or subnormal, which some dividers finish
- *   early). The extra multiply in the sqrt and rsqrt chains runs on the FMA ports, beside
- *   the divider, and is not counted.
+ *   early). The extra multiply in the sqrt chains runs on the FMA ports, beside the divider,
+ *   and is not counted.
+ * Sharing: the same special operations again, each round beside MIX_FP adds and multiplies
+ *   (the *_mix tests), for what the operation takes of the add/multiply pipes.
  *
  * Built twice by the host: once exact (-ffp-contract=off: add and multiply stay separate, as
- * in a strict kernel) for everything but mb_rsqrt_f32, and once with -ffast-math for
- * mb_rsqrt_f32, where 1/sqrtf(x) becomes the compiler's reciprocal-square-root estimate plus
- * a Newton step, as a fast cloth kernel's rsqrt does.
+ * in a strict kernel) for everything but the rsqrt and reciprocal tests, and once with
+ * -ffast-math (and -ffp-contract=off again) for those: on AVX-512 they time
+ * kernels/fast_math.cl's estimates and Newton steps, what the fast cloth kernels compute;
+ * elsewhere the compiler's own 1/sqrtf and division under fast math.
  */
 
-/* No #include: the host resolves includes itself (clothbench/kernel_source.py), so the few
- * library functions used are declared here; sqrt is the compiler's builtin. */
+/* No system #include: the host resolves includes itself (clothbench/kernel_source.py), so the
+ * few library functions used are declared here; sqrt is the compiler's builtin. */
 typedef __SIZE_TYPE__ size_t;
 extern double omp_get_wtime(void);
 extern int omp_get_max_threads(void);
@@ -161,7 +164,9 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
  * a while (its core was busy) loses those chunks, not the measurement. Returns operations
  * per second of all threads, the best of `repeats` runs. */
 #define CHUNK 1024
-#define CHAIN_TEST(name, type, lanes, start, ops, body)                                        \
+#define CHAIN_TEST(name, type, lanes, start, ops, body) CHAIN_TEST_W(name, type, lanes, 1, start, ops, body)
+/* the same, `width` values of x (or y) at a time: a body of explicit vectors (VEC(x, j)) */
+#define CHAIN_TEST_W(name, type, lanes, width, start, ops, body)                               \
     double name(double seconds, int threads, int repeats)                                      \
     {                                                                                          \
         int t = team(threads);                                                                 \
@@ -172,15 +177,19 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
             _Pragma("omp parallel num_threads(t) reduction(+ : rate, total)")                  \
             {                                                                                  \
                 type x[lanes] __attribute__((aligned(ALIGN)));                                 \
+                type y[4 * lanes] __attribute__((aligned(ALIGN)));                             \
                 type k = knob;                                                                 \
-                for (int j = 0; j < lanes; ++j)                                                \
+                for (int j = 0; j < lanes; ++j) {                                              \
                     x[j] = k + (type)j * (type)(1.0 / 4096.0);                                 \
+                    for (int c = 0; c < 4; ++c)                                                \
+                        y[j + c * lanes] = (type)1 + (type)j * (type)(1.0 / 8192.0);           \
+                }                                                                              \
                 double t0 = omp_get_wtime(), now = t0, fastest = 1e30;                         \
                 do {                                                                           \
                     double before = now;                                                       \
                     for (int it = 0; it < CHUNK; ++it) {                                       \
-                        _Pragma("omp simd aligned(x : ALIGN)")                                 \
-                        for (int j = 0; j < lanes; ++j)                                        \
+                        _Pragma("omp simd aligned(x, y : ALIGN)")                              \
+                        for (int j = 0; j < lanes; j += (width))                               \
                             body;                                                              \
                     }                                                                          \
                     now = omp_get_wtime();                                                     \
@@ -189,7 +198,7 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
                 } while (now - t0 < seconds);                                                  \
                 rate += (double)(ops) * (double)(lanes) * (double)CHUNK / fastest;             \
                 for (int j = 0; j < lanes; ++j)                                                \
-                    total += (double)x[j];                                                     \
+                    total += (double)x[j] + (double)y[j] + (double)y[j + 3 * lanes];           \
             }                                                                                  \
             sink = total;                                                                      \
             if (rate > best)                                                                   \
@@ -198,8 +207,36 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
         return best;                                                                           \
     }
 
+/* MIX_FP: beside one sqrt, division, rsqrt or reciprocal on x, four independent chains on y do
+ * MIX_FP separate multiplies and adds a round between them (y * 0.999 + 0.0013 settles at 1.3;
+ * four, so that their latency does not set the pace: two chains of twelve did, and made a
+ * division look as if it held the pipes), about as long as the special operation alone or
+ * longer. Timed as rounds per second: where the special operation runs on a unit of its own, a
+ * round costs the larger of the two parts; where it takes issue slots of the add/multiply
+ * pipes (a Newton step's multiplies, a divider that holds a pipe), up to their sum. bounds.py
+ * reads how much of the operation's time the add/multiply pipes carry from the difference.
+ * `at` reads a value (AT) or, in the vector tests, 16 of them (VEC); the constants are float
+ * literals, which a vector of floats takes as they are (and a double chain converts). */
+#define MIX_FP 24
+#define AT(a, i) (a)[i]
+#define MIX_CHAIN(type, lanes, at, body)                                                       \
+    {                                                                                          \
+        body;                                                                                  \
+        for (int c = 0; c < 4; ++c) {                                                          \
+            type a = at(y, j + c * (lanes));                                                   \
+            for (int m = 0; m < MIX_FP / 8; ++m)                                               \
+                a = a * 0.999f + 0.0013f;                                                      \
+            at(y, j + c * (lanes)) = a;                                                        \
+        }                                                                                      \
+    }
+
+int mb_mix_fp(void)
+{
+    return MIX_FP;
+}
+
 /* x = sqrt(x) * 1.37 settles at 1.37^2; x = 1.7 / x alternates between x0 and 1.7 / x0. */
-#ifndef MB_FAST
+#if !defined(MB_FAST)
 CHAIN_TEST(mb_sqrt_f32, float, LANES_F32, 1.37f, 1, x[j] = sqrtf(x[j]) * k)
 CHAIN_TEST(mb_div_f32, float, LANES_F32, 1.3f, 1, x[j] = (k + 0.4f) / x[j])
 /* one sqrt and one division per value and round: pairs per second (ops = 1) */
@@ -210,7 +247,34 @@ CHAIN_TEST(mb_sqrt_f64, double, LANES_F64, 1.37, 1, x[j] = sqrt(x[j]) * k)
 CHAIN_TEST(mb_div_f64, double, LANES_F64, 1.3, 1, x[j] = (k + 0.4) / x[j])
 CHAIN_TEST(mb_sqrt_div_f64, double, LANES_F64, 1.3, 1, x[j] = sqrt((k + 0.4) / x[j]) * 1.1)
 CHAIN_TEST(mb_addmul_f64, double, LANES_F64, 1.3, 2, x[j] = x[j] * 0.999 + 0.0013)
+/* rounds of one special operation and MIX_FP adds and multiplies (ops = 1: rounds per second) */
+CHAIN_TEST(mb_sqrt_mix_f32, float, LANES_F32, 1.37f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = sqrtf(x[j]) * k))
+CHAIN_TEST(mb_div_mix_f32, float, LANES_F32, 1.3f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = (k + 0.4f) / x[j]))
+CHAIN_TEST(mb_sqrt_mix_f64, double, LANES_F64, 1.37, 1, MIX_CHAIN(double, LANES_F64, AT, x[j] = sqrt(x[j]) * k))
+CHAIN_TEST(mb_div_mix_f64, double, LANES_F64, 1.3, 1, MIX_CHAIN(double, LANES_F64, AT, x[j] = (k + 0.4) / x[j]))
+#elif defined(__AVX512F__)
+/* The fast kernels' own estimates with one Newton step (kernels/fast_math.cl, included as the
+ * OpenCL kernels include it), 16 lanes at a time: x = rsqrt(x) settles at 1, x = 1 / (x + 0.4)
+ * at 0.82 (an estimate has no early finish at 1, unlike a divider). The compiler's own
+ * 1 / sqrtf under -ffast-math is a square-root estimate, a reciprocal estimate and a Newton
+ * step for each, about twice the work (docs/bounds.md). */
+#define V 16
+#define INLINE static inline
+typedef float floatv __attribute__((vector_size(64)));
+#define FLOATV_ZERO ((floatv){0.0f})
+#include "fast_math.cl"
+#define VEC(a, j) (*(floatv *)&(a)[j])
+CHAIN_TEST_W(mb_rsqrt_f32, float, LANES_F32, 16, 1.37f, 1, VEC(x, j) = fast_rsqrt(VEC(x, j)))
+CHAIN_TEST_W(mb_recip_f32, float, LANES_F32, 16, 1.3f, 1, VEC(x, j) = fast_recip(VEC(x, j) + 0.4f))
+CHAIN_TEST_W(mb_rsqrt_mix_f32, float, LANES_F32, 16, 1.37f, 1, MIX_CHAIN(floatv, LANES_F32, VEC, VEC(x, j) = fast_rsqrt(VEC(x, j))))
+CHAIN_TEST_W(mb_recip_mix_f32, float, LANES_F32, 16, 1.3f, 1, MIX_CHAIN(floatv, LANES_F32, VEC, VEC(x, j) = fast_recip(VEC(x, j) + 0.4f)))
 #else
-/* x = 1.37 / sqrt(x) settles at 1.37^(2/3): the estimate and its Newton step under -ffast-math */
+/* x = 1.37 / sqrt(x) settles at 1.37^(2/3): the estimate and its Newton step under -ffast-math;
+ * x = 1.7 / x as the division test, which fast math may take as a reciprocal estimate */
 CHAIN_TEST(mb_rsqrt_f32, float, LANES_F32, 1.37f, 1, x[j] = k / sqrtf(x[j]))
+CHAIN_TEST(mb_recip_f32, float, LANES_F32, 1.3f, 1, x[j] = (k + 0.4f) / x[j])
+/* built with -ffp-contract=off after -ffast-math, so the y chain's multiplies and adds stay
+ * separate here too (the estimate's own Newton step is the compiler's, fused or not) */
+CHAIN_TEST(mb_rsqrt_mix_f32, float, LANES_F32, 1.37f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = k / sqrtf(x[j])))
+CHAIN_TEST(mb_recip_mix_f32, float, LANES_F32, 1.3f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = (k + 0.4f) / x[j]))
 #endif

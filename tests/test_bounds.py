@@ -66,7 +66,11 @@ def test_measured_limits_are_positive_finite_and_plausible(measured):
     for rates in (measured.f32, measured.f64):
         for value in (rates.sqrt, rates.div, rates.sqrt_div, rates.fp):
             assert math.isfinite(value) and 1e7 <= value <= 1e13, measured.what()
-    assert 1e7 <= measured.f32.rsqrt <= 1e13, measured.what()
+    assert 1e7 <= measured.f32.rsqrt <= 1e13 and 1e7 <= measured.f32.recip <= 1e13, measured.what()
+    # what a special operation holds the add/multiply pipes for is part of its own time
+    for rates, ops in ((measured.f32, bounds.SHARED_OPS), (measured.f64, ("sqrt", "div"))):
+        for op in ops:
+            assert 0.0 <= getattr(rates, f"{op}_on_fp") <= 1.0 / getattr(rates, op), (op, measured.what())
     # a pair is a sqrt and a division: never more pairs per second than either alone (a 10 %
     # margin for the noise of three separate measurements)
     assert measured.f32.sqrt_div <= 1.1 * min(measured.f32.sqrt, measured.f32.div), measured.what()
@@ -220,6 +224,48 @@ def test_arithmetic_part_grows_with_colliders(measured):
     assert two["arithmetic_ms"] == pytest.approx(no_plane + 2 * 9 * 64 * 64 / 1e10 * 1e3, rel=1e-12)
 
 
+def test_pipe_share_is_what_a_mixed_round_takes_beyond_its_longer_part():
+    """An operation of 1 ns alone beside 24 adds and multiplies of 0.1 ns each (the chain's own
+    one counted with them: 2.5 ns): a round of 2.5 ns means it ran beside them, 3.5 ns that it
+    held their pipes all its time, 3.0 ns half of it; more than the sum is still all of it, and
+    a round quicker than either part (noise) none."""
+    alone, fp = 1e9, 1e10
+
+    def share(round_ns: float) -> float:
+        return bounds.fp_pipe_seconds(alone, 1e9 / round_ns, fp, mix_fp=24) * 1e9
+
+    assert share(2.5) == pytest.approx(0.0, abs=1e-12)
+    assert share(3.5) == pytest.approx(1.0, rel=1e-12)
+    assert share(3.0) == pytest.approx(0.5, rel=1e-12)
+    assert share(5.0) == pytest.approx(1.0, rel=1e-12)
+    assert share(2.0) == 0.0
+    # where the operation alone is the longer part, only what the round takes beyond it counts
+    assert bounds.fp_pipe_seconds(1e8, 1e9 / 12.0, fp, mix_fp=24) * 1e9 == pytest.approx(2.0, rel=1e-12)
+
+
+def test_shared_operations_add_to_the_pipes_they_hold():
+    """Fast Verlet springs: 10 fp and 1 rsqrt each. With the rsqrt off the pipes the step takes
+    the busier of the two; with its whole time on them, their sum; the divider is unaffected."""
+    apart = fixed(bandwidth_gb_s=1e6, rates=bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, rsqrt=2e10))
+    shared = fixed(
+        bandwidth_gb_s=1e6,
+        rates=bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, rsqrt=2e10, rsqrt_on_fp=1 / 2e10),
+    )
+    scene = plain(64)
+    work = bounds.step_count(scene, "f32")
+    b_apart, b_shared = (bounds.step_bound_ms(scene, "f32", limits) for limits in (apart, shared))
+    assert b_apart["shared_ms"] == 0.0 and b_apart["fp_ms"] == pytest.approx(work.fp / 1e11 * 1e3, rel=1e-12)
+    assert b_shared["shared_ms"] == pytest.approx(work.rsqrt / 2e10 * 1e3, rel=1e-12)
+    assert b_shared["arithmetic_ms"] == pytest.approx(b_apart["fp_ms"] + b_apart["rsqrt_ms"], rel=1e-12)
+    assert b_apart["arithmetic_ms"] == max(b_apart["fp_ms"], b_apart["rsqrt_ms"])
+    # strict springs: a sqrt and a division, whose shares of the pipes count the same way
+    strict = bounds.step_count(scene, "f32", strict=True)
+    half_div = fixed(rates=bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, div_on_fp=0.5e-10))
+    got = bounds.step_bound_ms(scene, "f32", half_div, strict=True)
+    assert got["fp_ms"] == pytest.approx((strict.fp / 1e11 + strict.div * 0.5e-10) * 1e3, rel=1e-12)
+    assert got["divider_ms"] == bounds.step_bound_ms(scene, "f32", apart, strict=True)["divider_ms"]
+
+
 def test_bound_is_the_larger_part_and_names_it(measured):
     for strict in (False, True):
         for n in (32, 256, 1024):
@@ -255,9 +301,9 @@ def test_pbd_coloured_count_by_hand():
     assert got == bounds.Ops(bytes=13 * 4 * 64, fp=15 * 64 + 2 * 28 * 282, sqrt=2 * 282, div=3 * 64 + 2 * 3 * 282)
     past = bounds.iterative_count(scene, solver, "f32", strict=True, cache=1)
     assert past.bytes - got.bytes == (2 * 7 * 64 + 3 * 282) * 4
-    # fast: the divisions are reciprocal estimates, counted on the rsqrt unit
+    # fast: the divisions are reciprocal estimates (fast_math.cl's fast_recip), off the divider
     fast = bounds.iterative_count(scene, solver, "f32")
-    assert (fast.fp, fast.sqrt, fast.div, fast.rsqrt) == (12 * 64 + 2 * 20 * 282, 0, 0, 2 * 2 * 282)
+    assert (fast.fp, fast.sqrt, fast.div, fast.rsqrt, fast.recip) == (12 * 64 + 2 * 20 * 282, 0, 0, 2 * 282, 2 * 282)
 
 
 def test_vbd_count_by_hand():
