@@ -270,11 +270,12 @@ CHAIN_TEST_W(mb_rsqrt_mix_f32, float, LANES_F32, 16, 1.37f, 1, MIX_CHAIN(floatv,
 CHAIN_TEST_W(mb_recip_mix_f32, float, LANES_F32, 16, 1.3f, 1, MIX_CHAIN(floatv, LANES_F32, VEC, VEC(x, j) = fast_recip(VEC(x, j) + 0.4f)))
 #else
 /* x = 1.37 / sqrt(x) settles at 1.37^(2/3): the estimate and its Newton step under -ffast-math;
- * x = 1.7 / x as the division test, which fast math may take as a reciprocal estimate */
+ * x = 1.3 / (x + 0.4) settles at 0.96: a division fast math may take as a reciprocal estimate
+ * (not the exact tests' 1.7 / x, which fast math folds: two rounds give x back) */
 CHAIN_TEST(mb_rsqrt_f32, float, LANES_F32, 1.37f, 1, x[j] = k / sqrtf(x[j]))
-CHAIN_TEST(mb_recip_f32, float, LANES_F32, 1.3f, 1, x[j] = (k + 0.4f) / x[j])
+CHAIN_TEST(mb_recip_f32, float, LANES_F32, 1.3f, 1, x[j] = k / (x[j] + 0.4f))
 /* built with -ffp-contract=off after -ffast-math, so the y chain's multiplies and adds stay
  * separate here too (the estimate's own Newton step is the compiler's, fused or not) */
 CHAIN_TEST(mb_rsqrt_mix_f32, float, LANES_F32, 1.37f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = k / sqrtf(x[j])))
-CHAIN_TEST(mb_recip_mix_f32, float, LANES_F32, 1.3f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = (k + 0.4f) / x[j]))
+CHAIN_TEST(mb_recip_mix_f32, float, LANES_F32, 1.3f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = k / (x[j] + 0.4f)))
 #endif
