@@ -4,7 +4,9 @@ unless --retry-failed; the local executor runs timed tasks alone and the others 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import signal
 import time
 
 import pytest
@@ -121,6 +123,34 @@ def _interval(seconds):
     start = time.monotonic()  # CLOCK_MONOTONIC: one clock for every process of the machine
     time.sleep(seconds)
     return start, time.monotonic()
+
+
+_signal_in_fork_hook = False
+
+
+def _raise_sigint_if_armed() -> None:
+    if _signal_in_fork_hook:
+        signal.raise_signal(signal.SIGINT)
+
+
+os.register_at_fork(after_in_parent=_raise_sigint_if_armed)  # for good: armed only in the test below
+
+
+def test_a_ctrl_c_during_the_childs_start_is_raised_not_lost():
+    """A Ctrl-C that comes while the parent runs its at-fork hooks (logging's lock is one): raised
+    inside such a hook, Python reports it as ignored and the run goes on as if none had come
+    (a hung row then held `sweep` for ever). Here it comes inside one on every fork: the call
+    must end in KeyboardInterrupt, with its child killed, not return the child's value."""
+    global _signal_in_fork_hook
+    children = set(multiprocessing.active_children())
+    _signal_in_fork_hook = True
+    try:
+        with pytest.raises(KeyboardInterrupt):  # lost, the call would wait out its 10 s timeout
+            run_isolated(time.sleep, (60,), method="fork", timeout=10)
+    finally:
+        _signal_in_fork_hook = False
+    assert set(multiprocessing.active_children()) <= children  # the sleeping child killed and reaped
+    assert run_isolated(os.getpid, method="fork").ok  # disarmed: as before
 
 
 def test_local_executor_runs_untimed_tasks_together_and_timed_ones_alone(tmp_path):

@@ -41,6 +41,7 @@ from typing import Any, Callable
 from clothbench.environment import host_name
 from clothbench.errors import ClothbenchError, signal_name
 from clothbench.harness import faults
+from clothbench.harness.preflight import signals_held
 
 DEFAULT_ROW_TIMEOUT = 3600.0  # seconds; --row-timeout
 SCHEDULER_ENV = "CLOTHBENCH_SCHEDULER"
@@ -138,6 +139,8 @@ def _child(conn, fn, args, kwargs, progress: bool) -> None:
 
 
 def _kill(process) -> None:
+    if process.pid is None:  # never started (its start failed)
+        return
     if process.is_alive():
         process.kill()
     process.join(5)
@@ -165,11 +168,16 @@ def run_isolated(
     receive, send = ctx.Pipe(duplex=False)
     process = ctx.Process(target=_child, args=(send, fn, args, kwargs or {}, on_progress is not None), daemon=True)
     t0 = time.monotonic()
-    process.start()
-    send.close()
-    if live is not None:
-        live.add(process)
     try:
+        # A Ctrl-C or SIGTERM is held while the child starts, and raised once it has: a fork
+        # runs the parent's at-fork hooks (logging's lock among them), and Python reports a
+        # KeyboardInterrupt raised inside one as ignored, so the run went on as if no signal had
+        # come, waiting on its row (a hung one: for ever), with logging's lock still held
+        with signals_held():
+            process.start()
+        send.close()
+        if live is not None:
+            live.add(process)
         while True:
             left = None if timeout is None else timeout - (time.monotonic() - t0)
             if left is not None and left <= 0:
