@@ -394,6 +394,10 @@ INLINE void jacobi_lanes(int i, int first_lane, int edge, cgrid_t X, grid_t Y,
                          float4 at, float relax, float omega)
 {
     int first = it == 0;
+    /* all bits after the first pass: the multipliers' select takes a lane mask, since
+     * `first ? 0 : lam` became a branch in the unrolled loop below and PoCL's LLVM then spilled
+     * every end's values across its twelve blocks (docs/pbd.md, "The spills were a branch") */
+    intv later = (intv)(first - 1);
     int row = i / N;
     intv col = (i % N) + LANE_IDS;
     floatv x, y, z, w;
@@ -422,8 +426,7 @@ INLINE void jacobi_lanes(int i, int first_lane, int edge, cgrid_t X, grid_t Y,
         floatv L2 = dx * dx + dy * dy + dz * dz;
 #endif
         floatv denom = (w + wj) + at_o;
-        floatv lam_o = VLOAD(0, lam + o * PLANE + i);
-        lam_o = first ? (floatv)(0.0f) : lam_o;
+        floatv lam_o = SELECT((floatv)(0.0f), VLOAD(0, lam + o * PLANE + i), later);
 #ifdef CLOTH_STRICT
         floatv L = sqrt(L2);
         floatv dl = ((-(L - rest_o)) - at_o * lam_o) / denom;
@@ -447,7 +450,7 @@ INLINE void jacobi_lanes(int i, int first_lane, int edge, cgrid_t X, grid_t Y,
         floatv lam_new = lam_o + SELECT((floatv)(0.0f), dl, valid) * scale;
 #ifdef CLOTH_CHEBYSHEV
         if (it > 0) {
-            floatv before = it == 1 ? (floatv)(0.0f) : VLOAD(0, lam_out + o * PLANE + i);
+            floatv before = SELECT((floatv)(0.0f), VLOAD(0, lam_out + o * PLANE + i), (intv)((it == 1) - 1)); /* as `later` */
             lam_new = omega * (lam_new - before) + before;
         }
 #endif
