@@ -18,14 +18,13 @@
  *   stays at a fixed normal value (never 0, 1 or subnormal, which some dividers finish
  *   early). The extra multiply in the sqrt chains runs on the FMA ports, beside the divider,
  *   and is not counted.
- * Sharing: the same special operations again, each round beside MIX_FP adds and multiplies
- *   (the *_mix tests), for what the operation takes of the add/multiply pipes.
  *
  * Built twice by the host: once exact (-ffp-contract=off: add and multiply stay separate, as
  * in a strict kernel) for everything but the rsqrt and reciprocal tests, and once with
- * -ffast-math (and -ffp-contract=off again) for those: on AVX-512 they time
- * kernels/fast_math.cl's estimates and Newton steps, what the fast cloth kernels compute;
- * elsewhere the compiler's own 1/sqrtf and division under fast math.
+ * -ffast-math for those: on AVX-512 they time kernels/fast_math.cl's estimates and Newton
+ * steps, what the fast cloth kernels compute, and mb_newton_fp_* say how many adds and
+ * multiplies those Newton steps are; elsewhere the compiler's own 1/sqrtf and division under
+ * fast math.
  */
 
 /* No system #include: the host resolves includes itself (clothbench/kernel_source.py), so the
@@ -165,7 +164,7 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
  * per second of all threads, the best of `repeats` runs. */
 #define CHUNK 1024
 #define CHAIN_TEST(name, type, lanes, start, ops, body) CHAIN_TEST_W(name, type, lanes, 1, start, ops, body)
-/* the same, `width` values of x (or y) at a time: a body of explicit vectors (VEC(x, j)) */
+/* the same, `width` values of x at a time: a body of explicit vectors (VEC(x, j)) */
 #define CHAIN_TEST_W(name, type, lanes, width, start, ops, body)                               \
     double name(double seconds, int threads, int repeats)                                      \
     {                                                                                          \
@@ -177,18 +176,14 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
             _Pragma("omp parallel num_threads(t) reduction(+ : rate, total)")                  \
             {                                                                                  \
                 type x[lanes] __attribute__((aligned(ALIGN)));                                 \
-                type y[4 * lanes] __attribute__((aligned(ALIGN)));                             \
                 type k = knob;                                                                 \
-                for (int j = 0; j < lanes; ++j) {                                              \
+                for (int j = 0; j < lanes; ++j)                                                \
                     x[j] = k + (type)j * (type)(1.0 / 4096.0);                                 \
-                    for (int c = 0; c < 4; ++c)                                                \
-                        y[j + c * lanes] = (type)1 + (type)j * (type)(1.0 / 8192.0);           \
-                }                                                                              \
                 double t0 = omp_get_wtime(), now = t0, fastest = 1e30;                         \
                 do {                                                                           \
                     double before = now;                                                       \
                     for (int it = 0; it < CHUNK; ++it) {                                       \
-                        _Pragma("omp simd aligned(x, y : ALIGN)")                              \
+                        _Pragma("omp simd aligned(x : ALIGN)")                                 \
                         for (int j = 0; j < lanes; j += (width))                               \
                             body;                                                              \
                     }                                                                          \
@@ -198,7 +193,7 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
                 } while (now - t0 < seconds);                                                  \
                 rate += (double)(ops) * (double)(lanes) * (double)CHUNK / fastest;             \
                 for (int j = 0; j < lanes; ++j)                                                \
-                    total += (double)x[j] + (double)y[j] + (double)y[j + 3 * lanes];           \
+                    total += (double)x[j];                                                     \
             }                                                                                  \
             sink = total;                                                                      \
             if (rate > best)                                                                   \
@@ -206,34 +201,6 @@ int mb_stream(size_t n, int threads, int rounds, double *rates)
         }                                                                                      \
         return best;                                                                           \
     }
-
-/* MIX_FP: beside one sqrt, division, rsqrt or reciprocal on x, four independent chains on y do
- * MIX_FP separate multiplies and adds a round between them (y * 0.999 + 0.0013 settles at 1.3;
- * four, so that their latency does not set the pace: two chains of twelve did, and made a
- * division look as if it held the pipes), about as long as the special operation alone or
- * longer. Timed as rounds per second: where the special operation runs on a unit of its own, a
- * round costs the larger of the two parts; where it takes issue slots of the add/multiply
- * pipes (a Newton step's multiplies, a divider that holds a pipe), up to their sum. bounds.py
- * reads how much of the operation's time the add/multiply pipes carry from the difference.
- * `at` reads a value (AT) or, in the vector tests, 16 of them (VEC); the constants are float
- * literals, which a vector of floats takes as they are (and a double chain converts). */
-#define MIX_FP 24
-#define AT(a, i) (a)[i]
-#define MIX_CHAIN(type, lanes, at, body)                                                       \
-    {                                                                                          \
-        body;                                                                                  \
-        for (int c = 0; c < 4; ++c) {                                                          \
-            type a = at(y, j + c * (lanes));                                                   \
-            for (int m = 0; m < MIX_FP / 8; ++m)                                               \
-                a = a * 0.999f + 0.0013f;                                                      \
-            at(y, j + c * (lanes)) = a;                                                        \
-        }                                                                                      \
-    }
-
-int mb_mix_fp(void)
-{
-    return MIX_FP;
-}
 
 /* x = sqrt(x) * 1.37 settles at 1.37^2; x = 1.7 / x alternates between x0 and 1.7 / x0. */
 #if !defined(MB_FAST)
@@ -247,11 +214,6 @@ CHAIN_TEST(mb_sqrt_f64, double, LANES_F64, 1.37, 1, x[j] = sqrt(x[j]) * k)
 CHAIN_TEST(mb_div_f64, double, LANES_F64, 1.3, 1, x[j] = (k + 0.4) / x[j])
 CHAIN_TEST(mb_sqrt_div_f64, double, LANES_F64, 1.3, 1, x[j] = sqrt((k + 0.4) / x[j]) * 1.1)
 CHAIN_TEST(mb_addmul_f64, double, LANES_F64, 1.3, 2, x[j] = x[j] * 0.999 + 0.0013)
-/* rounds of one special operation and MIX_FP adds and multiplies (ops = 1: rounds per second) */
-CHAIN_TEST(mb_sqrt_mix_f32, float, LANES_F32, 1.37f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = sqrtf(x[j]) * k))
-CHAIN_TEST(mb_div_mix_f32, float, LANES_F32, 1.3f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = (k + 0.4f) / x[j]))
-CHAIN_TEST(mb_sqrt_mix_f64, double, LANES_F64, 1.37, 1, MIX_CHAIN(double, LANES_F64, AT, x[j] = sqrt(x[j]) * k))
-CHAIN_TEST(mb_div_mix_f64, double, LANES_F64, 1.3, 1, MIX_CHAIN(double, LANES_F64, AT, x[j] = (k + 0.4) / x[j]))
 #elif defined(__AVX512F__)
 /* The fast kernels' own estimates with one Newton step (kernels/fast_math.cl, included as the
  * OpenCL kernels include it), 16 lanes at a time: x = rsqrt(x) settles at 1, x = 1 / (x + 0.4)
@@ -266,16 +228,30 @@ typedef float floatv __attribute__((vector_size(64)));
 #define VEC(a, j) (*(floatv *)&(a)[j])
 CHAIN_TEST_W(mb_rsqrt_f32, float, LANES_F32, 16, 1.37f, 1, VEC(x, j) = fast_rsqrt(VEC(x, j)))
 CHAIN_TEST_W(mb_recip_f32, float, LANES_F32, 16, 1.3f, 1, VEC(x, j) = fast_recip(VEC(x, j) + 0.4f))
-CHAIN_TEST_W(mb_rsqrt_mix_f32, float, LANES_F32, 16, 1.37f, 1, MIX_CHAIN(floatv, LANES_F32, VEC, VEC(x, j) = fast_rsqrt(VEC(x, j))))
-CHAIN_TEST_W(mb_recip_mix_f32, float, LANES_F32, 16, 1.3f, 1, MIX_CHAIN(floatv, LANES_F32, VEC, VEC(x, j) = fast_recip(VEC(x, j) + 0.4f)))
+/* the adds and multiplies of those Newton steps, as fast_math.cl writes them contracted: the
+ * rsqrt's y * y, 0.5 * x, 1.5 - a * b, y * (); the reciprocal's 2 - x * y, y * () */
+int mb_newton_fp_rsqrt(void)
+{
+    return 4;
+}
+int mb_newton_fp_recip(void)
+{
+    return 2;
+}
 #else
 /* x = 1.37 / sqrt(x) settles at 1.37^(2/3): the estimate and its Newton step under -ffast-math;
  * x = 1.3 / (x + 0.4) settles at 0.96: a division fast math may take as a reciprocal estimate
  * (not the exact tests' 1.7 / x, which fast math folds: two rounds give x back) */
 CHAIN_TEST(mb_rsqrt_f32, float, LANES_F32, 1.37f, 1, x[j] = k / sqrtf(x[j]))
 CHAIN_TEST(mb_recip_f32, float, LANES_F32, 1.3f, 1, x[j] = k / (x[j] + 0.4f))
-/* built with -ffp-contract=off after -ffast-math, so the y chain's multiplies and adds stay
- * separate here too (the estimate's own Newton step is the compiler's, fused or not) */
-CHAIN_TEST(mb_rsqrt_mix_f32, float, LANES_F32, 1.37f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = k / sqrtf(x[j])))
-CHAIN_TEST(mb_recip_mix_f32, float, LANES_F32, 1.3f, 1, MIX_CHAIN(float, LANES_F32, AT, x[j] = k / (x[j] + 0.4f)))
+/* the fast kernels take the built-ins here (fast_math.cl), whose work beside an estimate is
+ * not known: none counted */
+int mb_newton_fp_rsqrt(void)
+{
+    return 0;
+}
+int mb_newton_fp_recip(void)
+{
+    return 0;
+}
 #endif

@@ -69,12 +69,11 @@ def test_measured_limits_are_positive_finite_and_plausible(measured):
     assert 1e7 <= measured.f32.rsqrt <= 1e13 and 1e7 <= measured.f32.recip <= 1e13, measured.what()
     # no special operation outruns plain adds and multiplies: one that did was a chain the
     # compiler folded (fast math took two rounds of x = c / x as x itself once)
-    for rates, ops in ((measured.f32, bounds.SHARED_OPS), (measured.f64, ("sqrt", "div"))):
+    for rates, ops in ((measured.f32, ("sqrt", "div", "rsqrt", "recip")), (measured.f64, ("sqrt", "div"))):
         assert all(getattr(rates, op) < rates.fp for op in ops), measured.what()
-    # what a special operation holds the add/multiply pipes for is part of its own time
-    for rates, ops in ((measured.f32, bounds.SHARED_OPS), (measured.f64, ("sqrt", "div"))):
-        for op in ops:
-            assert 0.0 <= getattr(rates, f"{op}_on_fp") <= 1.0 / getattr(rates, op), (op, measured.what())
+    # the Newton steps' adds and multiplies: fast_math.cl's where it takes the estimates, else none
+    newton = (measured.f32.rsqrt_newton_fp, measured.f32.recip_newton_fp)
+    assert newton == ((4, 2) if "avx512f" in open("/proc/cpuinfo").read() else (0, 0)), newton
     # a pair is a sqrt and a division: never more pairs per second than either alone (a 10 %
     # margin for the noise of three separate measurements)
     assert measured.f32.sqrt_div <= 1.1 * min(measured.f32.sqrt, measured.f32.div), measured.what()
@@ -228,46 +227,26 @@ def test_arithmetic_part_grows_with_colliders(measured):
     assert two["arithmetic_ms"] == pytest.approx(no_plane + 2 * 9 * 64 * 64 / 1e10 * 1e3, rel=1e-12)
 
 
-def test_pipe_share_is_what_a_mixed_round_takes_beyond_its_longer_part():
-    """An operation of 1 ns alone beside 24 adds and multiplies of 0.1 ns each (the chain's own
-    one counted with them: 2.5 ns): a round of 2.5 ns means it ran beside them, 3.5 ns that it
-    held their pipes all its time, 3.0 ns half of it; more than the sum is still all of it, and
-    a round quicker than either part (noise) none."""
-    alone, fp = 1e9, 1e10
-
-    def share(round_ns: float) -> float:
-        return bounds.fp_pipe_seconds(alone, 1e9 / round_ns, fp, mix_fp=24) * 1e9
-
-    assert share(2.5) == pytest.approx(0.0, abs=1e-12)
-    assert share(3.5) == pytest.approx(1.0, rel=1e-12)
-    assert share(3.0) == pytest.approx(0.5, rel=1e-12)
-    assert share(5.0) == pytest.approx(1.0, rel=1e-12)
-    assert share(2.0) == 0.0
-    # where the operation alone is the longer part, only what the round takes beyond it counts
-    assert bounds.fp_pipe_seconds(1e8, 1e9 / 12.0, fp, mix_fp=24) * 1e9 == pytest.approx(2.0, rel=1e-12)
-
-
-def test_shared_operations_add_to_the_pipes_they_hold():
-    """Fast Verlet springs: 10 fp and 1 rsqrt each. With the rsqrt off the pipes the step takes
-    the busier of the two; with its whole time on them, their sum; the divider is unaffected."""
-    apart = fixed(bandwidth_gb_s=1e6, rates=bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, rsqrt=2e10))
-    shared = fixed(
-        bandwidth_gb_s=1e6,
-        rates=bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, rsqrt=2e10, rsqrt_on_fp=1 / 2e10),
-    )
+def test_newton_steps_add_to_the_adds_and_multiplies():
+    """Fast Verlet springs: 10 fp and 1 rsqrt each. With the rsqrt's Newton step counted (4 adds
+    and multiplies, fast_math.cl's), the pipes' time grows by 4 per spring and the estimate's own
+    time is unchanged; PBD's reciprocals add theirs (2 each) in the same way."""
+    base = dict(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, rsqrt=2e10, recip=3e10)
+    plain_rates, newton_rates = bounds.Rates(**base), bounds.Rates(**base, rsqrt_newton_fp=4, recip_newton_fp=2)
     scene = plain(64)
     work = bounds.step_count(scene, "f32")
-    b_apart, b_shared = (bounds.step_bound_ms(scene, "f32", limits) for limits in (apart, shared))
-    assert b_apart["shared_ms"] == 0.0 and b_apart["fp_ms"] == pytest.approx(work.fp / 1e11 * 1e3, rel=1e-12)
-    assert b_shared["shared_ms"] == pytest.approx(work.rsqrt / 2e10 * 1e3, rel=1e-12)
-    assert b_shared["arithmetic_ms"] == pytest.approx(b_apart["fp_ms"] + b_apart["rsqrt_ms"], rel=1e-12)
-    assert b_apart["arithmetic_ms"] == max(b_apart["fp_ms"], b_apart["rsqrt_ms"])
-    # strict springs: a sqrt and a division, whose shares of the pipes count the same way
-    strict = bounds.step_count(scene, "f32", strict=True)
-    half_div = fixed(rates=bounds.Rates(sqrt=1e10, div=1e10, sqrt_div=5e9, fp=1e11, div_on_fp=0.5e-10))
-    got = bounds.step_bound_ms(scene, "f32", half_div, strict=True)
-    assert got["fp_ms"] == pytest.approx((strict.fp / 1e11 + strict.div * 0.5e-10) * 1e3, rel=1e-12)
-    assert got["divider_ms"] == bounds.step_bound_ms(scene, "f32", apart, strict=True)["divider_ms"]
+    apart, counted = (bounds.step_bound_ms(scene, "f32", fixed(1e6, r)) for r in (plain_rates, newton_rates))
+    assert apart["newton_ms"] == 0.0 and apart["fp_ms"] == pytest.approx(work.fp / 1e11 * 1e3, rel=1e-12)
+    assert counted["fp_ms"] == pytest.approx((work.fp + 4 * work.rsqrt) / 1e11 * 1e3, rel=1e-12)
+    assert counted["rsqrt_ms"] == apart["rsqrt_ms"] == pytest.approx(work.rsqrt / 2e10 * 1e3, rel=1e-12)
+    jacobi = Pbd(dt=5e-4, iterations=2)
+    pbd = bounds.iterative_count(scene, jacobi, "f32")
+    got = bounds.step_bound_ms(scene, "f32", fixed(1e6, newton_rates), solver=jacobi)
+    assert got["fp_ms"] == pytest.approx((pbd.fp + 4 * pbd.rsqrt + 2 * pbd.recip) / 1e11 * 1e3, rel=1e-12)
+    # strict counts neither estimate: its bound is the same whatever the Newton steps cost
+    assert bounds.step_bound_ms(scene, "f32", fixed(1e6, newton_rates), strict=True) == bounds.step_bound_ms(
+        scene, "f32", fixed(1e6, plain_rates), strict=True
+    )
 
 
 def test_bound_is_the_larger_part_and_names_it(measured):

@@ -4,8 +4,8 @@ step (docs/bounds.md).
 `measure_machine()` measures, once per process, the streaming bandwidth (STREAM triad and a
 copy-like scale over arrays far larger than the caches) and the throughput of float32 and
 float64 sqrt, division, sqrt+division pairs, add/multiply and (float32) the fast reciprocal
-square root and reciprocal, and how much of each special operation's time the add/multiply
-pipes carry, on every CPU the process may use (kernels/machine_bounds.c, built by
+square root and reciprocal as the fast kernels compute them, on every CPU the process may use
+(kernels/machine_bounds.c, built by
 clothbench.native). It runs in a child process: GNU OpenMP's threads do not survive a fork,
 so a sweep that forks its row workers after measuring must not have loaded it.
 
@@ -38,9 +38,7 @@ from clothbench.harness.sweep_csv import BOUND_COLUMN_DOCS, MACHINE_COLUMN_DOCS,
 SOURCE = "machine_bounds.c"
 FLAGS = ("-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno")
 WIDE = ("-mprefer-vector-width=512",)  # GCC prefers 256-bit vectors on some AVX-512 CPUs
-# the second build: rsqrt and reciprocals as a fast kernel computes them; contraction off again
-# after -ffast-math, so that the mixed tests' adds and multiplies stay separate ops
-FAST = ("-DMB_FAST", "-ffast-math", "-ffp-contract=off")
+FAST = ("-DMB_FAST", "-ffast-math")  # the second build: rsqrt and reciprocal as a fast kernel computes them
 ARRAY_MIB = 512  # per array; three of them, far past the L3 (docs/bounds.md: why this size)
 SMALLEST_MIB = 64  # where memory is short, halved down to this before giving up
 STREAM_ROUNDS = 2  # triad + scale passes over the arrays; the fastest chunk and pass count
@@ -51,10 +49,7 @@ CHILD_TIMEOUT_S = 120.0
 
 @dataclass(frozen=True)
 class Rates:
-    """Operations per second on all the measured threads, of one precision, and the seconds
-    of the add/multiply pipes each special operation takes (the `*_on_fp` fields, measured
-    beside a stream of adds and multiplies: 0 where it runs entirely on a unit of its own, or
-    was not measured)."""
+    """Operations per second on all the measured threads, of one precision."""
 
     sqrt: float
     div: float
@@ -62,15 +57,11 @@ class Rates:
     fp: float  # separate adds and multiplies (a fused one counts once: same ports)
     rsqrt: float = 0.0  # float32 only: the fast kernels' estimate and Newton step
     recip: float = 0.0  # float32 only: the fast kernels' reciprocal (estimate and Newton step)
-    sqrt_on_fp: float = 0.0
-    div_on_fp: float = 0.0
-    rsqrt_on_fp: float = 0.0
-    recip_on_fp: float = 0.0
-
-    def shares(self) -> str:
-        """How much of each special operation's own time the add/multiply pipes carry."""
-        ops = [(name, getattr(self, name), getattr(self, f"{name}_on_fp")) for name in SHARED_OPS]
-        return ", ".join(f"{name} {on_fp * rate:.0%}" for name, rate, on_fp in ops if rate > 0)
+    # float32 only: the adds and multiplies of those Newton steps, which run on the add/multiply
+    # pipes beside the rest of the step's (kernels/fast_math.cl's, where the fast kernels take
+    # its estimates: AVX-512; 0 where they take the built-ins, whose work is not known)
+    rsqrt_newton_fp: int = 0
+    recip_newton_fp: int = 0
 
 
 @dataclass(frozen=True)
@@ -105,7 +96,7 @@ class MachineBounds:
             f"f32 sqrt {self.f32.sqrt / 1e9:.2f}, div {self.f32.div / 1e9:.2f}, "
             f"sqrt+div {self.f32.sqrt_div / 1e9:.2f} pairs, add/mul {self.f32.fp / 1e9:.1f}, "
             f"rsqrt {self.f32.rsqrt / 1e9:.2f}, reciprocal {self.f32.recip / 1e9:.2f} G/s "
-            f"(on the add/multiply pipes: {self.f32.shares()}); "
+            f"(Newton steps {self.f32.rsqrt_newton_fp} and {self.f32.recip_newton_fp} adds/multiplies); "
             f"f64 sqrt {self.f64.sqrt / 1e9:.2f}, div {self.f64.div / 1e9:.2f} G/s "
             f"({self.compiler}; {self.seconds:.2f} s)"
         )
@@ -196,24 +187,23 @@ def measure_here(threads: int, array_mib: int) -> dict:
         fn.restype, fn.argtypes = ctypes.c_double, [ctypes.c_double, ctypes.c_int, ctypes.c_int]
         return fn(ARITH_SECONDS, threads, ARITH_REPEATS)
 
-    lib.mb_mix_fp.restype = ctypes.c_int
-    mix_fp = lib.mb_mix_fp()
+    def newton_fp(name: str) -> int:
+        fn = getattr(fast, name)
+        fn.restype = ctypes.c_int
+        return fn()
 
-    def rates(precision: str, fast_ops: tuple[str, ...]) -> Rates:
-        units = {op: rate(lib, f"mb_{op}_{precision}") for op in ("sqrt", "div", "sqrt_div", "addmul")}
-        units.update({op: rate(fast, f"mb_{op}_{precision}") for op in fast_ops})
-        fp = units.pop("addmul")
-        on_fp = {}
-        for op in ("sqrt", "div", *fast_ops):
-            mixed = rate(fast if op in fast_ops else lib, f"mb_{op}_mix_{precision}")
-            on_fp[f"{op}_on_fp"] = fp_pipe_seconds(units[op], mixed, fp, mix_fp)
-        return Rates(fp=fp, **units, **on_fp)
-
-    f32, f64 = rates("f32", ("rsqrt", "recip")), rates("f64", ())
-    measured = {"triad": triad, "copy": scale, **{f"f32 {k}": v for k, v in asdict(f32).items()}}
-    measured.update({f"f64 {k}": v for k, v in asdict(f64).items() if k not in ("rsqrt", "recip")})
-    shares = [name for name in measured if name.endswith("_on_fp")]  # 0 is a measurement: no share
-    nothing = [k for k, v in measured.items() if not (math.isfinite(v) and (v > 0 or k in shares and v == 0))]
+    ops = ("sqrt", "div", "sqrt_div", "addmul")
+    f32 = Rates(
+        *(rate(lib, f"mb_{op}_f32") for op in ops),
+        rsqrt=rate(fast, "mb_rsqrt_f32"),
+        recip=rate(fast, "mb_recip_f32"),
+        rsqrt_newton_fp=newton_fp("mb_newton_fp_rsqrt"),
+        recip_newton_fp=newton_fp("mb_newton_fp_recip"),
+    )
+    f64 = Rates(*(rate(lib, f"mb_{op}_f64") for op in ops))
+    measured = {"triad": triad, "copy": scale, **{f"f32 {k}": v for k, v in asdict(f32).items() if "newton" not in k}}
+    measured.update({f"f64 {k}": v for k, v in asdict(f64).items() if k in ("sqrt", "div", "sqrt_div", "fp")})
+    nothing = [name for name, value in measured.items() if not (math.isfinite(value) and value > 0)]
     if nothing:  # a clock that did not advance, or a test the compiler emptied: no bound from it
         raise ClothbenchError(f"machine bounds: the {', '.join(nothing)} test measured no rate")
     return dict(
@@ -229,24 +219,6 @@ def measure_here(threads: int, array_mib: int) -> dict:
         seconds=0.0,
         cache_bytes=cache_bytes(),
     )
-
-
-# A mixed test's chain does at most one add or multiply of its own beside its special operation
-# (the sqrt test's scale, the reciprocal's shift): taken as part of the operation's time, and
-# subtracted as fp, so the share it leaves is a lower estimate.
-CHAIN_FP = 1
-SHARED_OPS = ("sqrt", "div", "rsqrt", "recip")
-
-
-def fp_pipe_seconds(alone: float, mixed: float, fp: float, mix_fp: int) -> float:
-    """Seconds of the add/multiply pipes one special operation takes (all threads), from its
-    rate `alone` and the rate `mixed` of rounds of one such operation and `mix_fp` separate
-    adds and multiplies (kernels/machine_bounds.c, MIX_FP). A round takes at least the longer
-    of its two parts; what it takes beyond that, the operation held the pipes for, up to its
-    whole time alone. A lower estimate: exact when the adds and multiplies are the longer part,
-    as MIX_FP makes them for float32."""
-    op_s, round_s, fp_s = 1.0 / alone, 1.0 / mixed, (mix_fp + CHAIN_FP) / fp
-    return min(max(round_s - max(op_s, fp_s), 0.0), op_s)
 
 
 SYS_CPU = Path("/sys/devices/system/cpu")
@@ -487,11 +459,10 @@ def _bound(work: Ops, precision: str, bounds: MachineBounds) -> dict:
     # the estimates (an rsqrt and a reciprocal may share a unit too: the larger, a floor; a rate
     # not measured, 0, bounds nothing)
     rsqrt_ms = max(work.rsqrt / r.rsqrt if r.rsqrt else 0.0, work.recip / r.recip if r.recip else 0.0) * 1e3
-    # the add/multiply pipes: the counted fp, and the part of each special operation that runs
-    # on them (measured: a Newton step's multiplies are fp work wherever its estimate runs)
-    shared_ms = sum(getattr(work, op) * getattr(r, f"{op}_on_fp") for op in SHARED_OPS) * 1e3
-    fp_ms = work.fp / r.fp * 1e3 + shared_ms
-    arithmetic_ms = max(divider_ms, rsqrt_ms, fp_ms)  # the busiest unit: the units overlap
+    # the add/multiply pipes: the counted fp and the estimates' Newton steps, which run there
+    newton_ms = (work.rsqrt * r.rsqrt_newton_fp + work.recip * r.recip_newton_fp) / r.fp * 1e3
+    fp_ms = work.fp / r.fp * 1e3 + newton_ms
+    arithmetic_ms = max(divider_ms, rsqrt_ms, fp_ms)  # the busiest unit: all may overlap
     return dict(
         bound_ms=max(memory_ms, arithmetic_ms),
         bound_kind="memory" if memory_ms >= arithmetic_ms else "arithmetic",
@@ -500,7 +471,7 @@ def _bound(work: Ops, precision: str, bounds: MachineBounds) -> dict:
         divider_ms=divider_ms,
         rsqrt_ms=rsqrt_ms,
         fp_ms=fp_ms,
-        shared_ms=shared_ms,
+        newton_ms=newton_ms,
         bytes=work.bytes,
         fp=work.fp,
         sqrt=work.sqrt,
@@ -548,8 +519,8 @@ def bound_columns(
 ) -> dict[str, str]:
     """The row's bound_ms, bound_kind and bound_fraction cells ('' where there is no bound).
     `strict` counts the strict arithmetic (the default is the fast count); `layout` the bytes
-    of one kernel's state rather than the least any moves (LAYOUT_ELEMENTS). `bounds` defaults to this process's measure_machine() (measured on
-    first use)."""
+    of one kernel's state rather than the least any moves (LAYOUT_ELEMENTS). `bounds` defaults
+    to this process's measure_machine() (measured on first use)."""
     if bounds is None:
         bounds = machine_or_reason()[0]
     result = step_bound_ms(scene, precision, bounds, strict=strict, normals=normals, solver=solver, layout=layout)
