@@ -450,7 +450,8 @@ INLINE void jacobi_lanes(int i, int first_lane, int edge, cgrid_t X, grid_t Y,
         floatv lam_new = lam_o + SELECT((floatv)(0.0f), dl, valid) * scale;
 #ifdef CLOTH_CHEBYSHEV
         if (it > 0) {
-            floatv before = SELECT((floatv)(0.0f), VLOAD(0, lam_out + o * PLANE + i), (intv)((it == 1) - 1)); /* as `later` */
+            intv extrapolated = (intv)((it == 1) - 1); /* a lane mask, as `later` is */
+            floatv before = SELECT((floatv)(0.0f), VLOAD(0, lam_out + o * PLANE + i), extrapolated);
             lam_new = omega * (lam_new - before) + before;
         }
 #endif
