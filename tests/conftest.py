@@ -140,6 +140,10 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("serial") is not None:
             item.add_marker(pytest.mark.xdist_group("serial"))
+        elif "newton" in item.nodeid and item.get_closest_marker("xdist_group") is None:
+            # Newton's Warp modules compile on first use (40-50 s each on the Zen 3, cold): two
+            # workers starting them at once each compiled them, where one worker pays once
+            item.add_marker(pytest.mark.xdist_group("newton"))
         if "opencl" in item.nodeid:  # its file, its name or its registry parameter: CI reruns these per runtime
             item.add_marker(pytest.mark.opencl)
     if config.getoption("--full"):

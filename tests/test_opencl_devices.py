@@ -317,8 +317,12 @@ def _device_of(runtime: str) -> str:
 
 
 RUNTIMES = (runtimes.SYSTEM_POCL, runtimes.INTEL_CPU, runtimes.WHEEL_POCL)
+# a test that picks each runtime's device itself gives the same answer whichever is the default:
+# .ci/run runs it with the full tier, not again in each runtime's leg
+EVERY_RUNTIME = pytest.mark.every_runtime
 
 
+@EVERY_RUNTIME
 @pytest.mark.parametrize("generic", [False, True], ids=["specialised", "generic"])
 @pytest.mark.parametrize("n", [32, 64])
 @pytest.mark.parametrize("scene_name", ["sphere", "drape"])
@@ -335,6 +339,7 @@ def test_strict_is_bit_exact_on_every_runtime_that_compiles(runtime, scene_name,
     assert_bit_exact(prev, ref_prev, f"prev, {what}")
 
 
+@EVERY_RUNTIME
 @pytest.mark.parametrize("runtime", RUNTIMES)
 def test_driver_names_the_platform_and_its_versions(runtime):
     spec = _device_of(runtime)
@@ -352,6 +357,7 @@ def _pyopencl_driver(spec: str) -> tuple[str, str, str]:
     return platform.name, " ".join(platform.version.split()), platform.get_devices()[d].driver_version
 
 
+@EVERY_RUNTIME
 @pytest.mark.parametrize("runtime", RUNTIMES)
 def test_run_prints_the_opencl_platform_and_driver_version_of_its_context(runtime, monkeypatch, capsys):
     # every runtime's device here is "... Intel(R) Xeon(R) Processor": the driver line says which ran
@@ -368,6 +374,7 @@ def test_run_prints_the_opencl_platform_and_driver_version_of_its_context(runtim
     assert printed["driver"] == f"{name}: {version}; driver {driver}", printed
 
 
+@EVERY_RUNTIME
 def test_run_names_two_opencl_runtimes_apart_by_their_drivers(capsys):
     require("opencl")
     first = {}  # runtime -> the first device of it that compiles
@@ -453,6 +460,7 @@ def _pbd_curtain():
     return s.scene, s.solver
 
 
+@EVERY_RUNTIME
 @pytest.mark.parametrize("build", BROKEN_BUILDS)
 @pytest.mark.parametrize("runtime", RUNTIMES)
 def test_a_broken_kernel_names_file_line_and_error_on_every_runtime(runtime, build, monkeypatch):

@@ -42,6 +42,7 @@ def scene_of(name: str):
 PLANES_SCENES = ("curtain", "torus", "carried")
 
 
+@pytest.mark.every_runtime  # each runtime's device picked here: .ci/run's per-runtime legs leave it out
 @pytest.mark.parametrize(
     "scene_name", [PLANES_SCENES[0], *(pytest.param(s, marks=pytest.mark.full) for s in PLANES_SCENES[1:])]
 )
