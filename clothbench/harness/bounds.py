@@ -5,9 +5,9 @@ step (docs/bounds.md).
 copy-like scale over arrays far larger than the caches) and the throughput of float32 and
 float64 sqrt, division, sqrt+division pairs, add/multiply and (float32) the fast reciprocal
 square root and reciprocal as the fast kernels compute them, on every CPU the process may use
-(kernels/machine_bounds.c, built by
-clothbench.native). It runs in a child process: GNU OpenMP's threads do not survive a fork,
-so a sweep that forks its row workers after measuring must not have loaded it.
+(kernels/machine_bounds.c, built by clothbench.native). It runs in a child process: GNU
+OpenMP's threads do not survive a fork, so a sweep that forks its row workers after measuring
+must not have loaded it.
 
 `step_bound_ms(scene, precision, bounds)` counts the bytes a Verlet step moves and the
 operations it does (from the kernels in kernels/; docs/bounds.md shows the count) and turns
