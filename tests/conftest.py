@@ -27,6 +27,31 @@ os.environ.setdefault("XLA_FLAGS", "--xla_cpu_max_isa=AVX")
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
+
+def _torch_with_a_workers_share_of_the_cores() -> None:
+    """Each xdist worker's PyTorch on its share of the cores (one of two here), set where the
+    torch peer imports it. With a pool of every core in each of two workers, every operation
+    waits at its barrier for a thread the other worker's process holds: 500 steps of the strict
+    64^2 drape took 40 s in the full tier on the Zen 3, 3.4 s with the two torch tests side by
+    side; 1.5 ms a step on one thread beside a busy core, 4 ms on two. Nothing here is timed:
+    the threads change no result (strict is bit-exact on any count, the contract)."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers < 2:
+        return
+    import clothbench.peers.torch as torch_peer
+
+    import_torch = torch_peer._import_torch
+
+    def share():
+        torch = import_torch()
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
+        return torch
+
+    torch_peer._import_torch = share
+
+
+_torch_with_a_workers_share_of_the_cores()
+
 from clothbench.backends import availability
 from clothbench.model.scene import Cylinder, Plane, Scene, Setup, Sphere, load_scene, load_setup
 from clothbench.model.solver import Verlet
@@ -157,9 +182,15 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session", autouse=True)
 def _shared_runs(tmp_path_factory) -> None:
     """Both xdist workers' float32 references and machine limits in one folder
-    (tests/shared_runs.py): a worker's temporary folders lie side by side under the run's own."""
+    (tests/shared_runs.py): a worker's temporary folders lie side by side under the run's own;
+    CLOTHBENCH_SHARED_RUNS names a folder several runs of the same checkout share (.ci/run's)."""
     run = tmp_path_factory.getbasetemp()
-    share_in((run.parent if os.environ.get("PYTEST_XDIST_WORKER") else run) / "shared-runs")
+    across_runs = os.environ.get("CLOTHBENCH_SHARED_RUNS")
+    share_in(
+        Path(across_runs)
+        if across_runs
+        else (run.parent if os.environ.get("PYTEST_XDIST_WORKER") else run) / "shared-runs"
+    )
 
 
 @pytest.fixture

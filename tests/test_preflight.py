@@ -15,8 +15,9 @@ COMMANDS = {
     "accuracy": ["accuracy", "--backends", "numpy", "--grid", "4", "--levels", "2", "--time", "0.01"],
     "stability": ["stability", "--backends", "numpy", "--grid", "8", "--steps", "100", "--scenes", "flat",
                   "--stiffness", "1000"],
+    "energy": ["energy", "--backends", "numpy", "--grid", "4", "--steps", "200", "--damped-steps", "200"],
 }  # fmt: skip
-OUT = {"run": "--save", "sweep": "--out", "accuracy": "--out", "stability": "--out"}
+OUT = {"run": "--save", "sweep": "--out", "accuracy": "--out", "stability": "--out", "energy": "--out"}
 
 
 def _one_line_error(capsys, *words) -> str:
@@ -62,7 +63,7 @@ def test_an_output_path_that_is_a_directory_is_refused(command, tmp_path, capsys
     _one_line_error(capsys, "directory")
 
 
-@pytest.mark.parametrize("command", ["run", "sweep", "accuracy"])
+@pytest.mark.parametrize("command", ["run", "sweep", "accuracy", "energy"])
 def test_a_binary_scene_file_is_one_line(command, tmp_path, capsys):
     scene = tmp_path / "s.toml"
     scene.write_bytes(b"\xff\xfe\x00\x81binary")
@@ -70,7 +71,7 @@ def test_a_binary_scene_file_is_one_line(command, tmp_path, capsys):
     _one_line_error(capsys, "not UTF-8")
 
 
-@pytest.mark.parametrize("command", ["run", "sweep", "accuracy", "stability"])
+@pytest.mark.parametrize("command", ["run", "sweep", "accuracy", "stability", "energy"])
 def test_a_grid_the_machine_cannot_hold_is_refused_before_work(command, capsys, monkeypatch, no_work):
     monkeypatch.setattr(preflight, "available_memory", lambda: 64 * 2**20)  # 64 MiB
     args = list(COMMANDS[command])

@@ -11,12 +11,12 @@ import sys
 
 from clothbench import __version__
 from clothbench.cli import accuracy, advise, backends, plot, render, report, run, stability, sweep, view
-from clothbench.cli import machine, pbd_study, tuning
+from clothbench.cli import energy, machine, pbd_study, tuning
 from clothbench.cli.args import Parser
 from clothbench.errors import INTERRUPTED_EXIT, INTERRUPTED_LINE, BlowUp, ClothbenchError
 
 COMMANDS = (run, backends, sweep, plot, report, accuracy, stability, advise, render, view)
-COMMANDS += (pbd_study, tuning, machine)
+COMMANDS += (pbd_study, energy, tuning, machine)
 
 
 def build_parser() -> Parser:

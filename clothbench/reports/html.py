@@ -23,7 +23,7 @@ from pathlib import Path
 from clothbench import __version__
 from clothbench.analysis.convergence import cheapest_at
 from clothbench.reports import accuracy_plots, plots, tables
-from clothbench.reports.figures_common import FRONT_TOLERANCE, is_peer, pareto_front
+from clothbench.reports.figures_common import FRONT_TOLERANCE, is_peer, pareto_front, vector_only
 from clothbench.reports.results_files import (
     ACCURACY,
     ARTEFACTS,
@@ -871,7 +871,7 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
 
 def build_report(files: list, title: str = "clothbench report") -> tuple[str, int]:
     """(the page, how many figures it holds) for results files read by reports/results_files.py."""
-    with tempfile.TemporaryDirectory(prefix="clothbench-report-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="clothbench-report-") as tmp, vector_only():
         figures = Figures(Path(tmp))
         intro, sections = study(files, figures)
         return page(title, intro, sections), figures.count
