@@ -16,3 +16,15 @@ def test_a_serial_test_runs_in_the_serial_group_of_its_worker(request):
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         pytest.skip("one process (-n 0): there are no workers to group")
     assert request.node.nodeid.endswith("@serial"), f"{request.node.nodeid}: the serial group did not take"
+
+
+def test_torch_in_a_worker_runs_on_that_worker_s_share_of_the_cores():
+    # tests/conftest.py: every core in each of two workers' pools made each operation wait at its
+    # barrier for a thread the other worker held (40 s for what runs in 2 s)
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers < 2:
+        pytest.skip("one process (-n 0): torch keeps its own thread count")
+    pytest.importorskip("torch", reason="the torch peer is not installed (pip install 'clothbench[peers]')")
+    from clothbench.peers.torch import _import_torch
+
+    assert _import_torch().get_num_threads() == max(1, (os.cpu_count() or 1) // workers)
