@@ -58,6 +58,7 @@ def cmd_energy(args) -> int:
     plan = [(v, case) for v in variants for case in CASES]
     key = lambda v, case: (v.backend, v.name, case)  # noqa: E731
     settings = {"scene": scene.name, "grid": cell(scene.grid), "dt": cell(solver.dt), "every": cell(args.every)}
+    settings["steps"] = lambda row: cell(steps.get(row.get("case"), ""))  # each case its own length
     columns = list(EnergyRow.__dataclass_fields__)
     resume = args.resume or args.retry_failed
     retry = ("failed",) if args.retry_failed else ()

@@ -103,6 +103,12 @@ def test_the_study_command_writes_what_the_measurement_gives_and_refuses_bad_inp
     err = capsys.readouterr().err
     assert "--steps must be a multiple of --every (100)" in err and err.count("\n") == 1
     assert not (tmp_path / "bad.csv").exists()
+    # a resume of another length would mix two studies in one file: refused, the file unchanged
+    before = out.read_bytes()
+    longer = ["energy", "--backends", "numpy", "--steps", "500", "--damped-steps", "200"]
+    assert main([*longer, "--out", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "was measured with steps = '400', this run has '500'" in err and out.read_bytes() == before
 
 
 def _numpy_f32():
