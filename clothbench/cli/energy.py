@@ -54,7 +54,7 @@ def cmd_energy(args) -> int:
     out = Path(args.out)
     check_writable(out, make_folders=args.out == DEFAULT_OUT)
     check_memory([scene.grid], ("f64",))
-    variants = [v for v in variants_for(args.backends, [solver]) if v.solver.name == "verlet"]
+    variants = variants_for(args.backends, [solver])  # Verlet's alone: the only solver asked
     plan = [(v, case) for v in variants for case in CASES]
     key = lambda v, case: (v.backend, v.name, case)  # noqa: E731
     settings = {"scene": scene.name, "grid": cell(scene.grid), "dt": cell(solver.dt), "every": cell(args.every)}
