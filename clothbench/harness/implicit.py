@@ -69,7 +69,10 @@ class ExactImplicitStep(NumpyVbdBackend):
         """The Newton step -H^-1 grad over the free coordinates; with `exact`, the full Hessian's
         where that is a descent direction, else the clamped (positive definite) one's."""
         hessian = self.hessian(x, clamped=not exact)[dofs][:, dofs]
-        step = spsolve(hessian.tocsc(), -grad)
+        # the Hessian is symmetric, so SuperLU orders it by minimum degree on its own pattern
+        # (A^T + A = A): 0.31 s a solve on the 64^2 drape's 12,282 unknowns, 0.55 s with the
+        # default COLAMD (the Zen 3, 2026-12-06)
+        step = spsolve(hessian.tocsc(), -grad, permc_spec="MMD_AT_PLUS_A")
         if exact and not (np.all(np.isfinite(step)) and grad @ step < 0):
             return self.descent(x, grad, dofs, exact=False)
         return step

@@ -43,6 +43,10 @@ def import_warp():
         wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     else:  # Warp before log levels
         wp.config.quiet = True
+    # no adjoint kernels: clothbench never differentiates a step, and Warp otherwise compiles a
+    # backward form of every kernel of every module it loads, Newton's among them (the same
+    # forward code; Newton's cold VBD test 47 -> 40 s on the Zen 3, 2026-12-06)
+    wp.config.enable_backward = False
     return wp
 
 
