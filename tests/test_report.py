@@ -12,8 +12,10 @@ from pathlib import Path
 import pytest
 
 from clothbench.cli import main
+from clothbench.reports.accuracy_plots import energy_chart
 from clothbench.reports.html import Exact, esc, machine_section, num
-from clothbench.reports.results_files import ResultsFile, read_results
+from clothbench.analysis.convergence import FITTED
+from clothbench.reports.results_files import ResultsFile, analysis_rows, read_results, unfinished
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 COMMITTED = sorted(RESULTS.glob("*.csv"))
@@ -21,6 +23,7 @@ SWEEP = RESULTS / "cpu-llvmpipe-pocl.csv"
 PBD_SWEEP = RESULTS / "pbd-curtain.csv"
 ACCURACY = RESULTS / "accuracy-drape.csv"
 STABILITY = RESULTS / "stability.csv"
+ENERGY = RESULTS / "energy" / "energy-drape-8.csv"  # clothbench energy's committed study
 WINDOW = (1280, 900)
 CHROMIUM_FLAGS = (
     "--headless",
@@ -74,6 +77,7 @@ def test_committed_results_are_each_recognised(study):
         (STABILITY, "a stability run"),
     ):
         assert re.search(rf"{re.escape(str(path))}</a></td><td>{what}", page), path
+    assert "This study did not finish" not in page  # every committed accuracy study is a finished one
 
 
 @every_csv
@@ -199,6 +203,53 @@ def test_an_accuracy_run_that_names_its_cpu_is_compared_with_the_sweeps(cpu, dif
     assert f"acc.csv records only cpu: {cpu}" in machine
     assert ("different machines" in machine) == differs
     assert ("was measured on this one" in machine) != differs
+
+
+def test_an_unfinished_accuracy_study_is_reported_with_the_orders_its_end_would_fit(tmp_path):
+    # a study writes each row as it is measured, its fitted columns (order, order_points, in_fit)
+    # empty until it completes (cli/study_files.py): the report of an interrupted one fits them
+    # over the rows it has, as the study's end does, and says that the study did not finish
+    finished = list(csv.DictReader(ACCURACY.open()))
+    blank = _write_rows(tmp_path / "unfinished.csv", [{**r, **dict.fromkeys(FITTED, "")} for r in finished])
+    done, partial = read_results(ACCURACY), read_results(blank)  # refused before: "order_points is ''"
+    assert not unfinished(done) and unfinished(partial)
+    fitted, refitted = analysis_rows(done), analysis_rows(partial)
+    assert max(r.order_points for r in fitted) >= 3  # orders were fitted in the study: something to compare
+    for d, p in zip(fitted, refitted, strict=True):
+        assert (p.order_points, p.in_fit) == (d.order_points, d.in_fit), d.label
+        # the same least-squares fit of the same numbers; its last bits are the LAPACK build's
+        # (the file was fitted on another machine: 2e-15 apart here), so to 1e-12
+        assert p.order == pytest.approx(d.order, rel=1e-12, nan_ok=True), d.label
+    out = tmp_path / "r.html"  # the page says so where unfinished() holds (a finished one's: the study test above)
+    few = _write_rows(tmp_path / "few.csv", [{**r, **dict.fromkeys(FITTED, "")} for r in finished[:15]])
+    assert main(["report", str(few), "--out", str(out)]) == 0
+    assert "This study did not finish" in out.read_text(encoding="utf-8")
+
+
+def test_an_energy_study_is_reported_with_both_bounds_for_every_mode(tmp_path):
+    # `clothbench energy`'s CSV, which the report refused before ("not a clothbench results
+    # CSV"): a section with the figure of both bounds and a table row per mode; a damped run whose
+    # energy only fell between readings says so in both, where a share of rounding means nothing
+    rows = list(csv.DictReader(ENERGY.open()))
+    fell = {r["label"] for r in rows if r["case"] == "damped" and float(r["max_rise_j"]) <= 0}
+    rose = {r["label"] for r in rows if r["case"] == "damped"} - fell
+    assert fell and rose  # the committed study has both kinds of run: both are checked
+    out = tmp_path / "r.html"
+    assert main(["report", str(ENERGY), "--out", str(out)]) == 0
+    section = top_section(out.read_text(encoding="utf-8"), section_id("energy", ENERGY))
+    assert section.count("<svg") == 1
+    for r in rows:
+        cells = re.search(rf"<tr[^>]*><td>{re.escape(esc(r['label']))}</td>(.*?)</tr>", section)
+        assert cells, r["label"]
+        if r["case"] == "undamped":
+            assert f">{num(float(r['worst_drift_j']) / float(r['band_j']))}<" in cells[1], r["label"]
+        else:
+            assert ("never rose" in cells[1]) == (r["label"] in fell), r["label"]
+    chart = energy_chart(analysis_rows(read_results(ENERGY)))
+    assert len(chart.panels["undamped"]) == len(chart.panels["damped"]) == len({r["label"] for r in rows})
+    damped_axes = chart.figure.axes[1]
+    assert sum(t.get_text() == "never rose" for t in damped_axes.texts) == len(fell)
+    assert len(damped_axes.patches) == len(rose)  # a bar for each run whose energy rose
 
 
 def test_numbers_are_formatted_for_people():

@@ -261,12 +261,29 @@ def cheapest_at(rows, target: float, error: str = "disc_rms"):
 DOMINANCE = 10.0  # a point enters the order fit when discretisation is 10x everything else
 
 
-def discretisation_dominates(row: AccuracyRow, ref: Reference) -> bool:
+def discretisation_dominates(row: AccuracyRow) -> bool:
     """Whether row's error to the converged reference is discretisation error: at least
     DOMINANCE times its implementation error (rounding, which in float32 grows as dt shrinks)
-    and times the reference's own uncertainty."""
-    unc = ref.uncertainty if math.isfinite(ref.uncertainty) else 0.0
+    and times the reference's own uncertainty (the row's ref_uncertainty)."""
+    unc = row.ref_uncertainty if math.isfinite(row.ref_uncertainty) else 0.0
     return row.status == "ok" and row.disc_rms > DOMINANCE * row.impl_rms and row.disc_max > DOMINANCE * unc
+
+
+# the columns fit_orders writes: a study's CSV leaves them empty in a row written as it is
+# measured, and fills them when the study completes (cli/study_files.py)
+FITTED = ("order", "order_points", "in_fit")
+
+
+def fit_orders(rows: list[AccuracyRow]) -> None:
+    """Each backend mode's convergence order, fitted over its rows (one label's, every dt) whose
+    error is discretisation error, written into each of them: order, order_points, in_fit. The
+    measurement, a resumed study and a report of an unfinished study's file all fit it here."""
+    for label in dict.fromkeys(r.label for r in rows):
+        mine = [r for r in rows if r.label == label]
+        used = [r for r in mine if discretisation_dominates(r)]
+        order = fit_order([r.dt for r in used], [r.disc_rms for r in used])
+        for r in mine:
+            r.order, r.order_points, r.in_fit = order, len(used), r in used
 
 
 def structural_strain(pos: np.ndarray, scene: Scene) -> float:
@@ -473,12 +490,7 @@ def run_accuracy(
                 mine.append(_against(*value, scene, solver, ref, verlet_ref))
             if on_row is not None:
                 on_row(mine[-1])
-        used = [r for r in mine if discretisation_dominates(r, ref)]
-        order = fit_order([r.dt for r in used], [r.disc_rms for r in used])
-        for r in mine:
-            r.order = order
-            r.order_points = len(used)
-            r.in_fit = r in used
+        fit_orders(mine)
         rows += mine
     named = {model_name(s): refs[k] for k, (s, _) in models.items()}
     # prev of a reference is at its own finest dt
@@ -502,6 +514,8 @@ __all__ = [
     "AccuracyResult",
     "DOMINANCE",
     "discretisation_dominates",
+    "fit_orders",
+    "FITTED",
     "model_key",
     "ModelDifference",
     "model_difference",

@@ -1,5 +1,5 @@
 """`clothbench report`: one self-contained HTML page (figures inline as SVG, nothing fetched)
-for a whole study, from the CSVs of sweep, accuracy and stability (reports/html.py)."""
+for a whole study, from the CSVs of sweep, accuracy, stability and energy (reports/html.py)."""
 
 from __future__ import annotations
 
@@ -13,14 +13,17 @@ from clothbench.errors import ClothbenchError
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "report",
-        help="one self-contained HTML page from sweep, accuracy and stability CSVs",
+        help="one self-contained HTML page from sweep, accuracy, stability and energy CSVs",
         description="Write one HTML page holding a whole study: for every CSV given (a sweep, an accuracy run "
-        "and its -artefacts CSV, a stability run; each recognised by its columns) its figures, inline as SVG, "
-        "and its tables, with the machine and drivers the rows were measured on. Nothing in the page is "
+        "and its -artefacts CSV, a stability run, an energy study; each recognised by its columns) its figures, "
+        "inline as SVG, and its tables, with the machine and drivers the rows were measured on. Nothing in the page is "
         "fetched from elsewhere: it opens offline and can be mailed or published as it is.",
     )
     p.add_argument(
-        "results", nargs="+", metavar="RESULTS", help="CSV files written by clothbench sweep, accuracy or stability"
+        "results",
+        nargs="+",
+        metavar="RESULTS",
+        help="CSV files written by clothbench sweep, accuracy, stability or energy",
     )
     p.add_argument("--out", default="report.html", help="the HTML file to write (default report.html)")
     p.add_argument("--title", default="clothbench report", help="the page's title")

@@ -2,22 +2,22 @@
 (harness/study_csv.py): each finished row lands in the file at once, --resume measures only
 the rows the file lacks, --retry-failed measures its failed ones again.
 
-Accuracy's derived columns (order, order_points, in_fit: fitted over a line's rows) are left
-empty in a row written as it is measured; when the study completes they are computed from
-every row of the file, the ones a resumed run found there and the ones it measured, and the
-file is rewritten once (a single rename) in the plan's order. docs/accuracy.md says so.
+Accuracy's fitted columns (order, order_points, in_fit: analysis/convergence.py's FITTED,
+fitted over a line's rows) are left empty in a row written as it is measured; when the study
+completes they are computed from every row of the file, the ones a resumed run found there and
+the ones it measured, and the file is rewritten once (a single rename) in the plan's order.
+docs/accuracy.md says so. `clothbench report` of a file whose study did not finish fits them
+itself, the same way (reports/results_files.py).
 """
 
 from __future__ import annotations
 
 import sys
-from types import SimpleNamespace
 
 from clothbench.harness.study_csv import StudyFile, cell, cells, from_cells
 from clothbench.model.solver import ITERATIVE
 
 ACCURACY_KEY = ("backend", "label", "solver", "pbd_method", "iterations", "substeps", "dt")
-ACCURACY_DERIVED = ("order", "order_points", "in_fit")
 ACCURACY_RETRY = ("error", "failed", "crashed", "timeout")  # a status's first word
 STABILITY_KEY = ("backend", "label", "solver", "pbd_method", "iterations", "kind", "stiffness")
 
@@ -77,14 +77,16 @@ def accuracy_file(path, planned, scene, time_s, verlet_start: str, pbd_start: st
 
 
 def early_cells(row) -> dict[str, str]:
-    """A row as written the moment it is measured: its derived columns empty."""
-    return {**cells(row.as_dict()), **{c: "" for c in ACCURACY_DERIVED}}
+    """A row as written the moment it is measured: its fitted columns empty."""
+    from clothbench.analysis.convergence import FITTED
+
+    return {**cells(row.as_dict()), **{c: "" for c in FITTED}}
 
 
 def finish_accuracy(f: StudyFile, planned, measured: list) -> list:
     """Every planned row (measured now, or read back from the file), in the plan's order,
     with the derived columns fitted over them; the file rewritten with them."""
-    from clothbench.analysis.convergence import AccuracyRow, discretisation_dominates, fit_order
+    from clothbench.analysis.convergence import AccuracyRow, fit_orders
 
     by_key = {f.key(r): r for r in f.rows}
     new = {f.key(cells(r.as_dict())): r for r in measured}
@@ -95,12 +97,7 @@ def finish_accuracy(f: StudyFile, planned, measured: list) -> list:
             rows.append(new[key])
         elif key in by_key:
             rows.append(from_cells(AccuracyRow, by_key[key]))
-    for label in dict.fromkeys(r.label for r in rows):
-        mine = [r for r in rows if r.label == label]
-        used = [r for r in mine if discretisation_dominates(r, SimpleNamespace(uncertainty=r.ref_uncertainty))]
-        order = fit_order([r.dt for r in used], [r.disc_rms for r in used])
-        for r in mine:
-            r.order, r.order_points, r.in_fit = order, len(used), r in used
+    fit_orders(rows)
     f.rewrite([cells(r.as_dict()) for r in rows])
     return rows
 

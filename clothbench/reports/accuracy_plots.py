@@ -15,6 +15,9 @@ MAX_SERIES series, peers dashed and hollow, the Pareto front, PNG and SVG).
    answer (that plus implicit Euler's own damping).
 4. stability_map: the largest stable dt against k, a panel per scene (flat, stretched,
    crumpled): the linearised bound, Verlet's measured limit per platform, PBD's per method.
+5. energy (`clothbench energy`): per backend mode, the undamped run's worst drift from its
+   start's energy as a share of its band, and the damped run's largest rise between two
+   readings as a share of rounding: a bar per mode, coloured by platform, 1 the bound.
 
 Verlet lines are solid, PBD dash-dotted with square (Jacobi) or diamond (coloured) markers,
 peers dashed with hollow markers. The *_chart functions return the drawn Chart; the plot_*
@@ -493,6 +496,82 @@ def plot_stability_map(rows, path: Path) -> None:
     save_figure(stability_map_chart(rows).figure, path, dpi=DPI)
 
 
+def energy_chart(rows) -> Chart:
+    """The energy study's two bounds, a panel each: the undamped drift over its band (a linear
+    axis: it is a share of the band, 0.36-0.47 in the committed study) and the damped rise
+    between readings over rounding (a log axis: a thousandth of it and less), a horizontal bar
+    per backend mode. A damped run whose energy never rose between two readings (its largest
+    "rise" is a fall) has no bar and says so. Rows whose run did not finish are in the report's
+    table, not here."""
+    ok = [r for r in rows if r.status == "ok"]
+    r0 = rows[0]
+    labels = list(dict.fromkeys(_label(r) for r in ok))
+    fig, body = titled_figure(
+        f"Energy: {r0.scene} {r0.grid}×{r0.grid} from rest, dt = {r0.dt:g} s",
+        10.5,
+        1.4 + 0.22 * len(labels),
+        _footer([], rows),
+    )
+    fig.get_layout_engine().set(
+        w_pad=0.08
+    )  # inches: constrained layout's default clips the longest mode's first letter
+    axes = body.subplots(1, 2, sharey=True)  # the same modes; the two shares are not one quantity
+    chart = Chart(fig)
+    panels = (
+        ("undamped", lambda r: r.worst_drift_j / r.band_j, "worst |E − E0| ÷ band (1 % of M |g| size)"),
+        ("damped", lambda r: r.max_rise_j / r.rounding_j, "largest rise between readings ÷ rounding (16 u × scale)"),
+    )
+    for ax, (case, share, xlabel) in zip(axes, panels):
+        mine = {_label(r): r for r in ok if r.case == case}
+        shown = [label for label in labels if label in mine]
+        values = [share(mine[label]) for label in shown]
+        if case == "damped":
+            ax.set_xscale("log")
+            rose = [v for v in values if v > 0]
+            ax.set_xlim(min([*rose, 1.0]) / 10, 2.0)
+        else:
+            ax.set_xlim(0.0, max([1.15, *values]) * 1.05)
+        for label, value in zip(shown, values):
+            y, color = labels.index(label), platform_color(platform_of(mine[label].backend))
+            if value > 0:  # from the axis's left end (0, or the log axis's first decade) to the value
+                left = ax.get_xlim()[0]
+                ax.barh(y, value - left, left=left, color=color, height=0.7)
+            else:
+                ax.annotate(
+                    "never rose",
+                    (ax.get_xlim()[0], y),
+                    xytext=(3, 0),
+                    textcoords="offset points",
+                    fontsize=6.5,
+                    va="center",
+                    color=color,
+                )
+        ax.axvline(1.0, color="black", lw=1, ls="--")
+        ax.annotate(
+            "bound",
+            (1.0, 1.0),
+            xycoords=("data", "axes fraction"),
+            xytext=(-3, -3),
+            textcoords="offset points",
+            fontsize=6.5,
+            ha="right",
+            va="top",
+        )
+        steps = sorted({mine[label].steps for label in shown})
+        ax.set_title(f"{case}, {', '.join(f'{s:,}' for s in steps)} steps", fontsize=10)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.grid(True, axis="x", which="both", alpha=0.3)
+        ax.tick_params(labelsize=7)
+        chart.panels[case] = shown
+    axes[0].set_yticks(range(len(labels)), labels)
+    axes[0].invert_yaxis()  # the modes top to bottom in the file's order
+    return chart
+
+
+def plot_energy(rows, path: Path) -> None:
+    save_figure(energy_chart(rows).figure, path, dpi=DPI)
+
+
 __all__ = [
     "plot_speed_vs_error",
     "plot_convergence",
@@ -502,4 +581,6 @@ __all__ = [
     "convergence_chart",
     "vbd_iterations_chart",
     "stability_map_chart",
+    "plot_energy",
+    "energy_chart",
 ]

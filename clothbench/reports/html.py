@@ -27,12 +27,14 @@ from clothbench.reports.figures_common import FRONT_TOLERANCE, is_peer, pareto_f
 from clothbench.reports.results_files import (
     ACCURACY,
     ARTEFACTS,
+    ENERGY,
     STABILITY,
     SWEEP,
     WHAT,
     ResultsFile,
     accuracy_result,
     analysis_rows,
+    unfinished,
 )
 from clothbench.model.solver import ITERATIVE
 from clothbench.variant_names import iterations_display, model_display
@@ -274,6 +276,15 @@ STABILITY_FIGURES = {
         "bound 2/ω of the lattice, its stretched form and Gershgorin's.",
     ),
 }
+ENERGY_FIGURES = {
+    "energy": (
+        "Energy against its bounds",
+        "Undamped: the largest distance of the energy from its start's over the run, as a share of "
+        "the band (1 % of the sheet's M |g| size). Damped: the largest rise between two readings, as a "
+        "share of rounding (16 u × the energy scale), on a log axis; 'never rose': its largest change between "
+        "two readings was a fall. 1 is the bound.",
+    ),
+}
 MACHINE_COLUMNS = ("cpu", "cores", "python", "packages", "env")
 
 
@@ -287,7 +298,7 @@ def study(files: list[ResultsFile], figures: Figures) -> tuple[list[Html], list[
             if any(g.kind == ACCURACY and g.path == twin for g in files):
                 paired[twin] = f
     sections = [machine_section(files)]
-    order = (SWEEP, ACCURACY, STABILITY, ARTEFACTS)  # the chapter's figures first
+    order = (SWEEP, ACCURACY, STABILITY, ENERGY, ARTEFACTS)  # the chapter's figures first
     for f in sorted(files, key=lambda f: order.index(f.kind)):
         if f.kind == SWEEP:
             sections.append(sweep_section(f, figures))
@@ -295,6 +306,8 @@ def study(files: list[ResultsFile], figures: Figures) -> tuple[list[Html], list[
             sections.append(accuracy_section(f, paired.get(f.path), figures))
         elif f.kind == STABILITY:
             sections.append(stability_section(f, figures))
+        elif f.kind == ENERGY:
+            sections.append(energy_section(f, figures))
         elif f not in paired.values():
             sections.append(artefacts_section(f, f"PBD artefacts: {f.name}"))
     inputs = [
@@ -667,6 +680,13 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
             f"{' and '.join(solvers)}; {len(rows)} runs on {len({r.label for r in rows})} backend modes."
         )
     )
+    if unfinished(f):
+        sec.body.append(
+            notice(
+                "This study did not finish (its convergence orders were not yet in the file): they are fitted here "
+                "over the runs it has. clothbench accuracy --resume with the same settings measures the rest."
+            )
+        )
     folder = figures.folder_for(f.path.stem)
     accuracy_plots.plot_speed_vs_error(result, folder / "speed_vs_error.svg")
     accuracy_plots.plot_convergence(result, folder / "convergence.svg")
@@ -866,6 +886,71 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
                 ],
             )
         )
+    return sec
+
+
+# --- an energy study -------------------------------------------------------------------------
+
+
+def energy_section(f: ResultsFile, figures: Figures) -> Section:
+    rows = analysis_rows(f)
+    r0 = rows[0]
+    sec = Section(f"Energy: {f.name}", section_id(f))
+    cases = {r.case: r for r in rows}
+    damped = cases.get("damped")
+    sec.body.append(
+        paragraph(
+            f"Scene {r0.scene}, {r0.grid}×{r0.grid} from rest, dt = {r0.dt:g} s, the energy (float64 of each mode's "
+            f"own state) read every {r0.every} steps: "
+            + "; ".join(f"{case} (b = {r.damping:g} N s/m) for {r.steps:,} steps" for case, r in cases.items())
+            + f'; {len({r.label for r in rows})} backend modes. docs/accuracy.md ("Energy") gives the bounds.'
+        )
+    )
+    folder = figures.folder_for(f.path.stem)
+    accuracy_plots.plot_energy(rows, folder / "energy.svg")
+    sec.body += _inline_all(figures, folder, ENERGY_FIGURES)
+    by_label: dict[str, dict] = {}
+    for r in rows:
+        by_label.setdefault(r.label, {})[r.case] = r
+    body = []
+    for label, mine in by_label.items():
+        u, d = mine.get("undamped"), mine.get("damped")
+        body.append(
+            [
+                label,
+                u.worst_drift_j / u.band_j if u and u.status == "ok" else "–",
+                u.worst_drift_j if u and u.status == "ok" else "–",
+                ("never rose" if d.max_rise_j <= 0 else d.max_rise_j / d.rounding_j) if d and d.status == "ok" else "–",
+                d.max_rise_j if d and d.status == "ok" else "–",
+                d.e0_j - d.e_end_j if d and d.status == "ok" else "–",
+                "; ".join(f"{r.case}: {r.status}" for r in mine.values() if r.status != "ok") or "ok",
+            ]
+        )
+    sec.children.append(
+        Section(
+            "Per backend mode",
+            f"{sec.id}-modes",
+            [
+                table(
+                    [
+                        "backend, mode",
+                        "undamped: drift ÷ band",
+                        "worst |E − E0| (J)",
+                        "damped: rise ÷ rounding",
+                        "largest rise (J)",
+                        "energy lost by the end (J)",
+                        "status",
+                    ],
+                    body,
+                    row_classes=[
+                        "peer" if is_peer(mine[next(iter(mine))].backend) else "" for mine in by_label.values()
+                    ],
+                    caption=f"Both bounds hold where both shares are at most 1. The damped run starts with "
+                    f"{num(damped.e0_j if damped else r0.e0_j)} J.",
+                )
+            ],
+        )
+    )
     return sec
 
 

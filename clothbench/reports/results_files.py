@@ -1,7 +1,7 @@
 """The results CSVs clothbench writes, recognised by their columns, and read back into the
 rows the analysis made them from: a sweep (harness/sweep_csv.py), an accuracy run and its
 PBD artefacts (analysis/convergence.py, analysis/artefacts.py), a stability run
-(analysis/stability.py). Everything a report needs is checked here, before any figure is
+(analysis/stability.py), an energy study (analysis/energy_study.py). Everything a report needs is checked here, before any figure is
 drawn: a file that is none of these is one line saying what it is instead."""
 
 from __future__ import annotations
@@ -13,20 +13,22 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from clothbench.analysis.artefacts import ArtefactRow
-from clothbench.analysis.convergence import AccuracyResult, AccuracyRow
+from clothbench.analysis.energy_study import EnergyRow
+from clothbench.analysis.convergence import FITTED, AccuracyResult, AccuracyRow, fit_orders
 from clothbench.analysis.stability import StabilityRow
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import read_sweep
 from clothbench.reports import plots
 
-SWEEP, ACCURACY, ARTEFACTS, STABILITY = "sweep", "accuracy", "artefacts", "stability"
-ROW_CLASSES = {ACCURACY: AccuracyRow, ARTEFACTS: ArtefactRow, STABILITY: StabilityRow}
+SWEEP, ACCURACY, ARTEFACTS, STABILITY, ENERGY = "sweep", "accuracy", "artefacts", "stability", "energy"
+ROW_CLASSES = {ACCURACY: AccuracyRow, ARTEFACTS: ArtefactRow, STABILITY: StabilityRow, ENERGY: EnergyRow}
 # Columns a file of each kind must have: for the analysis rows, every field without a
 # default, and what their figures read; for a sweep, what reports/plots.py reads.
 READ_BY_FIGURES = {
     ACCURACY: ("solver", "status", "ms_per_sim_s", "disc_rms", "impl_rms", "order"),
     ARTEFACTS: (),
     STABILITY: ("solver", "pbd_method", "capped", "cap", "at_60hz"),
+    ENERGY: ("worst_drift_j", "band_j", "max_rise_j", "rounding_j"),
 }
 
 
@@ -38,12 +40,13 @@ def _required(kind: str) -> tuple[str, ...]:
     return tuple(dict.fromkeys(no_default + list(READ_BY_FIGURES[kind])))
 
 
-REQUIRED = {kind: _required(kind) for kind in (SWEEP, ACCURACY, ARTEFACTS, STABILITY)}
+REQUIRED = {kind: _required(kind) for kind in (SWEEP, ACCURACY, ARTEFACTS, STABILITY, ENERGY)}
 WHAT = {
     SWEEP: "a sweep (clothbench sweep)",
     ACCURACY: "an accuracy run (clothbench accuracy)",
     ARTEFACTS: "PBD artefacts (clothbench accuracy --artefacts)",
     STABILITY: "a stability run (clothbench stability)",
+    ENERGY: "an energy study (clothbench energy)",
 }
 
 
@@ -74,7 +77,8 @@ def recognise(path, header) -> str:
         raise ClothbenchError(f"{path} looks like {WHAT[kind]} but lacks column(s) {', '.join(missing)}")
     shown = ", ".join(sorted(header)[:6]) + (", ..." if len(header) > 6 else "")
     raise ClothbenchError(
-        f"{path} is not a clothbench results CSV (a sweep, accuracy, artefacts or stability CSV); its columns: {shown}"
+        f"{path} is not a clothbench results CSV (a sweep, accuracy, artefacts, stability or energy CSV); "
+        f"its columns: {shown}"
     )
 
 
@@ -122,15 +126,26 @@ def _convert(text: str, annotation: str, path: Path, lineno: int, column: str):
     return text
 
 
+def unfinished(result: ResultsFile) -> bool:
+    """Whether `result` is an accuracy study that did not finish: its rows are written as they
+    are measured, with the columns fitted over every row (FITTED) left empty until it ends."""
+    return result.kind == ACCURACY and any(r.get(c) == "" for r in result.rows for c in FITTED)
+
+
 def analysis_rows(result: ResultsFile) -> list:
     """The AccuracyRow, ArtefactRow or StabilityRow objects the file was written from; columns
-    the file lacks keep their defaults, columns the class lacks (ratio, ...) are derived there."""
+    the file lacks keep their defaults, columns the class lacks (ratio, ...) are derived there.
+    An unfinished accuracy study's orders are fitted here over the rows it has, as its end
+    would have fitted them over all of its rows."""
     cls = ROW_CLASSES[result.kind]
-    fields = [f for f in dataclasses.fields(cls) if f.init]
+    refit = unfinished(result)
+    fields = [f for f in dataclasses.fields(cls) if f.init and not (refit and f.name in FITTED)]
     out = []
     for lineno, r in enumerate(result.rows, start=2):
         values = {f.name: _convert(r[f.name], str(f.type), result.path, lineno, f.name) for f in fields if f.name in r}
         out.append(cls(**values))
+    if refit:
+        fit_orders(out)
     return out
 
 
@@ -140,4 +155,4 @@ def accuracy_result(result: ResultsFile) -> AccuracyResult:
     return AccuracyResult(rows=analysis_rows(result), reference=None)
 
 
-__all__ = ["ResultsFile", "REQUIRED", "recognise", "read_results", "analysis_rows", "accuracy_result"]
+__all__ = ["ResultsFile", "REQUIRED", "recognise", "read_results", "unfinished", "analysis_rows", "accuracy_result"]
