@@ -13,7 +13,8 @@ import pytest
 
 from clothbench.cli import main
 from clothbench.reports.accuracy_plots import energy_chart
-from clothbench.reports.html import Exact, esc, machine_section, num
+from clothbench.reports.html import machine_section
+from clothbench.reports.page import Exact, esc, num
 from clothbench.analysis.convergence import FITTED
 from clothbench.reports.results_files import ResultsFile, analysis_rows, read_results, unfinished
 
