@@ -25,6 +25,7 @@ PBD_SWEEP = RESULTS / "pbd-curtain.csv"
 ACCURACY = RESULTS / "accuracy-drape.csv"
 STABILITY = RESULTS / "stability.csv"
 ENERGY = RESULTS / "energy" / "energy-drape-8.csv"  # clothbench energy's committed study
+PBD_STUDY = RESULTS / "pbd-study" / "pbd-study.csv"  # clothbench pbd-study's
 WINDOW = (1280, 900)
 CHROMIUM_FLAGS = (
     "--headless",
@@ -251,6 +252,24 @@ def test_an_energy_study_is_reported_with_both_bounds_for_every_mode(tmp_path):
     damped_axes = chart.figure.axes[1]
     assert sum(t.get_text() == "never rose" for t in damped_axes.texts) == len(fell)
     assert len(damped_axes.patches) == len(rose)  # a bar for each run whose energy rose
+
+
+def test_a_pbd_study_is_reported_with_its_figure_and_the_best_pair_at_each_cost(tmp_path):
+    # `clothbench pbd-study`'s CSV, refused before as "not a clothbench results CSV"
+    rows = [r for r in csv.DictReader(PBD_STUDY.open()) if r["status"] == "ok"]
+    out = tmp_path / "r.html"
+    assert main(["report", str(PBD_STUDY), "--out", str(out)]) == 0
+    section = top_section(out.read_text(encoding="utf-8"), section_id("pbd-study", PBD_STUDY))
+    assert section.count("<svg") == 1 and "frames of 1/60 s" in section
+    groups = {(r["scene"], r["method"], r["cost"]) for r in rows}
+    assert len(groups) > 10  # both scenes, every method and cost
+    for scene, method, cost in groups:
+        best = min(
+            (r for r in rows if (r["scene"], r["method"], r["cost"]) == (scene, method, cost)),
+            key=lambda r: float(r["rms"]),
+        )
+        cells = f'<td>{scene}</td><td>{method}</td><td class="num">{cost}</td><td>{best["substeps"]} × {best["iterations"]}</td>'
+        assert f'{cells}<td class="num">{num(float(best["rms"]))}</td>' in section, (scene, method, cost)
 
 
 def test_numbers_are_formatted_for_people():

@@ -164,63 +164,13 @@ def _print_study(rows) -> None:
 
 
 def plot_study(rows, path: Path) -> None:
-    """Error against cost, one line per substep count: a panel per scene and method, against
-    constraint passes per frame (top) and measured OpenCL ms per frame (bottom, numpy's where
-    OpenCL was not measured)."""
+    """The study's figure (reports/accuracy_plots.py's pbd_study_figure) as the PNG at `path`."""
     from matplotlib import rc_context
 
-    from clothbench.reports.figures_common import MARKERS, PALETTE, REPRODUCIBLE, new_figure, plain_log_labels
+    from clothbench.reports.accuracy_plots import pbd_study_figure
+    from clothbench.reports.figures_common import REPRODUCIBLE
 
-    cases = list(dict.fromkeys((r.scene, r.method) for r in rows))
-    subs = sorted({r.substeps for r in rows})
-    fig = new_figure(3.3 * len(cases), 6.4)
-    axes = fig.subplots(2, len(cases), squeeze=False)
-    opencl = any(math.isfinite(r.ms_opencl) for r in rows)
-    own = "opencl" if opencl else "numpy"
-
-    def ms(r) -> float:  # a peer's rows are timed on the peer's own run
-        return r.ms_newton if r.method == "newton" else r.ms_opencl if opencl else r.ms_numpy
-
-    for col, (scene, method) in enumerate(cases):
-        mine = [r for r in rows if (r.scene, r.method) == (scene, method) and r.status == "ok"]
-        timed_on = "newton" if method == "newton" else own
-        for top, x, xlabel in (
-            (0, lambda r: r.cost, "substeps x iterations per frame"),
-            (1, ms, f"f32 ms per frame ({timed_on}, measured)"),
-        ):
-            ax = axes[top][col]
-            for i, s in enumerate(subs):
-                line = sorted((r for r in mine if r.substeps == s and math.isfinite(x(r))), key=lambda r: r.cost)
-                if line:
-                    ax.plot(
-                        [x(r) for r in line],
-                        [r.rms * 1e3 for r in line],
-                        marker=MARKERS[i % len(MARKERS)],
-                        color=PALETTE[i % len(PALETTE)],
-                        label=f"{s} substep{'s' * (s > 1)}",
-                    )
-            ax.set_xscale("log")
-            ax.set_yscale("log")
-            plain_log_labels(ax, ax.yaxis)
-            plain_log_labels(ax, ax.xaxis)
-            ax.set_xlabel(xlabel, fontsize=8)
-            ax.set_title(f"{scene}, {method}", fontsize=9)
-            ax.grid(True, which="both", alpha=0.3)
-            if col == 0:
-                ax.set_ylabel("RMS error (mm)", fontsize=8)
-    handles = {}
-    for ax in axes.flat:  # one key for every panel: each substep count once, fewest first
-        for h, label in zip(*ax.get_legend_handles_labels()):
-            handles.setdefault(label, h)
-    order = sorted(handles, key=lambda label: int(label.split()[0]))
-    fig.legend([handles[k] for k in order], order, loc="outside right upper", fontsize=7)
-    r0 = rows[0]
-    fig.suptitle(
-        f"PBD substeps against iterations at equal cost ({r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, "
-        f"b = {r0.damping:g}): error against the converged float64 mass-spring answer; "
-        "ms measured on a loaded machine",
-        fontsize=9,
-    )
+    fig = pbd_study_figure(rows)
     path.parent.mkdir(parents=True, exist_ok=True)
     with rc_context(REPRODUCIBLE):
         fig.savefig(path, dpi=130)

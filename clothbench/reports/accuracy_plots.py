@@ -15,7 +15,10 @@ MAX_SERIES series, peers dashed and hollow, the Pareto front, PNG and SVG).
    answer (that plus implicit Euler's own damping).
 4. stability_map: the largest stable dt against k, a panel per scene (flat, stretched,
    crumpled): the linearised bound, Verlet's measured limit per platform, PBD's per method.
-5. energy (`clothbench energy`): per backend mode, the undamped run's worst drift from its
+5. pbd_study (`clothbench pbd-study`): PBD's error against its cost at 1/60 s, one line per
+   substep count, a panel per scene and method: against constraint passes per frame (top) and
+   measured ms per frame (bottom).
+6. energy (`clothbench energy`): per backend mode, the undamped run's worst drift from its
    start's energy as a share of its band, and the damped run's largest rise between two
    readings as a share of rounding: a bar per mode, coloured by platform, 1 the bound.
 
@@ -39,17 +42,21 @@ from clothbench.reports.figures_common import (
     FRONT_COLOR,
     FRONT_LEGEND,
     FRONT_TOLERANCE,
+    MARKERS,
+    PALETTE,
     PEERS,
     Chart,
     draw_front,
     fit_labels,
     is_peer,
     machine_line,
+    new_figure,
     panel_axes,
     panel_legend,
     pareto_front,
     platform_color,
     platform_of,
+    plain_log_labels,
     platform_rank,
     save_figure,
     series_style,
@@ -568,6 +575,67 @@ def energy_chart(rows) -> Chart:
     return chart
 
 
+def pbd_study_figure(rows):
+    """Error against cost, one line per substep count: a panel per scene and method, against
+    constraint passes per frame (top) and measured OpenCL ms per frame (bottom, numpy's where
+    OpenCL was not measured)."""
+    cases = list(dict.fromkeys((r.scene, r.method) for r in rows))
+    subs = sorted({r.substeps for r in rows})
+    fig = new_figure(3.3 * len(cases), 6.4)
+    axes = fig.subplots(2, len(cases), squeeze=False)
+    opencl = any(math.isfinite(r.ms_opencl) for r in rows)
+    own = "opencl" if opencl else "numpy"
+
+    def ms(r) -> float:  # a peer's rows are timed on the peer's own run
+        return r.ms_newton if r.method == "newton" else r.ms_opencl if opencl else r.ms_numpy
+
+    for col, (scene, method) in enumerate(cases):
+        mine = [r for r in rows if (r.scene, r.method) == (scene, method) and r.status == "ok"]
+        timed_on = "newton" if method == "newton" else own
+        for top, x, xlabel in (
+            (0, lambda r: r.cost, "substeps x iterations per frame"),
+            (1, ms, f"f32 ms per frame ({timed_on}, measured)"),
+        ):
+            ax = axes[top][col]
+            for i, s in enumerate(subs):
+                line = sorted((r for r in mine if r.substeps == s and math.isfinite(x(r))), key=lambda r: r.cost)
+                if line:
+                    ax.plot(
+                        [x(r) for r in line],
+                        [r.rms * 1e3 for r in line],
+                        marker=MARKERS[i % len(MARKERS)],
+                        color=PALETTE[i % len(PALETTE)],
+                        label=f"{s} substep{'s' * (s > 1)}",
+                    )
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            plain_log_labels(ax, ax.yaxis)
+            plain_log_labels(ax, ax.xaxis)
+            ax.set_xlabel(xlabel, fontsize=8)
+            ax.set_title(f"{scene}, {method}", fontsize=9)
+            ax.grid(True, which="both", alpha=0.3)
+            if col == 0:
+                ax.set_ylabel("RMS error (mm)", fontsize=8)
+    handles = {}
+    for ax in axes.flat:  # one key for every panel: each substep count once, fewest first
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, h)
+    order = sorted(handles, key=lambda label: int(label.split()[0]))
+    fig.legend([handles[k] for k in order], order, loc="outside right upper", fontsize=7)
+    r0 = rows[0]
+    fig.suptitle(
+        f"PBD substeps against iterations at equal cost ({r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, "
+        f"b = {r0.damping:g}): error against the converged float64 mass-spring answer; "
+        "ms measured on a loaded machine",
+        fontsize=9,
+    )
+    return fig
+
+
+def plot_pbd_study(rows, path: Path) -> None:
+    save_figure(pbd_study_figure(rows), path, dpi=DPI)
+
+
 def plot_energy(rows, path: Path) -> None:
     save_figure(energy_chart(rows).figure, path, dpi=DPI)
 
@@ -583,4 +651,6 @@ __all__ = [
     "stability_map_chart",
     "plot_energy",
     "energy_chart",
+    "pbd_study_figure",
+    "plot_pbd_study",
 ]

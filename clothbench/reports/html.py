@@ -24,6 +24,7 @@ from clothbench.reports.results_files import (
     ACCURACY,
     ARTEFACTS,
     ENERGY,
+    PBD_STUDY,
     STABILITY,
     SWEEP,
     WHAT,
@@ -82,6 +83,13 @@ ENERGY_FIGURES = {
         "two readings was a fall. 1 is the bound.",
     ),
 }
+PBD_STUDY_FIGURES = {
+    "pbd_study": (
+        "PBD: substeps against iterations at equal cost",
+        "The RMS error against the converged float64 mass-spring answer, one line per substep count, "
+        "against constraint passes per frame (top) and the measured ms per frame (bottom).",
+    ),
+}
 MACHINE_COLUMNS = ("cpu", "cores", "python", "packages", "env")
 
 
@@ -95,7 +103,7 @@ def study(files: list[ResultsFile], figures: Figures) -> tuple[list[Html], list[
             if any(g.kind == ACCURACY and g.path == twin for g in files):
                 paired[twin] = f
     sections = [machine_section(files)]
-    order = (SWEEP, ACCURACY, STABILITY, ENERGY, ARTEFACTS)  # the chapter's figures first
+    order = (SWEEP, ACCURACY, STABILITY, PBD_STUDY, ENERGY, ARTEFACTS)  # the chapter's figures first
     for f in sorted(files, key=lambda f: order.index(f.kind)):
         if f.kind == SWEEP:
             sections.append(sweep_section(f, figures))
@@ -105,6 +113,8 @@ def study(files: list[ResultsFile], figures: Figures) -> tuple[list[Html], list[
             sections.append(stability_section(f, figures))
         elif f.kind == ENERGY:
             sections.append(energy_section(f, figures))
+        elif f.kind == PBD_STUDY:
+            sections.append(pbd_study_section(f, figures))
         elif f not in paired.values():
             sections.append(artefacts_section(f, f"PBD artefacts: {f.name}"))
     inputs = [
@@ -534,15 +544,7 @@ def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Fig
     )
     if "verlet" in solvers and set(ITERATIVE) & set(solvers):
         sec.children.append(accuracy_solvers_section(rows, ok, sec.id))
-    bad = [r for r in rows if r.status != "ok"]
-    if bad:
-        sec.children.append(
-            Section(
-                "Runs that did not finish",
-                f"{sec.id}-bad",
-                [table(["backend, mode", "dt (s)", "status"], [[r.label, Exact(r.dt), r.status] for r in bad])],
-            )
-        )
+    _add_failed_runs(sec, rows, ["backend, mode", "dt (s)"], lambda r: [r.label, Exact(r.dt)])
     if artefacts is not None:
         sec.children.append(artefacts_section(artefacts, f"What PBD changes: {artefacts.name}"))
     return sec
@@ -684,6 +686,63 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
             )
         )
     return sec
+
+
+# --- a PBD study -----------------------------------------------------------------------------
+
+
+def pbd_study_section(f: ResultsFile, figures: Figures) -> Section:
+    from clothbench.analysis.pbd_study import best_per_cost
+
+    rows = analysis_rows(f)
+    r0 = rows[0]
+    sec = Section(f"PBD study: {f.name}", section_id(f))
+    costs = sorted({r.cost for r in rows})
+    sec.body.append(
+        paragraph(
+            f"Scenes {', '.join(dict.fromkeys(r.scene for r in rows))}, {r0.grid}×{r0.grid}, frames of "
+            f"1/{1 / r0.frame_dt:.4g} s, errors at t = {r0.time_s:g} s, b = {r0.damping:g} N s/m; every substeps × iterations "
+            f"pair of each cost ({', '.join(map(str, costs))} constraint passes a frame) for each method; "
+            f"{len(rows)} runs. docs/pbd-study.md gives the reasoning."
+        )
+    )
+    folder = figures.folder_for(f.path.stem)
+    accuracy_plots.plot_pbd_study(rows, folder / "pbd_study.svg")
+    sec.body += _inline_all(figures, folder, PBD_STUDY_FIGURES)
+    best = best_per_cost(rows)
+    sec.children.append(
+        Section(
+            "The best pair at each cost",
+            f"{sec.id}-best",
+            [
+                table(
+                    ["scene", "method", "cost", "substeps × iterations", "RMS error (m)", "max error (m)"],
+                    [[s, m, c, f"{r.substeps} × {r.iterations}", r.rms, r.max] for (s, m, c), r in best.items()],
+                    caption="The pair of the smallest RMS error among those of one cost (substeps × iterations).",
+                )
+            ],
+        )
+    )
+    _add_failed_runs(
+        sec,
+        rows,
+        ["scene", "method", "substeps × iterations"],
+        lambda r: [r.scene, r.method, f"{r.substeps} × {r.iterations}"],
+    )
+    return sec
+
+
+def _add_failed_runs(sec: Section, rows: list, head: list[str], cells) -> None:
+    """A table of the runs whose status is not ok (what stopped each), under `sec`, if any."""
+    bad = [r for r in rows if r.status != "ok"]
+    if bad:
+        sec.children.append(
+            Section(
+                "Runs that did not finish",
+                f"{sec.id}-bad",
+                [table([*head, "status"], [[*cells(r), r.status] for r in bad])],
+            )
+        )
 
 
 # --- an energy study -------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """The results CSVs clothbench writes, recognised by their columns, and read back into the
 rows the analysis made them from: a sweep (harness/sweep_csv.py), an accuracy run and its
 PBD artefacts (analysis/convergence.py, analysis/artefacts.py), a stability run
-(analysis/stability.py), an energy study (analysis/energy_study.py). Everything a report needs is checked here, before any figure is
+(analysis/stability.py), an energy study (analysis/energy_study.py), a PBD study
+(analysis/pbd_study.py). Everything a report needs is checked here, before any figure is
 drawn: a file that is none of these is one line saying what it is instead."""
 
 from __future__ import annotations
@@ -14,14 +15,22 @@ from pathlib import Path
 
 from clothbench.analysis.artefacts import ArtefactRow
 from clothbench.analysis.energy_study import EnergyRow
+from clothbench.analysis.pbd_study import PbdStudyRow
 from clothbench.analysis.convergence import FITTED, AccuracyResult, AccuracyRow, fit_orders
 from clothbench.analysis.stability import StabilityRow
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import read_sweep
 from clothbench.reports import plots
 
-SWEEP, ACCURACY, ARTEFACTS, STABILITY, ENERGY = "sweep", "accuracy", "artefacts", "stability", "energy"
-ROW_CLASSES = {ACCURACY: AccuracyRow, ARTEFACTS: ArtefactRow, STABILITY: StabilityRow, ENERGY: EnergyRow}
+SWEEP, ACCURACY, ARTEFACTS, STABILITY = "sweep", "accuracy", "artefacts", "stability"
+ENERGY, PBD_STUDY = "energy", "pbd-study"
+ROW_CLASSES = {
+    ACCURACY: AccuracyRow,
+    ARTEFACTS: ArtefactRow,
+    STABILITY: StabilityRow,
+    ENERGY: EnergyRow,
+    PBD_STUDY: PbdStudyRow,
+}
 # Columns a file of each kind must have: for the analysis rows, every field without a
 # default, and what their figures read; for a sweep, what reports/plots.py reads.
 READ_BY_FIGURES = {
@@ -29,6 +38,7 @@ READ_BY_FIGURES = {
     ARTEFACTS: (),
     STABILITY: ("solver", "pbd_method", "capped", "cap", "at_60hz"),
     ENERGY: ("worst_drift_j", "band_j", "max_rise_j", "rounding_j"),
+    PBD_STUDY: ("status", "rms", "max", "ms_numpy", "ms_opencl"),
 }
 
 
@@ -40,13 +50,14 @@ def _required(kind: str) -> tuple[str, ...]:
     return tuple(dict.fromkeys(no_default + list(READ_BY_FIGURES[kind])))
 
 
-REQUIRED = {kind: _required(kind) for kind in (SWEEP, ACCURACY, ARTEFACTS, STABILITY, ENERGY)}
+REQUIRED = {kind: _required(kind) for kind in (SWEEP, *ROW_CLASSES)}
 WHAT = {
     SWEEP: "a sweep (clothbench sweep)",
     ACCURACY: "an accuracy run (clothbench accuracy)",
     ARTEFACTS: "PBD artefacts (clothbench accuracy --artefacts)",
     STABILITY: "a stability run (clothbench stability)",
     ENERGY: "an energy study (clothbench energy)",
+    PBD_STUDY: "a PBD study (clothbench pbd-study)",
 }
 
 
@@ -77,7 +88,8 @@ def recognise(path, header) -> str:
         raise ClothbenchError(f"{path} looks like {WHAT[kind]} but lacks column(s) {', '.join(missing)}")
     shown = ", ".join(sorted(header)[:6]) + (", ..." if len(header) > 6 else "")
     raise ClothbenchError(
-        f"{path} is not a clothbench results CSV (a sweep, accuracy, artefacts, stability or energy CSV); "
+        f"{path} is not a clothbench results CSV (a sweep, accuracy, artefacts, stability, energy or pbd-study "
+        "CSV); "
         f"its columns: {shown}"
     )
 
