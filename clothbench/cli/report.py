@@ -1,5 +1,6 @@
 """`clothbench report`: one self-contained HTML page (figures inline as SVG, nothing fetched)
-for a whole study, from the CSVs of sweep, accuracy, stability and energy (reports/html.py)."""
+for a whole study, from the CSVs of sweep, accuracy, stability, energy and pbd-study
+(reports/html.py)."""
 
 from __future__ import annotations
 
@@ -13,9 +14,9 @@ from clothbench.errors import ClothbenchError
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "report",
-        help="one self-contained HTML page from sweep, accuracy, stability and energy CSVs",
+        help="one self-contained HTML page from sweep, accuracy, stability, energy and pbd-study CSVs",
         description="Write one HTML page holding a whole study: for every CSV given (a sweep, an accuracy run "
-        "and its -artefacts CSV, a stability run, an energy study; each recognised by its columns) its figures, "
+        "and its -artefacts CSV, a stability run, an energy study, a PBD study; each recognised by its columns) its figures, "
         "inline as SVG, and its tables, with the machine and drivers the rows were measured on. Nothing in the page is "
         "fetched from elsewhere: it opens offline and can be mailed or published as it is.",
     )
@@ -23,7 +24,7 @@ def register(subparsers) -> None:
         "results",
         nargs="+",
         metavar="RESULTS",
-        help="CSV files written by clothbench sweep, accuracy, stability or energy",
+        help="CSV files written by clothbench sweep, accuracy, stability, energy or pbd-study",
     )
     p.add_argument("--out", default="report.html", help="the HTML file to write (default report.html)")
     p.add_argument("--title", default="clothbench report", help="the page's title")

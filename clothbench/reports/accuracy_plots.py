@@ -519,9 +519,8 @@ def energy_chart(rows) -> Chart:
         1.4 + 0.22 * len(labels),
         _footer([], rows),
     )
-    fig.get_layout_engine().set(
-        w_pad=0.08
-    )  # inches: constrained layout's default clips the longest mode's first letter
+    # inches: constrained layout's default pad clips the longest mode's first letter
+    fig.get_layout_engine().set(w_pad=0.08)
     axes = body.subplots(1, 2, sharey=True)  # the same modes; the two shares are not one quantity
     chart = Chart(fig)
     panels = (

@@ -1,13 +1,14 @@
 """`clothbench report`'s page: one self-contained HTML file (figures inline as SVG, a small
 inline stylesheet, nothing fetched) holding a whole study: every sweep, accuracy, artefacts,
-stability and energy CSV given, with the figures reports/plots.py and reports/accuracy_plots.py
-draw, the tables the README carries, and the machine the rows were measured on.
+stability, energy and PBD-study CSV given, with the figures reports/plots.py and
+reports/accuracy_plots.py draw, the tables the README carries, and the machine the rows were
+measured on.
 
 What each kind of CSV puts on the page (built of reports/page.py's pieces): its figures, drawn
 into a temporary folder and inlined, and its tables: ms per step per backend and mode at every
 grid, the peers against clothbench, the Pareto front of speed against error, Verlet against PBD,
-the stability limits against the bound, the energy against its bounds; and, over every file, the
-machine and drivers the rows were measured on.
+the stability limits against the bound, PBD's substeps against its iterations, the energy against
+its bounds; and, over every file, the machine and drivers the rows were measured on.
 """
 
 from __future__ import annotations
