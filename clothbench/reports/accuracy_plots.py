@@ -624,8 +624,8 @@ def pbd_study_figure(rows):
     r0 = rows[0]
     fig.suptitle(
         f"PBD substeps against iterations at equal cost ({r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, "
-        f"b = {r0.damping:g}): error against the converged float64 mass-spring answer; "
-        "ms measured on a loaded machine",
+        f"b = {r0.damping:g}): error against the converged float64 mass-spring answer; ms measured on "
+        f"{' and '.join(sorted({r.cpu for r in rows if r.cpu})) or 'an unnamed CPU'}, how busy not recorded",
         fontsize=9,
     )
     return fig
