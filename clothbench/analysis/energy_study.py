@@ -52,6 +52,14 @@ class EnergyRow:
     max_rise_j: float = float("nan")  # the largest rise between two readings
     rounding_j: float = float("nan")  # damped: ROUNDING_ULPS u x the energy scale
 
+    def share(self) -> float:
+        """The reading as a share of its bound (at most 1: it holds): the undamped run's worst
+        drift over its band, the damped run's largest rise over rounding (at most 0: its energy
+        never rose between two readings)."""
+        if self.case == "undamped":
+            return self.worst_drift_j / self.band_j
+        return self.max_rise_j / self.rounding_j
+
     def as_dict(self) -> dict:
         return asdict(self)
 

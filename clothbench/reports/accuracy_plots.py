@@ -524,13 +524,13 @@ def energy_chart(rows) -> Chart:
     axes = body.subplots(1, 2, sharey=True)  # the same modes; the two shares are not one quantity
     chart = Chart(fig)
     panels = (
-        ("undamped", lambda r: r.worst_drift_j / r.band_j, "worst |E − E0| ÷ band (1 % of M |g| size)"),
-        ("damped", lambda r: r.max_rise_j / r.rounding_j, "largest rise between readings ÷ rounding (16 u × scale)"),
+        ("undamped", "worst |E − E0| ÷ band (1 % of M |g| size)"),
+        ("damped", "largest rise between readings ÷ rounding (16 u × scale)"),
     )
-    for ax, (case, share, xlabel) in zip(axes, panels):
+    for ax, (case, xlabel) in zip(axes, panels):
         mine = {_label(r): r for r in ok if r.case == case}
         shown = [label for label in labels if label in mine]
-        values = [share(mine[label]) for label in shown]
+        values = [mine[label].share() for label in shown]
         if case == "damped":
             ax.set_xscale("log")
             rose = [v for v in values if v > 0]

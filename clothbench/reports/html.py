@@ -771,15 +771,15 @@ def energy_section(f: ResultsFile, figures: Figures) -> Section:
         by_label.setdefault(r.label, {})[r.case] = r
     body = []
     for label, mine in by_label.items():
-        u, d = mine.get("undamped"), mine.get("damped")
+        u, d = (r if r and r.status == "ok" else None for r in (mine.get("undamped"), mine.get("damped")))
         body.append(
             [
                 label,
-                u.worst_drift_j / u.band_j if u and u.status == "ok" else "–",
-                u.worst_drift_j if u and u.status == "ok" else "–",
-                ("never rose" if d.max_rise_j <= 0 else d.max_rise_j / d.rounding_j) if d and d.status == "ok" else "–",
-                d.max_rise_j if d and d.status == "ok" else "–",
-                d.e0_j - d.e_end_j if d and d.status == "ok" else "–",
+                u.share() if u else "–",
+                u.worst_drift_j if u else "–",
+                ("never rose" if d.share() <= 0 else d.share()) if d else "–",
+                d.max_rise_j if d else "–",
+                d.e0_j - d.e_end_j if d else "–",
                 "; ".join(f"{r.case}: {r.status}" for r in mine.values() if r.status != "ok") or "ok",
             ]
         )
@@ -800,7 +800,7 @@ def energy_section(f: ResultsFile, figures: Figures) -> Section:
                     ],
                     body,
                     row_classes=[
-                        "peer" if is_peer(mine[next(iter(mine))].backend) else "" for mine in by_label.values()
+                        "peer" if is_peer(next(iter(mine.values())).backend) else "" for mine in by_label.values()
                     ],
                     caption=f"Both bounds hold where both shares are at most 1. The damped run starts with "
                     f"{num(damped.e0_j if damped else r0.e0_j)} J.",

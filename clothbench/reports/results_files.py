@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from clothbench.analysis.artefacts import ArtefactRow
+from clothbench.analysis.convergence import FITTED, AccuracyResult, AccuracyRow, fit_orders
 from clothbench.analysis.energy_study import EnergyRow
 from clothbench.analysis.pbd_study import PbdStudyRow
-from clothbench.analysis.convergence import FITTED, AccuracyResult, AccuracyRow, fit_orders
 from clothbench.analysis.stability import StabilityRow
 from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import read_sweep
@@ -88,9 +88,8 @@ def recognise(path, header) -> str:
         raise ClothbenchError(f"{path} looks like {WHAT[kind]} but lacks column(s) {', '.join(missing)}")
     shown = ", ".join(sorted(header)[:6]) + (", ..." if len(header) > 6 else "")
     raise ClothbenchError(
-        f"{path} is not a clothbench results CSV (a sweep, accuracy, artefacts, stability, energy or pbd-study "
-        "CSV); "
-        f"its columns: {shown}"
+        f"{path} is not a clothbench results CSV (a sweep, accuracy, artefacts, stability, energy or "
+        f"pbd-study CSV); its columns: {shown}"
     )
 
 
