@@ -14,7 +14,17 @@ from PIL import Image
 
 from clothbench.cli import main
 from clothbench.harness.sweep_csv import COLUMNS, csv_line
-from clothbench.reports.figures_common import MAX_SERIES, PNG_DPI, figure_svg, new_figure, pareto_front, save_figure
+from clothbench.reports.figures_common import (
+    LABEL_MARGIN,
+    MAX_SERIES,
+    PNG_DPI,
+    draw_front,
+    figure_svg,
+    fit_labels,
+    new_figure,
+    pareto_front,
+    save_figure,
+)
 from clothbench.reports.plots import FILES, PlotReport, draw_sweep, plot_sweep, plot_time_vs_grid, scaling_exponent
 from clothbench.reports.sweep_rows import load
 
@@ -475,3 +485,27 @@ def test_front_labels_never_overlap_and_a_moved_one_is_joined_to_its_point(tmp_p
                 assert label.arrow_patch.get_visible(), (ax.get_title(), label.get_text(), away)
             elif away < 8:  # at its point (5 and 4 points left and down) or nearly: no line
                 assert not label.arrow_patch.get_visible(), (ax.get_title(), label.get_text(), away)
+
+
+def test_labels_at_the_lower_left_corner_are_brought_inside_in_a_few_layouts(monkeypatch):
+    # points in the axes' lower left corner: their labels (lower left of each point) start
+    # outside, and growing the limits brings them in. Each growth used to leave a label a
+    # fraction of a pixel outside again, so every figure ran all six layouts; a growth of
+    # under a pixel is not worth one
+    fig = new_figure(4, 3)
+    ax = fig.add_subplot()
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.plot([1e-6, 1e-3], [0.01, 10])
+    labels = draw_front(ax, [(1e-6, 0.01, "first"), (1e-5, 0.02, "second")])
+    layouts = []
+    draw = fig.draw_without_rendering
+    monkeypatch.setattr(fig, "draw_without_rendering", lambda: (layouts.append(1), draw())[1])
+    fit_labels(fig, labels)
+    assert 2 <= len(layouts) <= 3  # the first placement, one growth or two, never the five of the limit
+    fig.draw_without_rendering()
+    renderer = fig.canvas.get_renderer()
+    frame = ax.get_window_extent()
+    for label in labels:
+        box = Text.get_window_extent(label, renderer)
+        assert box.x0 >= frame.x0 + LABEL_MARGIN - 1.5 and box.y0 >= frame.y0 + LABEL_MARGIN - 1.5, label.get_text()
