@@ -13,10 +13,18 @@ import pytest
 
 from clothbench.cli import main
 from clothbench.reports.accuracy_plots import energy_chart
-from clothbench.reports.html import machine_section
+from clothbench.reports.html import SECTIONS, machine_section
 from clothbench.reports.page import Exact, esc, num
 from clothbench.analysis.convergence import FITTED
-from clothbench.reports.results_files import ResultsFile, analysis_rows, read_results, unfinished
+from clothbench.reports.results_files import (
+    KINDS,
+    REQUIRED,
+    ResultsFile,
+    analysis_rows,
+    read_results,
+    recognise,
+    unfinished,
+)
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 COMMITTED = sorted(RESULTS.glob("*.csv"))
@@ -139,6 +147,14 @@ def _write_rows(path: Path, rows: list[dict]) -> Path:
         w.writeheader()
         w.writerows(rows)
     return path
+
+
+def test_every_kind_of_results_csv_is_recognised_by_its_own_columns_and_has_a_section():
+    # the registry (results_files.KINDS) against the page (html.SECTIONS): a kind added to one
+    # and not the other is a file the report would recognise and not show, or the reverse
+    assert list(SECTIONS) == [k.name for k in KINDS]
+    for kind in KINDS:
+        assert recognise("f.csv", REQUIRED[kind.name]) == kind.name
 
 
 def test_machine_section_says_when_rows_come_from_different_machines(tmp_path):

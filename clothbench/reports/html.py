@@ -25,10 +25,11 @@ from clothbench.reports.results_files import (
     ACCURACY,
     ARTEFACTS,
     ENERGY,
+    KIND,
+    KINDS,
     PBD_STUDY,
     STABILITY,
     SWEEP,
-    WHAT,
     ResultsFile,
     accuracy_result,
     analysis_rows,
@@ -104,24 +105,16 @@ def study(files: list[ResultsFile], figures: Figures) -> tuple[list[Html], list[
             if any(g.kind == ACCURACY and g.path == twin for g in files):
                 paired[twin] = f
     sections = [machine_section(files)]
-    order = (SWEEP, ACCURACY, STABILITY, PBD_STUDY, ENERGY, ARTEFACTS)  # the chapter's figures first
+    order = [k.name for k in KINDS]
     for f in sorted(files, key=lambda f: order.index(f.kind)):
-        if f.kind == SWEEP:
-            sections.append(sweep_section(f, figures))
-        elif f.kind == ACCURACY:
-            sections.append(accuracy_section(f, paired.get(f.path), figures))
-        elif f.kind == STABILITY:
-            sections.append(stability_section(f, figures))
-        elif f.kind == ENERGY:
-            sections.append(energy_section(f, figures))
-        elif f.kind == PBD_STUDY:
-            sections.append(pbd_study_section(f, figures))
-        elif f not in paired.values():
-            sections.append(artefacts_section(f, f"PBD artefacts: {f.name}"))
+        if f in paired.values():
+            continue  # in its accuracy run's section
+        beside = {"artefacts": paired[f.path]} if f.path in paired else {}
+        sections.append(SECTIONS[f.kind](f, figures, **beside))
     inputs = [
         [
             Html(f'<a href="#{section_id(f)}">{esc(f.path)}</a>'),
-            WHAT[f.kind],
+            KIND[f.kind].what,
             len(f.rows),
             len(f.ok_rows()) if "status" in f.rows[0] else len(f.rows),
         ]
@@ -476,7 +469,7 @@ def sweep_solvers_section(ok: list[dict], parent: str) -> Section:
 # --- an accuracy run -----------------------------------------------------------------------
 
 
-def accuracy_section(f: ResultsFile, artefacts: ResultsFile | None, figures: Figures) -> Section:
+def accuracy_section(f: ResultsFile, figures: Figures, artefacts: ResultsFile | None = None) -> Section:
     result = accuracy_result(f)
     rows, r0 = result.rows, result.rows[0]
     sec = Section(f"Accuracy: {f.name}", section_id(f))
@@ -809,6 +802,19 @@ def energy_section(f: ResultsFile, figures: Figures) -> Section:
         )
     )
     return sec
+
+
+# Each kind of results CSV's section of the page (results_files.KINDS: how each is recognised
+# and read, and the page's order); an artefacts file beside its accuracy run goes in that
+# run's section instead (study)
+SECTIONS = {
+    SWEEP: sweep_section,
+    ACCURACY: accuracy_section,
+    STABILITY: stability_section,
+    PBD_STUDY: pbd_study_section,
+    ENERGY: energy_section,
+    ARTEFACTS: lambda f, _figures: artefacts_section(f, f"PBD artefacts: {f.name}"),
+}
 
 
 def build_report(files: list, title: str = "clothbench report") -> tuple[str, int]:

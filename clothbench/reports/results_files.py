@@ -22,43 +22,70 @@ from clothbench.errors import ClothbenchError
 from clothbench.harness.sweep_csv import read_sweep
 from clothbench.reports import plots
 
-SWEEP, ACCURACY, ARTEFACTS, STABILITY = "sweep", "accuracy", "artefacts", "stability"
-ENERGY, PBD_STUDY = "energy", "pbd-study"
-ROW_CLASSES = {
-    ACCURACY: AccuracyRow,
-    ARTEFACTS: ArtefactRow,
-    STABILITY: StabilityRow,
-    ENERGY: EnergyRow,
-    PBD_STUDY: PbdStudyRow,
-}
-# Columns a file of each kind must have: for the analysis rows, every field without a
-# default, and what their figures read; for a sweep, what reports/plots.py reads.
-READ_BY_FIGURES = {
-    ACCURACY: ("solver", "status", "ms_per_sim_s", "disc_rms", "impl_rms", "order"),
-    ARTEFACTS: (),
-    STABILITY: ("solver", "pbd_method", "capped", "cap", "at_60hz"),
-    ENERGY: ("worst_drift_j", "band_j", "max_rise_j", "rounding_j"),
-    PBD_STUDY: ("status", "rms", "max", "ms_numpy", "ms_opencl"),
-}
+
+SWEEP, ACCURACY, STABILITY, PBD_STUDY, ENERGY, ARTEFACTS = (
+    "sweep",
+    "accuracy",
+    "stability",
+    "pbd-study",
+    "energy",
+    "artefacts",
+)
 
 
-def _required(kind: str) -> tuple[str, ...]:
-    if kind == SWEEP:
-        return plots.REQUIRED
-    fields = dataclasses.fields(ROW_CLASSES[kind])
-    no_default = [f.name for f in fields if f.default is dataclasses.MISSING]
-    return tuple(dict.fromkeys(no_default + list(READ_BY_FIGURES[kind])))
+@dataclass(frozen=True)
+class Kind:
+    """A kind of results CSV: what makes it one and what its rows are read into."""
+
+    name: str
+    what: str  # the kind in a sentence: the page's list of inputs, a refusal's words
+    row_class: type | None  # the analysis row each line was written from; None: a sweep's rows stay dicts
+    read_by_figures: tuple[str, ...]  # columns its figures read beside the row class's required ones
 
 
-REQUIRED = {kind: _required(kind) for kind in (SWEEP, *ROW_CLASSES)}
-WHAT = {
-    SWEEP: "a sweep (clothbench sweep)",
-    ACCURACY: "an accuracy run (clothbench accuracy)",
-    ARTEFACTS: "PBD artefacts (clothbench accuracy --artefacts)",
-    STABILITY: "a stability run (clothbench stability)",
-    ENERGY: "an energy study (clothbench energy)",
-    PBD_STUDY: "a PBD study (clothbench pbd-study)",
-}
+# Every kind, in the order the report's page puts their sections (the chapter's figures first;
+# reports/html.py's SECTIONS draws each). A file must have a kind's columns (REQUIRED): for the
+# analysis rows every field without a default and what their figures read; for a sweep, what
+# reports/plots.py reads.
+KINDS = (
+    Kind(SWEEP, "a sweep (clothbench sweep)", None, plots.REQUIRED),
+    Kind(
+        ACCURACY,
+        "an accuracy run (clothbench accuracy)",
+        AccuracyRow,
+        ("solver", "status", "ms_per_sim_s", "disc_rms", "impl_rms", "order"),
+    ),
+    Kind(
+        STABILITY,
+        "a stability run (clothbench stability)",
+        StabilityRow,
+        ("solver", "pbd_method", "capped", "cap", "at_60hz"),
+    ),
+    Kind(
+        PBD_STUDY,
+        "a PBD study (clothbench pbd-study)",
+        PbdStudyRow,
+        ("status", "rms", "max", "ms_numpy", "ms_opencl"),
+    ),
+    Kind(
+        ENERGY,
+        "an energy study (clothbench energy)",
+        EnergyRow,
+        ("worst_drift_j", "band_j", "max_rise_j", "rounding_j"),
+    ),
+    Kind(ARTEFACTS, "PBD artefacts (clothbench accuracy --artefacts)", ArtefactRow, ()),
+)
+KIND = {k.name: k for k in KINDS}
+
+
+def _required(kind: Kind) -> tuple[str, ...]:
+    if kind.row_class is None:
+        return kind.read_by_figures
+    no_default = [f.name for f in dataclasses.fields(kind.row_class) if f.default is dataclasses.MISSING]
+    return tuple(dict.fromkeys(no_default + list(kind.read_by_figures)))
+
+
+REQUIRED = {kind.name: _required(kind) for kind in KINDS}
 
 
 @dataclass
@@ -85,11 +112,11 @@ def recognise(path, header) -> str:
     kind, required = max(REQUIRED.items(), key=lambda kv: len(header & set(kv[1])) / len(kv[1]))
     if len(header & set(required)) >= len(required) / 2:
         missing = [c for c in required if c not in header]
-        raise ClothbenchError(f"{path} looks like {WHAT[kind]} but lacks column(s) {', '.join(missing)}")
+        raise ClothbenchError(f"{path} looks like {KIND[kind].what} but lacks column(s) {', '.join(missing)}")
     shown = ", ".join(sorted(header)[:6]) + (", ..." if len(header) > 6 else "")
+    kinds = [k.name for k in KINDS]
     raise ClothbenchError(
-        f"{path} is not a clothbench results CSV (a sweep, accuracy, artefacts, stability, energy or "
-        f"pbd-study CSV); its columns: {shown}"
+        f"{path} is not a clothbench results CSV (a {', '.join(kinds[:-1])} or {kinds[-1]} CSV); its columns: {shown}"
     )
 
 
@@ -144,11 +171,11 @@ def unfinished(result: ResultsFile) -> bool:
 
 
 def analysis_rows(result: ResultsFile) -> list:
-    """The AccuracyRow, ArtefactRow or StabilityRow objects the file was written from; columns
+    """The analysis rows (its kind's row_class) the file was written from; columns
     the file lacks keep their defaults, columns the class lacks (ratio, ...) are derived there.
     An unfinished accuracy study's orders are fitted here over the rows it has, as its end
     would have fitted them over all of its rows."""
-    cls = ROW_CLASSES[result.kind]
+    cls = KIND[result.kind].row_class
     refit = unfinished(result)
     fields = [f for f in dataclasses.fields(cls) if f.init and not (refit and f.name in FITTED)]
     out = []
@@ -166,4 +193,15 @@ def accuracy_result(result: ResultsFile) -> AccuracyResult:
     return AccuracyResult(rows=analysis_rows(result), reference=None)
 
 
-__all__ = ["ResultsFile", "REQUIRED", "recognise", "read_results", "unfinished", "analysis_rows", "accuracy_result"]
+__all__ = [
+    "Kind",
+    "KINDS",
+    "KIND",
+    "ResultsFile",
+    "REQUIRED",
+    "recognise",
+    "read_results",
+    "unfinished",
+    "analysis_rows",
+    "accuracy_result",
+]
