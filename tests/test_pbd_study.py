@@ -6,8 +6,10 @@ import csv
 
 import pytest
 
-from clothbench.analysis.pbd_study import measure_pair, pairs_at, study_reference
+from clothbench.analysis import pbd_study
+from clothbench.analysis.pbd_study import how_busy, measure_pair, pairs_at, study_reference
 from clothbench.cli import main
+from clothbench.machine_load import Load
 from clothbench.model.scene import load_scene
 
 SMALL = ["--grid", "8", "--time", "0.1", "--cost-backends", "none"]  # 6 frames of 1/60 s, error only
@@ -27,6 +29,40 @@ def test_small_steps_beat_many_iterations_at_equal_cost():
     small = measure_pair(scene, "coloured", 8, 1, 0.1, ref, cost_backends=())
     assert small.rms < 0.5 * few.rms, (small.rms, few.rms)
     assert few.strain > small.strain, "one big step under-resolves the springs: a softer, stretched cloth"
+
+
+class Recorded:
+    """A LoadSampler whose every window saw `load`."""
+
+    def __init__(self, load: Load):
+        self.load = load
+
+    def start(self):
+        return self
+
+    def stop(self, min_window_s: float = 0.0) -> Load:
+        return self.load
+
+
+@pytest.mark.parametrize("busy", [True, False], ids=["busy", "quiet"])
+def test_a_row_says_how_busy_the_machine_was_while_its_ms_were_timed(busy, monkeypatch):
+    # a study's ms, like a sweep row's, are marked when other processes ran beside them
+    # (machine_load), and the figure's title says so; a row that timed nothing knows nothing
+    why = f"other processes {1.5 if busy else 0.0:.2f} of 2 cores, steal 0% over 2.00 s"
+    load = Load(2.0, 2, 1.5 if busy else 0.0, 0.75 if busy else 0.0, 0.0, busy, why)
+    monkeypatch.setattr(pbd_study, "LoadSampler", lambda: Recorded(load))
+    scene = load_scene("curtain").replace(grid=8, damping=0.0)
+    ref = study_reference(scene, 0.1)
+    timed = measure_pair(scene, "coloured", 2, 1, 0.1, ref, cost_backends=("numpy",))
+    assert timed.ms_numpy > 0 and timed.busy is busy and timed.load == why
+    untimed = measure_pair(scene, "coloured", 2, 1, 0.1, ref, cost_backends=())
+    assert untimed.busy is None and untimed.load == ""
+    assert how_busy([untimed]) == "how busy not recorded"
+    if busy:
+        assert how_busy([timed, timed, untimed]) == "2 of 3 runs timed on a busy machine"
+    else:
+        assert how_busy([timed, timed]) == "the machine quiet throughout"
+        assert how_busy([timed, untimed]) == "the machine quiet for 1 of 2 runs, not recorded for the rest"
 
 
 @pytest.mark.parametrize(

@@ -277,6 +277,7 @@ def test_a_pbd_study_is_reported_with_its_figure_and_the_best_pair_at_each_cost(
     assert main(["report", str(PBD_STUDY), "--out", str(out)]) == 0
     section = top_section(out.read_text(encoding="utf-8"), section_id("pbd-study", PBD_STUDY))
     assert section.count("<svg") == 1 and "frames of 1/60 s" in section
+    assert "ms per frame: how busy not recorded" in section  # a study older than its busy column
     groups = {(r["scene"], r["method"], r["cost"]) for r in rows}
     assert len(groups) > 10  # both scenes, every method and cost
     for scene, method, cost in groups:

@@ -20,6 +20,7 @@ from clothbench.backends import BackendOptions, create_backend
 from clothbench.environment import cpu_model
 from clothbench.harness.simulate import position_error, simulate
 from clothbench.harness.timing import run_timed
+from clothbench.machine_load import MIN_WINDOW_S, LoadSampler
 from clothbench.model.scene import Scene
 from clothbench.model.solver import Pbd, Verlet
 
@@ -60,6 +61,10 @@ class PbdStudyRow:
     device_opencl: str = ""
     driver_opencl: str = ""  # which OpenCL runtime timed ms_opencl ('' in files older than the column)
     cpu: str = ""
+    # whether other processes were busy while the ms were timed (clothbench/machine_load.py, as a
+    # sweep row's `busy`); None: nothing timed, too short to tell, or a file older than the column
+    busy: bool | None = None
+    load: str = ""  # what the load was, over how long
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -120,18 +125,45 @@ def measure_pair(
     else:
         row.rms, row.max = position_error(pos, ref.pos)
         row.strain = structural_strain(pos, scene)
-    for backend in cost_backends:
-        ms, device, driver = _time(backend, scene, solver, steps)
-        setattr(row, f"ms_{backend}", ms)
-        if backend == "opencl":
-            row.device_opencl, row.driver_opencl = device, driver
+    if cost_backends:
+        watch = LoadSampler().start()
+        for backend in cost_backends:
+            ms, device, driver = _time(backend, scene, solver, steps)
+            setattr(row, f"ms_{backend}", ms)
+            if backend == "opencl":
+                row.device_opencl, row.driver_opencl = device, driver
+        _record_load(row, watch)
     return row
+
+
+def _record_load(row: PbdStudyRow, window) -> None:
+    # a pair's timing at a small grid can be shorter than a verdict needs: the window is then
+    # made up to MIN_WINDOW_S by sleeping, which sees only the other processes (machine_load)
+    load = window.stop(min_window_s=MIN_WINDOW_S)
+    row.busy, row.load = load.busy, load.why
+
+
+def how_busy(rows: list[PbdStudyRow]) -> str:
+    """How busy the machine was while the rows' ms were timed, in a phrase for a figure's title:
+    'how busy not recorded' where no row knows (files older than the column), else how many
+    were timed on a busy machine."""
+    known = [r for r in rows if r.busy is not None]
+    if not known:
+        return "how busy not recorded"
+    busy = sum(r.busy for r in known)
+    if not busy and len(known) == len(rows):
+        return "the machine quiet throughout"
+    if not busy:
+        return f"the machine quiet for {len(known)} of {len(rows)} runs, not recorded for the rest"
+    return f"{busy} of {len(rows)} runs timed on a busy machine"
 
 
 def _measure_peer(row: PbdStudyRow, backend: str, scene: Scene, solver: Pbd, steps: int, ref: Reference):
     try:
         with create_backend(backend, scene, solver, BackendOptions()) as b:
+            watch = LoadSampler().start()
             result = run_timed(b, steps, raise_on_blowup=False)
+            _record_load(row, watch)
     except Exception as e:  # a peer that cannot run is a row saying so
         row.status = " ".join(f"error: {type(e).__name__}: {e}".split())
         return row
@@ -166,4 +198,5 @@ __all__ = [
     "study_reference",
     "measure_pair",
     "best_per_cost",
+    "how_busy",
 ]

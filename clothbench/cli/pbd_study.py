@@ -5,6 +5,7 @@ line per substep count. docs/pbd-study.md has the reasoning and the measured ans
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 from clothbench.cli.args import int_list, sigterm_interrupts
@@ -141,7 +142,7 @@ def cmd_pbd_study(args) -> int:
 
 
 def _print_study(rows) -> None:
-    from clothbench.analysis.pbd_study import best_per_cost
+    from clothbench.analysis.pbd_study import best_per_cost, how_busy
 
     r0 = rows[0]
     print(
@@ -161,6 +162,8 @@ def _print_study(rows) -> None:
     print("best pair per cost (smallest RMS):")
     for (scene, method, cost), r in best_per_cost(rows).items():
         print(f"  {scene} {method} cost {cost}: {r.substeps} x {r.iterations} ({r.rms * 1e3:.2f} mm)")
+    if any(r.busy for r in rows):  # as `run` warns: the figures are printed, and said not to hold
+        print(f"clothbench: warning: the ms may not hold: {how_busy(rows)}", file=sys.stderr)
 
 
 def plot_study(rows, path: Path) -> None:

@@ -578,6 +578,8 @@ def pbd_study_figure(rows):
     """Error against cost, one line per substep count: a panel per scene and method, against
     constraint passes per frame (top) and measured OpenCL ms per frame (bottom, numpy's where
     OpenCL was not measured)."""
+    from clothbench.analysis.pbd_study import how_busy  # it imports the backends: not at this module's import
+
     cases = list(dict.fromkeys((r.scene, r.method) for r in rows))
     subs = sorted({r.substeps for r in rows})
     fig = new_figure(3.3 * len(cases), 6.4)
@@ -625,7 +627,7 @@ def pbd_study_figure(rows):
     fig.suptitle(
         f"PBD substeps against iterations at equal cost ({r0.grid}x{r0.grid}, dt = 1/60 s, t = {r0.time_s:g} s, "
         f"b = {r0.damping:g}): error against the converged float64 mass-spring answer; ms measured on "
-        f"{' and '.join(sorted({r.cpu for r in rows if r.cpu})) or 'an unnamed CPU'}, how busy not recorded",
+        f"{' and '.join(sorted({r.cpu for r in rows if r.cpu})) or 'an unnamed CPU'}, {how_busy(rows)}",
         fontsize=9,
     )
     return fig

@@ -686,7 +686,7 @@ def stability_section(f: ResultsFile, figures: Figures) -> Section:
 
 
 def pbd_study_section(f: ResultsFile, figures: Figures) -> Section:
-    from clothbench.analysis.pbd_study import best_per_cost
+    from clothbench.analysis.pbd_study import best_per_cost, how_busy
 
     rows = analysis_rows(f)
     r0 = rows[0]
@@ -697,7 +697,7 @@ def pbd_study_section(f: ResultsFile, figures: Figures) -> Section:
             f"Scenes {', '.join(dict.fromkeys(r.scene for r in rows))}, {r0.grid}×{r0.grid}, frames of "
             f"1/{1 / r0.frame_dt:.4g} s, errors at t = {r0.time_s:g} s, b = {r0.damping:g} N s/m; every substeps × iterations "
             f"pair of each cost ({', '.join(map(str, costs))} constraint passes a frame) for each method; "
-            f"{len(rows)} runs. docs/pbd-study.md gives the reasoning."
+            f"{len(rows)} runs; ms per frame: {how_busy(rows)}. docs/pbd-study.md gives the reasoning."
         )
     )
     folder = figures.folder_for(f.path.stem)
